@@ -1,0 +1,34 @@
+//! cutsim-sim: soft-tissue models, collision and cutting for the cutsim surgical
+//! training simulator. No async, no network: the server crate drives this one.
+//!
+//! - [`scene`]: scene files (JSON) and their validation.
+//! - [`tissue::Tissue`]: the one interface every tissue model offers the session.
+//! - [`msm`]: the surface mass-spring skin with residual stress and three-stage cutting.
+//! - [`surface`]: the visible surface with stable ids, snapshots and topology deltas.
+//! - [`script`] and [`runner`]: cut scripts run in lockstep, with a report.
+//!
+//! Units are SI everywhere: m, kg, s, Pa, N.
+
+pub mod broad_phase;
+pub mod geometry;
+pub mod hash;
+pub mod math;
+pub mod msm;
+pub mod quantity;
+pub mod runner;
+pub mod scene;
+pub mod script;
+pub mod stats;
+pub mod surface;
+pub mod tissue;
+pub mod tool;
+
+use scene::{ModelSpec, Scene, SceneError};
+use tissue::Tissue;
+
+/// Builds the tissue model a scene describes.
+pub fn build_tissue(scene: &Scene) -> Result<Box<dyn Tissue>, SceneError> {
+    match &scene.model {
+        ModelSpec::Msm(spec) => Ok(Box::new(msm::build_from_scene(scene, spec)?)),
+    }
+}

@@ -1,0 +1,293 @@
+//! Three-stage cutting (paper Section 2.3) for the mass-spring skin, driven by the
+//! blade's motion.
+//!
+//! While a blade with its cut button held crosses the surface, each time its crossing
+//! point has moved `min_advance_m` along the skin the incision grows by one update:
+//! stage 1 ([`swept_volume`]) removes what the blade swept since the last update,
+//! stage 2 ([`bezier`]) extends the incision's C1 Bézier chain to the new crossing point,
+//! stage 3 ([`node_matching`]) stitches the surface back with split lips. The previous
+//! update's end vertex is removed by the next one, so the incision's end moves with the
+//! tool, and a cut made over many steps has the same structure as one made at once.
+
+pub mod bezier;
+pub(crate) mod node_matching;
+pub mod swept_volume;
+
+use bezier::BezierChain;
+use node_matching::{MatchError, MatchInput, match_nodes};
+use swept_volume::SweptVolume;
+
+use crate::broad_phase::PointGrid;
+use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle, segment_triangle_intersection, triangle_normal};
+use crate::msm::state::Topology;
+use crate::tool::PlacedTool;
+
+/// Cutting settings resolved against the mesh.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CuttingParams {
+    /// Radius of the swept volume, m.
+    pub sweep_radius_m: f64,
+    /// Blade travel along the skin between incision updates, m.
+    pub min_advance_m: f64,
+    /// Spacing of the incision's vertices, m (the mean edge length).
+    pub vertex_spacing_m: f64,
+}
+
+/// One incision (a cut stroke): its curve and its two lips.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Incision {
+    pub tool: usize,
+    pub curve: BezierChain,
+    /// Lip vertex ids along the incision, left and right of the curve (seen from the
+    /// surface normal), start to end. A closed start or end vertex is in both.
+    pub lips: [Vec<u32>; 2],
+}
+
+#[derive(Debug, Clone)]
+enum Anchor {
+    /// The stroke has begun here and has not cut yet.
+    Start(Vec3),
+    /// The incision ends at this vertex (its closed tip), which the next update removes.
+    Tip(u32),
+}
+
+#[derive(Debug, Clone)]
+struct Stroke {
+    anchor: Anchor,
+    /// The blade part near the surface at the last update (tip side, top side).
+    last_blade: (Vec3, Vec3),
+    incision: Option<usize>,
+}
+
+/// What a cut update changes; the model applies it.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct CutPlan {
+    pub removed_tris: Vec<u32>,
+    /// New vertices (position m, velocity m/s); ids follow the current node count.
+    pub new_vertices: Vec<(Vec3, Vec3)>,
+    pub new_triangles: Vec<[u32; 3]>,
+    pub incision_length_m: f64,
+    pub starts_new_cut: bool,
+    /// Stitching failed; the swept area was removed and left open.
+    pub fallback: bool,
+    pub min_angle_deg: Option<f64>,
+}
+
+/// Read-only view of the model a cut update needs.
+pub(crate) struct CutView<'a> {
+    pub x: &'a [Vec3],
+    pub v: &'a [Vec3],
+    pub topo: &'a Topology,
+    pub grid: &'a PointGrid,
+    /// Longest edge of the mesh, m (bounds the search around the blade).
+    pub max_edge_m: f64,
+}
+
+/// Where the blade crosses the surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Crossing {
+    pub point: Vec3,
+    /// Parameter along the blade from its tip, [0, 1].
+    pub blade_t: f64,
+}
+
+#[derive(Debug, Clone)]
+pub(crate) struct Cutter {
+    pub params: CuttingParams,
+    strokes: Vec<Option<Stroke>>,
+    pub incisions: Vec<Incision>,
+    /// Scratch for candidate triangles (kept to avoid allocating while the blade is in).
+    candidates: Vec<u32>,
+}
+
+impl Cutter {
+    pub fn new(params: CuttingParams, tools: usize) -> Self {
+        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096) }
+    }
+
+    /// Ends the tool's stroke (blade lifted, button released or tool away).
+    pub fn end_stroke(&mut self, tool: usize) {
+        self.strokes[tool] = None;
+    }
+
+    /// Follows the blade for one step; returns a topology change when the incision grows.
+    pub fn update(&mut self, tool: usize, blade: &PlacedTool, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
+        let Some(hit) = self.find_crossing(blade, view) else {
+            self.strokes[tool] = None;
+            return None;
+        };
+        let near = self.blade_near_surface(blade, hit.blade_t, view);
+        let Some(stroke) = self.strokes[tool].as_mut() else {
+            self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None });
+            return None;
+        };
+        let anchor_point = match stroke.anchor {
+            Anchor::Start(p) => p,
+            Anchor::Tip(v) => view.x[v as usize],
+        };
+        if (hit.point - anchor_point).norm() < self.params.min_advance_m {
+            return None;
+        }
+        let stroke = stroke.clone();
+        let mut chain = stroke.incision.map(|i| self.incisions[i].curve.clone()).unwrap_or_default();
+        let segment = chain.extend(anchor_point, hit.point);
+        let length = segment.length();
+        let segments = ((length / self.params.vertex_spacing_m).round() as usize).max(2);
+        let mut curve = Vec::with_capacity(segments + 1);
+        segment.sample_by_arc_length(segments, &mut curve);
+
+        let volume = SweptVolume::new(stroke.last_blade, near, &curve, self.params.sweep_radius_m);
+        let mut removed = self.swept_triangles(&volume, view);
+        if let Anchor::Tip(v) = stroke.anchor {
+            removed.extend(view.topo.node_tris[v as usize].iter().copied());
+        }
+        removed.sort_unstable();
+        removed.dedup();
+        if removed.is_empty() {
+            return None;
+        }
+
+        let mut plan = CutPlan { starts_new_cut: stroke.incision.is_none(), incision_length_m: length, ..Default::default() };
+        let mut matched = None;
+        for _attempt in 0..4 {
+            let normal = area_normal(&removed, view);
+            let input = MatchInput { topo: view.topo, x: view.x, removed_tris: &removed, curve: &curve, normal, next_vertex_id };
+            match match_nodes(&input) {
+                Ok(out) => {
+                    matched = Some(out);
+                    break;
+                }
+                Err(MatchError::Grow(more)) => {
+                    removed.extend(more);
+                    removed.sort_unstable();
+                    removed.dedup();
+                }
+                Err(_) => break,
+            }
+        }
+        match matched {
+            Some(out) => {
+                plan.new_vertices =
+                    out.new_vertices.iter().map(|p| (*p, interpolated_velocity(p, &removed, view))).collect();
+                plan.new_triangles = out.new_triangles;
+                plan.min_angle_deg = Some(out.min_angle_deg);
+                let index = match stroke.incision {
+                    Some(i) => {
+                        self.incisions[i].curve = chain;
+                        i
+                    }
+                    None => {
+                        self.incisions.push(Incision { tool, curve: chain, lips: [Vec::new(), Vec::new()] });
+                        self.incisions.len() - 1
+                    }
+                };
+                let incision = &mut self.incisions[index];
+                for (lip, new) in incision.lips.iter_mut().zip(out.lips) {
+                    // A continuing update starts on an older lip vertex: what followed it
+                    // (the old tip, and anything the sweep removed) is replaced.
+                    match lip.iter().rposition(|v| Some(v) == new.first()) {
+                        Some(join) => lip.truncate(join),
+                        None => {
+                            if let Anchor::Tip(old) = stroke.anchor {
+                                if lip.last() == Some(&old) {
+                                    lip.pop();
+                                }
+                            }
+                        }
+                    }
+                    lip.extend(new);
+                }
+                self.strokes[tool] = out.closed_end_vertex.map(|tip| Stroke {
+                    anchor: Anchor::Tip(tip),
+                    last_blade: near,
+                    incision: Some(index),
+                });
+            }
+            None => {
+                plan.fallback = true;
+                plan.incision_length_m = 0.0;
+                self.strokes[tool] = None;
+            }
+        }
+        plan.removed_tris = removed;
+        Some(plan)
+    }
+
+    /// The first point (from the tip) where the blade's axis crosses a live triangle.
+    fn find_crossing(&mut self, blade: &PlacedTool, view: &CutView) -> Option<Crossing> {
+        let (min, max) = blade.bounds(view.max_edge_m);
+        self.candidates.clear();
+        let candidates = &mut self.candidates;
+        view.grid.query_box(&min, &max, |node| candidates.extend(view.topo.node_tris[node as usize].iter().copied()));
+        self.candidates.sort_unstable();
+        self.candidates.dedup();
+        let mut best: Option<Crossing> = None;
+        for &t in &self.candidates {
+            let [a, b, c] = view.topo.tris[t as usize].map(|v| view.x[v as usize]);
+            if let Some(s) = segment_triangle_intersection(&blade.tip, &blade.top, &a, &b, &c) {
+                if best.is_none_or(|h| s < h.blade_t) {
+                    best = Some(Crossing { point: blade.tip + (blade.top - blade.tip) * s, blade_t: s });
+                }
+            }
+        }
+        best
+    }
+
+    /// The part of the blade within a few edge lengths of the surface crossing.
+    fn blade_near_surface(&self, blade: &PlacedTool, t: f64, view: &CutView) -> (Vec3, Vec3) {
+        let reach = self.params.sweep_radius_m + 2.0 * view.max_edge_m;
+        let at = t * blade.length_m;
+        let lo = (at - reach).max(0.0);
+        let hi = (at + reach).min(blade.length_m);
+        (blade.tip + blade.axis * lo, blade.tip + blade.axis * hi)
+    }
+
+    /// Stage 1: triangles with a vertex inside the swept volume, an edge (spring) it
+    /// touches, or the incision curve passing over them.
+    fn swept_triangles(&self, volume: &SweptVolume, view: &CutView) -> Vec<u32> {
+        let (min, max) = volume.bounds(view.max_edge_m);
+        let mut nodes = Vec::new();
+        view.grid.query_box(&min, &max, |n| nodes.push(n));
+        nodes.sort_unstable();
+        let mut tris: Vec<u32> = nodes.iter().flat_map(|&n| view.topo.node_tris[n as usize].iter().copied()).collect();
+        tris.sort_unstable();
+        tris.dedup();
+        tris.retain(|&t| {
+            let ids = view.topo.tris[t as usize];
+            let p = ids.map(|v| view.x[v as usize]);
+            p.iter().any(|q| volume.contains(q))
+                || (0..3).any(|k| volume.touches_segment(&p[k], &p[(k + 1) % 3]))
+                || volume.curve_touches_triangle(&p)
+        });
+        tris
+    }
+}
+
+/// Unit area-weighted normal of the given triangles.
+fn area_normal(tris: &[u32], view: &CutView) -> Vec3 {
+    let sum: Vec3 = tris
+        .iter()
+        .map(|&t| {
+            let [a, b, c] = view.topo.tris[t as usize].map(|v| view.x[v as usize]);
+            triangle_normal(&a, &b, &c)
+        })
+        .sum();
+    let n = sum.norm();
+    if n > 0.0 { sum / n } else { Vec3::z() }
+}
+
+/// Velocity of the removed skin at `p`: new vertices move on as the tissue there did.
+fn interpolated_velocity(p: &Vec3, removed: &[u32], view: &CutView) -> Vec3 {
+    let mut best = (f64::INFINITY, Vec3::zeros());
+    for &t in removed {
+        let ids = view.topo.tris[t as usize];
+        let [a, b, c] = ids.map(|v| view.x[v as usize]);
+        let d = (closest_point_on_triangle(p, &a, &b, &c) - p).norm_squared();
+        if d < best.0 {
+            let w = barycentric_closest(p, &a, &b, &c);
+            let v = view.v[ids[0] as usize] * w[0] + view.v[ids[1] as usize] * w[1] + view.v[ids[2] as usize] * w[2];
+            best = (d, v);
+        }
+    }
+    best.1
+}

@@ -1,0 +1,522 @@
+//! Stage 3 of the three-stage cut (paper Section 2.3.3, Algorithm 2): shortest-distance
+//! node matching, which stitches the surface back around the incision so the wound
+//! can open.
+//!
+//! Input: the triangles stage 1 removed (the grey area) and the incision curve of stage
+//! 2, sampled into vertices about one edge length apart. Output: new vertices and
+//! triangles that fill the grey area on both sides of the curve.
+//!
+//! 1. The grey area's border is followed as chains of vertices (each edge oriented as
+//!    in the kept triangle beside it, so the hole is on the right of the walk). A chain
+//!    is a loop when the hole lies inside the tissue, or open when it ends on a border
+//!    of the mesh (the patch edge, or the wound of the same cut growing).
+//! 2. Each end of the curve is *closed* (it stops inside the tissue: one vertex ends
+//!    both lips there) or *open* (it meets a border: each lip ends on the chain end of its
+//!    own side). At a closed end the border vertex nearest to the end, preferring those
+//!    ahead of it, is the paper's "yellow" node; the chains are split there into two
+//!    arcs, one on each side of the curve.
+//! 3. Every curve vertex except the closed ends is split in two, one per lip.
+//! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
+//!    closing the quad between them with its shorter diagonal (the green springs).
+//! 5. A few Lawson flips inside the new triangles raise the smallest angle.
+//!
+//! The result is manifold by construction; orientation and the smallest angle are
+//! checked and reported. When the grey area is not a simple hole (it pinches at a
+//! vertex or encloses an island of triangles), the caller is told which triangles to
+//! remove as well, and tries again.
+
+use crate::math::{Vec3, closest_point_on_segment, triangle_min_angle_deg, triangle_normal};
+use crate::msm::state::Topology;
+
+/// What node matching needs to see.
+pub(crate) struct MatchInput<'a> {
+    pub topo: &'a Topology,
+    /// Node positions, m.
+    pub x: &'a [Vec3],
+    /// Triangles stage 1 removes (sorted ascending; still alive in `topo`).
+    pub removed_tris: &'a [u32],
+    /// Incision curve from its start to its end (segments + 1 points).
+    pub curve: &'a [Vec3],
+    /// Unit normal of the surface around the cut.
+    pub normal: Vec3,
+    /// Id the first new vertex will get.
+    pub next_vertex_id: u32,
+}
+
+/// The stitched wound.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct MatchOutput {
+    /// Positions of the new vertices; vertex `k` gets id `next_vertex_id + k`.
+    pub new_vertices: Vec<Vec3>,
+    pub new_triangles: Vec<[u32; 3]>,
+    /// Lip vertex ids from the start of the curve to its end, left and right of it.
+    pub lips: [Vec<u32>; 2],
+    /// The vertex that closes the curve's end, when that end is closed.
+    pub closed_end_vertex: Option<u32>,
+    pub start_open: bool,
+    pub end_open: bool,
+    /// Smallest angle of the new triangles, degrees.
+    pub min_angle_deg: f64,
+}
+
+/// Why the grey area could not be stitched.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub(crate) enum MatchError {
+    #[error("the removed area is not a simple hole; also remove triangles {0:?}")]
+    Grow(Vec<u32>),
+    #[error("the removed area has no border with the remaining tissue")]
+    NoBorder,
+    #[error("{0}")]
+    Unsupported(String),
+}
+
+/// Signed position of a point relative to the curve.
+struct CurveFrame<'a> {
+    points: &'a [Vec3],
+    cumulative: Vec<f64>,
+    normal: Vec3,
+}
+
+impl<'a> CurveFrame<'a> {
+    fn new(points: &'a [Vec3], normal: Vec3) -> Self {
+        let mut cumulative = vec![0.0];
+        for w in points.windows(2) {
+            cumulative.push(cumulative.last().unwrap() + (w[1] - w[0]).norm());
+        }
+        Self { points, cumulative, normal }
+    }
+
+    fn tangent(&self, segment: usize) -> Vec3 {
+        (self.points[segment + 1] - self.points[segment]).normalize()
+    }
+
+    /// (arc-length parameter, extended past the ends along the end tangents; side: +1
+    /// left of the curve seen from the normal, −1 right).
+    fn locate(&self, p: &Vec3) -> (f64, f64) {
+        let mut best = (f64::INFINITY, 0usize, 0.0f64);
+        for i in 0..self.points.len() - 1 {
+            let (t, q) = closest_point_on_segment(p, &self.points[i], &self.points[i + 1]);
+            let d = (q - p).norm_squared();
+            if d < best.0 {
+                best = (d, i, t);
+            }
+        }
+        let (_, i, t) = best;
+        let tangent = self.tangent(i);
+        let last = self.points.len() - 2;
+        let param = if i == 0 && t == 0.0 {
+            (p - self.points[0]).dot(&tangent)
+        } else if i == last && t == 1.0 {
+            self.cumulative[last + 1] + (p - self.points[last + 1]).dot(&tangent)
+        } else {
+            self.cumulative[i] + t * (self.cumulative[i + 1] - self.cumulative[i])
+        };
+        let on_curve = self.points[i] + (self.points[i + 1] - self.points[i]) * t;
+        let side = tangent.cross(&(p - on_curve)).dot(&self.normal);
+        (param, if side >= 0.0 { 1.0 } else { -1.0 })
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Chain {
+    vertices: Vec<u32>,
+    closed: bool,
+}
+
+/// Runs node matching; see the module documentation.
+pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError> {
+    if input.curve.len() < 2 {
+        return Err(MatchError::Unsupported("the incision curve needs at least two points".into()));
+    }
+    let chains = grey_chains(input)?;
+    if chains.is_empty() {
+        return Err(MatchError::NoBorder);
+    }
+    let frame = CurveFrame::new(input.curve, input.normal);
+    let n = input.curve.len() - 1;
+    let (start_point, end_point) = (input.curve[0], input.curve[n]);
+
+    // Open chain ends belong to the curve end they are nearer to.
+    let mut start_ends: Vec<u32> = Vec::new();
+    let mut end_ends: Vec<u32> = Vec::new();
+    for chain in chains.iter().filter(|c| !c.closed) {
+        for v in [chain.vertices[0], *chain.vertices.last().unwrap()] {
+            let p = input.x[v as usize];
+            if (p - start_point).norm() <= (p - end_point).norm() {
+                start_ends.push(v);
+            } else {
+                end_ends.push(v);
+            }
+        }
+    }
+    for (group, name) in [(&start_ends, "start"), (&end_ends, "end")] {
+        if group.len() != 0 && group.len() != 2 {
+            return Err(MatchError::Unsupported(format!(
+                "the removed area meets the mesh border {} times near the incision's {name} (0 or 2 supported)",
+                group.len()
+            )));
+        }
+    }
+    let (start_open, end_open) = (start_ends.len() == 2, end_ends.len() == 2);
+
+    // Yellow nodes at the closed ends.
+    let outward = |from: usize, to: usize| (input.curve[to] - input.curve[from]).normalize();
+    let yellow_start = (!start_open).then(|| pick_yellow(&chains, input.x, &start_point, &outward(1, 0)));
+    let yellow_end = (!end_open).then(|| pick_yellow(&chains, input.x, &end_point, &outward(n - 1, n)));
+    if yellow_start.is_some() && yellow_start == yellow_end {
+        return Err(MatchError::Unsupported("both ends of the incision reach the same border node".into()));
+    }
+
+    let arcs = split_into_arcs(&chains, yellow_start, yellow_end)?;
+    if arcs.len() != 2 {
+        return Err(MatchError::Unsupported(format!(
+            "the border of the removed area splits into {} arcs (2 supported)",
+            arcs.len()
+        )));
+    }
+    let sides = [arc_side(&arcs[0], &frame, input.x), arc_side(&arcs[1], &frame, input.x)];
+    if sides[0] == sides[1] {
+        return Err(MatchError::Unsupported("both border arcs lie on the same side of the incision".into()));
+    }
+
+    // New vertices: the closed ends (shared by both lips), then each lip's interior.
+    let mut out = MatchOutput { start_open, end_open, ..Default::default() };
+    let base = input.next_vertex_id;
+    let push_vertex = |out: &mut MatchOutput, p: Vec3| {
+        out.new_vertices.push(p);
+        base + out.new_vertices.len() as u32 - 1
+    };
+    let closed_start = (!start_open).then(|| push_vertex(&mut out, start_point));
+    let closed_end = (!end_open).then(|| push_vertex(&mut out, end_point));
+    out.closed_end_vertex = closed_end;
+
+    let mut strips: Vec<(&[u32], bool)> = Vec::with_capacity(2);
+    for (slot, side) in [1.0, -1.0].into_iter().enumerate() {
+        let arc: &[u32] = if sides[0] == side { &arcs[0] } else { &arcs[1] };
+        let (first, last) = (arc[0], *arc.last().unwrap());
+        let is_start_end = |v: u32| if start_open { start_ends.contains(&v) } else { Some(v) == yellow_start };
+        let is_end_end = |v: u32| if end_open { end_ends.contains(&v) } else { Some(v) == yellow_end };
+        // The arc is walked with the hole on its right: from the curve's start to its end
+        // on the left side, backwards on the right side.
+        let forward = if is_start_end(first) && is_end_end(last) {
+            true
+        } else if is_start_end(last) && is_end_end(first) {
+            false
+        } else {
+            return Err(MatchError::Unsupported("a border arc does not run from one end of the incision to the other".into()));
+        };
+        let (arc_start, arc_end) = if forward { (first, last) } else { (last, first) };
+        let mut lip = vec![closed_start.unwrap_or(arc_start)];
+        for p in &input.curve[1..n] {
+            lip.push(push_vertex(&mut out, *p));
+        }
+        lip.push(closed_end.unwrap_or(arc_end));
+        out.lips[slot] = lip;
+        strips.push((arc, forward));
+    }
+
+    let position = |id: u32, out: &MatchOutput| -> Vec3 {
+        if id >= base { out.new_vertices[(id - base) as usize] } else { input.x[id as usize] }
+    };
+    for (slot, &(arc, forward)) in strips.iter().enumerate() {
+        let mut lip = out.lips[slot].clone();
+        if !forward {
+            lip.reverse();
+        }
+        // At an open end the lip starts (or ends) on the arc's own end vertex.
+        let mut q: &[u32] = &lip;
+        if q[0] == arc[0] {
+            q = &q[1..];
+        }
+        if q.last() == arc.last() {
+            q = &q[..q.len() - 1];
+        }
+        if q.is_empty() {
+            return Err(MatchError::Unsupported("a lip has no vertex between its ends".into()));
+        }
+        let before = out.new_triangles.len();
+        let mut strip = Vec::new();
+        zip_shortest_diagonal(arc, q, |id| position(id, &out), &mut strip);
+        out.new_triangles.extend(strip);
+        for t in &out.new_triangles[before..] {
+            let [a, b, c] = t.map(|id| position(id, &out));
+            if triangle_normal(&a, &b, &c).dot(&input.normal) <= 0.0 {
+                return Err(MatchError::Unsupported("stitching would fold a triangle over".into()));
+            }
+        }
+    }
+
+    let positions = |id: u32| if id >= base { out.new_vertices[(id - base) as usize] } else { input.x[id as usize] };
+    let mut triangles = std::mem::take(&mut out.new_triangles);
+    lawson_flips(&mut triangles, &positions, &input.normal, |a, b| {
+        input.topo.edge_tris(a, b).any(|t| input.removed_tris.binary_search(&t).is_err())
+    });
+    out.min_angle_deg = triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(positions);
+            triangle_min_angle_deg(&a, &b, &c)
+        })
+        .fold(f64::INFINITY, f64::min);
+    out.new_triangles = triangles;
+    Ok(out)
+}
+
+/// Follows the border between removed and kept triangles.
+fn grey_chains(input: &MatchInput) -> Result<Vec<Chain>, MatchError> {
+    let removed = |t: u32| input.removed_tris.binary_search(&t).is_ok();
+    let mut edges: Vec<(u32, u32)> = Vec::new();
+    for &t in input.removed_tris {
+        let tri = input.topo.tris[t as usize];
+        for k in 0..3 {
+            let (a, b) = (tri[k], tri[(k + 1) % 3]);
+            if input.topo.across(t, a, b).is_some_and(|o| !removed(o)) {
+                // The kept triangle traverses this edge as b → a.
+                edges.push((b, a));
+            }
+        }
+    }
+    edges.sort_unstable();
+    // A vertex with two outgoing border edges is a pinch: remove its triangles too.
+    for w in edges.windows(2) {
+        if w[0].0 == w[1].0 {
+            let v = w[0].0;
+            return Err(MatchError::Grow(input.topo.node_tris[v as usize].clone()));
+        }
+    }
+    let mut targets: Vec<u32> = edges.iter().map(|e| e.1).collect();
+    targets.sort_unstable();
+    let mut used = vec![false; edges.len()];
+    let mut chains = Vec::new();
+    let follow = |start: u32, used: &mut Vec<bool>| -> Chain {
+        let mut vertices = vec![start];
+        let mut v = start;
+        while let Some(i) = edges.binary_search_by_key(&v, |e| e.0).ok() {
+            if used[i] {
+                return Chain { vertices, closed: true };
+            }
+            used[i] = true;
+            v = edges[i].1;
+            if v == start {
+                return Chain { vertices, closed: true };
+            }
+            vertices.push(v);
+        }
+        Chain { vertices, closed: false }
+    };
+    for &(from, _) in &edges {
+        if targets.binary_search(&from).is_err() {
+            chains.push(follow(from, &mut used));
+        }
+    }
+    for i in 0..edges.len() {
+        if !used[i] {
+            chains.push(follow(edges[i].0, &mut used));
+        }
+    }
+
+    // A loop that runs counter-clockwise encloses kept triangles: an island inside the
+    // hole. Remove the island as well.
+    let loops: Vec<&Chain> = chains.iter().filter(|c| c.closed).collect();
+    for chain in &loops {
+        let area = signed_area(&chain.vertices, input.x, &input.normal);
+        if area > 0.0 {
+            let island = flood_island(input, &chain.vertices, &removed);
+            if island.is_empty() || island.len() > 64 {
+                return Err(MatchError::Unsupported(format!(
+                    "an island of {} triangles remains inside the removed area",
+                    island.len()
+                )));
+            }
+            return Err(MatchError::Grow(island));
+        }
+    }
+    Ok(chains)
+}
+
+fn signed_area(loop_vertices: &[u32], x: &[Vec3], normal: &Vec3) -> f64 {
+    let origin = x[loop_vertices[0] as usize];
+    let mut sum = Vec3::zeros();
+    for i in 0..loop_vertices.len() {
+        let a = x[loop_vertices[i] as usize] - origin;
+        let b = x[loop_vertices[(i + 1) % loop_vertices.len()] as usize] - origin;
+        sum += a.cross(&b);
+    }
+    0.5 * sum.dot(normal)
+}
+
+/// Kept triangles reachable from the loop's vertices without crossing the loop.
+fn flood_island(input: &MatchInput, loop_vertices: &[u32], removed: &dyn Fn(u32) -> bool) -> Vec<u32> {
+    let mut island: Vec<u32> = loop_vertices
+        .iter()
+        .flat_map(|&v| input.topo.node_tris[v as usize].iter().copied())
+        .filter(|&t| !removed(t))
+        .filter(|&t| input.topo.tris[t as usize].iter().all(|v| loop_vertices.contains(v)))
+        .collect();
+    island.sort_unstable();
+    island.dedup();
+    island
+}
+
+/// The border vertex nearest to a closed curve end, preferring those ahead of it.
+fn pick_yellow(chains: &[Chain], x: &[Vec3], end: &Vec3, outward: &Vec3) -> u32 {
+    let mut best = (f64::INFINITY, u32::MAX);
+    for &v in chains.iter().flat_map(|c| c.vertices.iter()) {
+        let d = x[v as usize] - end;
+        let dist = d.norm();
+        let cos = if dist > 0.0 { d.dot(outward) / dist } else { 1.0 };
+        let score = dist * (2.0 - cos);
+        if score < best.0 || (score == best.0 && v < best.1) {
+            best = (score, v);
+        }
+    }
+    best.1
+}
+
+/// Splits loops and open chains at the yellow nodes into arcs (each in walk order).
+fn split_into_arcs(chains: &[Chain], yellow_start: Option<u32>, yellow_end: Option<u32>) -> Result<Vec<Vec<u32>>, MatchError> {
+    let yellows: Vec<u32> = [yellow_start, yellow_end].into_iter().flatten().collect();
+    let mut arcs = Vec::new();
+    for chain in chains {
+        let cuts: Vec<usize> =
+            chain.vertices.iter().enumerate().filter(|(_, v)| yellows.contains(v)).map(|(i, _)| i).collect();
+        if chain.closed {
+            if cuts.len() != 2 {
+                return Err(MatchError::Unsupported(format!(
+                    "a closed border holds {} of the incision's ends (2 expected)",
+                    cuts.len()
+                )));
+            }
+            let len = chain.vertices.len();
+            let rotated: Vec<u32> = (0..len).map(|k| chain.vertices[(cuts[0] + k) % len]).collect();
+            let second = cuts[1] - cuts[0];
+            arcs.push(rotated[..=second].to_vec());
+            let mut rest = rotated[second..].to_vec();
+            rest.push(rotated[0]);
+            arcs.push(rest);
+        } else {
+            let mut from = 0;
+            for &c in cuts.iter().filter(|&&c| c > 0 && c + 1 < chain.vertices.len()) {
+                arcs.push(chain.vertices[from..=c].to_vec());
+                from = c;
+            }
+            arcs.push(chain.vertices[from..].to_vec());
+        }
+    }
+    Ok(arcs.into_iter().filter(|a| a.len() >= 2).collect())
+}
+
+/// Side of the curve an arc lies on (+1 left, −1 right), by majority of its interior
+/// vertices (or its first edge's midpoint when it has none).
+fn arc_side(arc: &[u32], frame: &CurveFrame, x: &[Vec3]) -> f64 {
+    let interior = &arc[1..arc.len() - 1];
+    if interior.is_empty() {
+        let mid = (x[arc[0] as usize] + x[arc[1] as usize]) * 0.5;
+        return frame.locate(&mid).1;
+    }
+    let sum: f64 = interior.iter().map(|&v| frame.locate(&x[v as usize]).1).sum();
+    if sum >= 0.0 { 1.0 } else { -1.0 }
+}
+
+/// Triangulates the strip between the arc `p` (walked with the hole on its right) and
+/// the lip `q` (walked the same way), closing each quad with its shorter diagonal.
+fn zip_shortest_diagonal(p: &[u32], q: &[u32], pos: impl Fn(u32) -> Vec3, out: &mut Vec<[u32; 3]>) {
+    let (m, k) = (p.len() - 1, q.len() - 1);
+    let (mut i, mut j) = (0, 0);
+    while i < m || j < k {
+        let advance_p = if i == m {
+            false
+        } else if j == k {
+            true
+        } else {
+            (pos(p[i + 1]) - pos(q[j])).norm() <= (pos(p[i]) - pos(q[j + 1])).norm()
+        };
+        if advance_p {
+            out.push([p[i + 1], p[i], q[j]]);
+            i += 1;
+        } else {
+            out.push([p[i], q[j], q[j + 1]]);
+            j += 1;
+        }
+    }
+}
+
+/// Flips interior edges of `tris` while that raises the smaller angle of the two
+/// triangles beside them. `edge_exists_outside(a, b)` tells whether a–b is already an
+/// edge of the kept mesh (a flip must not duplicate it).
+fn lawson_flips(
+    tris: &mut [[u32; 3]],
+    pos: &impl Fn(u32) -> Vec3,
+    normal: &Vec3,
+    edge_exists_outside: impl Fn(u32, u32) -> bool,
+) {
+    let min_angle = |t: &[u32; 3]| {
+        let [a, b, c] = t.map(pos);
+        triangle_min_angle_deg(&a, &b, &c)
+    };
+    for _pass in 0..8 {
+        let mut flipped = false;
+        for i in 0..tris.len() {
+            for e in 0..3 {
+                let (a, b) = (tris[i][e], tris[i][(e + 1) % 3]);
+                let c = tris[i][(e + 2) % 3];
+                let Some(j) = (0..tris.len()).find(|&j| j != i && (0..3).any(|f| tris[j][f] == b && tris[j][(f + 1) % 3] == a))
+                else {
+                    continue;
+                };
+                let d = *tris[j].iter().find(|&&v| v != a && v != b).unwrap();
+                if c == d || edge_exists_outside(c, d) || tris.iter().any(|t| t.contains(&c) && t.contains(&d)) {
+                    continue;
+                }
+                let new1 = [c, a, d];
+                let new2 = [d, b, c];
+                let upright = |t: &[u32; 3]| {
+                    let [p, q, r] = t.map(pos);
+                    triangle_normal(&p, &q, &r).dot(normal) > 0.0
+                };
+                if !(upright(&new1) && upright(&new2)) {
+                    continue;
+                }
+                let before = min_angle(&tris[i]).min(min_angle(&tris[j]));
+                let after = min_angle(&new1).min(min_angle(&new2));
+                if after > before + 1e-9 {
+                    tris[i] = new1;
+                    tris[j] = new2;
+                    flipped = true;
+                    break;
+                }
+            }
+        }
+        if !flipped {
+            return;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn zipper_makes_counter_clockwise_strip() {
+        // An arc along y = 1 with the hole below it is walked towards +x (hole on the
+        // right); the lip along y = 0 is walked the same way.
+        let pts = [
+            Vec3::new(0.0, 1.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(2.0, 1.0, 0.0),
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(2.0, 0.0, 0.0),
+        ];
+        let p = [0u32, 1, 2];
+        let q = [3u32, 4, 5];
+        let mut tris = Vec::new();
+        zip_shortest_diagonal(&p, &q, |i| pts[i as usize], &mut tris);
+        assert_eq!(tris.len(), 4);
+        for t in &tris {
+            let [a, b, c] = t.map(|i| pts[i as usize]);
+            assert!(triangle_normal(&a, &b, &c).z > 0.0, "{t:?} is clockwise");
+        }
+    }
+}

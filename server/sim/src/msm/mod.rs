@@ -1,0 +1,507 @@
+//! `msm`: the surface mass-spring skin (paper 000, ALGORITHMS.md part A).
+//!
+//! Nodes with mass joined by springs along the triangle edges, calibrated from E, t and
+//! ρ ([`calibration`]); residual stress as a prestrain of every spring ([`forces`]);
+//! cylinder tools ([`contact`]); symplectic Euler with substeps ([`explicit`]) or
+//! implicit Euler with CG ([`implicit`]); three-stage cutting ([`cut`]).
+//!
+//! [`MassSpring::step`] reads as the outline of one physics step: place the tools,
+//! then per (sub)step accumulate forces, add contacts and integrate; contain a
+//! blow-up if one is detected; then let cutting tools cut. Nothing in a step without a
+//! cut allocates.
+
+mod apply_cut;
+mod build;
+pub mod calibration;
+pub mod contact;
+pub mod cut;
+pub mod explicit;
+pub(crate) mod forces;
+pub(crate) mod implicit;
+pub(crate) mod state;
+
+pub use build::{IntegratorChoice, MsmParams, build_from_scene};
+pub use cut::{CuttingParams, Incision};
+pub use explicit::StabilityBound;
+
+use std::time::Instant;
+
+use calibration::MembraneMaterial;
+use contact::{Contact, apply_tool_contacts};
+use cut::{CutView, Cutter};
+use implicit::ImplicitSolver;
+use state::{Nodes, SpringSet, Topology};
+
+use crate::broad_phase::PointGrid;
+use crate::hash::StateHasher;
+use crate::math::Vec3;
+use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
+use crate::tissue::{Tissue, TissueCounters};
+use crate::tool::{PlacedTool, ToolCommand, ToolFeedback, ToolShape};
+
+#[derive(Debug, Clone)]
+enum Integrator {
+    SymplecticEuler { substeps: u32 },
+    ImplicitEuler(ImplicitSolver),
+}
+
+/// Time spent in each stage, accumulated while profiling is on (for benchmarks).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTimes {
+    pub forces_ns: u64,
+    pub contacts_ns: u64,
+    pub integrate_ns: u64,
+    pub cut_ns: u64,
+    pub steps: u64,
+}
+
+/// The mass-spring skin.
+#[derive(Debug, Clone)]
+pub struct MassSpring {
+    dt_s: f64,
+    material: MembraneMaterial,
+    residual_strain: f64,
+    mass_damping_per_s: f64,
+    spring_damping_s: f64,
+    gravity: Option<Vec3>,
+    integrator: Integrator,
+    pub(crate) nodes: Nodes,
+    pub(crate) springs: SpringSet,
+    pub(crate) topo: Topology,
+    grid: PointGrid,
+    tools: Vec<ToolShape>,
+    placed: Vec<Option<PlacedTool>>,
+    contacts: Vec<Contact>,
+    cutter: Option<Cutter>,
+    deltas: Vec<TopologyDelta>,
+    topology_version: u64,
+    step_index: u64,
+    counters: TissueCounters,
+    mean_edge_m: f64,
+    max_edge_m: f64,
+    max_contact_stiffness: f64,
+    stability: StabilityBound,
+    profile: Option<StageTimes>,
+    last_cut_min_angle_deg: Option<f64>,
+}
+
+impl MassSpring {
+    /// Advances one step of `time_step_s`; see the module documentation for the stages.
+    pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        debug_assert_eq!(commands.len(), self.tools.len());
+        debug_assert_eq!(feedback.len(), self.tools.len());
+        self.place_tools(commands, feedback);
+
+        let finite_check = match &self.integrator {
+            Integrator::SymplecticEuler { substeps } => {
+                let substeps = *substeps;
+                let h = self.dt_s / f64::from(substeps);
+                let weight = 1.0 / f64::from(substeps);
+                let mut check = 0.0;
+                for _ in 0..substeps {
+                    self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
+                    self.timed(|s| s.add_contacts(commands, feedback, weight), |t, ns| t.contacts_ns += ns);
+                    check = self.timed(
+                        |s| explicit::substep(&mut s.nodes, &mut s.grid, h, s.mass_damping_per_s),
+                        |t, ns| t.integrate_ns += ns,
+                    );
+                }
+                check
+            }
+            Integrator::ImplicitEuler(_) => {
+                self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
+                self.timed(|s| s.add_contacts(commands, feedback, 1.0), |t, ns| t.contacts_ns += ns);
+                self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns)
+            }
+        };
+        if !finite_check.is_finite() {
+            self.contain_blowup(feedback);
+        }
+        if self.cutter.is_some() {
+            self.timed(|s| s.cut(commands, feedback), |t, ns| t.cut_ns += ns);
+        }
+        self.finish_feedback(feedback);
+        self.step_index += 1;
+        if let Some(p) = self.profile.as_mut() {
+            p.steps += 1;
+        }
+    }
+
+    /// Runs `stage`, adding its duration to the profile when profiling is on.
+    fn timed<R>(&mut self, stage: impl FnOnce(&mut Self) -> R, record: impl FnOnce(&mut StageTimes, u64)) -> R {
+        if self.profile.is_none() {
+            return stage(self);
+        }
+        let start = Instant::now();
+        let out = stage(self);
+        let ns = start.elapsed().as_nanos() as u64;
+        if let Some(p) = self.profile.as_mut() {
+            record(p, ns);
+        }
+        out
+    }
+
+    fn place_tools(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
+            *fb = ToolFeedback::default();
+            self.placed[i] = if !command.active {
+                None
+            } else if command.pose.is_finite() {
+                Some(PlacedTool::new(&self.tools[i], &command.pose))
+            } else {
+                self.counters.rejected_poses += 1;
+                None
+            };
+        }
+    }
+
+    fn accumulate_forces(&mut self) {
+        let beta = if matches!(self.integrator, Integrator::ImplicitEuler(_)) { 0.0 } else { self.spring_damping_s };
+        forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta);
+    }
+
+    fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
+        self.contacts.clear();
+        for (i, placed) in self.placed.iter().enumerate() {
+            let Some(tool) = placed else { continue };
+            let shape = &self.tools[i];
+            let radial_only = shape.can_cut && commands[i].cut;
+            apply_tool_contacts(
+                tool,
+                shape.contact_stiffness_n_per_m,
+                radial_only,
+                &mut self.nodes,
+                &self.grid,
+                &mut self.contacts,
+                &mut feedback[i],
+                weight,
+            );
+        }
+    }
+
+    fn implicit_step(&mut self) -> f64 {
+        let Integrator::ImplicitEuler(solver) = &mut self.integrator else { unreachable!() };
+        solver.step(
+            &mut self.nodes,
+            &self.springs.list,
+            &self.contacts,
+            &mut self.grid,
+            self.dt_s,
+            self.mass_damping_per_s,
+            self.spring_damping_s,
+        )
+    }
+
+    /// A non-finite state was produced: put every broken node back where it was made,
+    /// at rest, report it, and send no force to the device this step.
+    fn contain_blowup(&mut self, feedback: &mut [ToolFeedback]) {
+        for i in 0..self.nodes.len() {
+            let broken = !(self.nodes.x[i].iter().all(|c| c.is_finite()) && self.nodes.v[i].iter().all(|c| c.is_finite()));
+            if broken {
+                self.nodes.x[i] = self.nodes.x_ref[i];
+                self.nodes.v[i] = Vec3::zeros();
+                if self.nodes.alive[i] {
+                    self.grid.update(i as u32, &self.nodes.x[i]);
+                }
+            }
+        }
+        if let Integrator::ImplicitEuler(solver) = &mut self.integrator {
+            solver.reset_warm_start();
+        }
+        for fb in feedback.iter_mut() {
+            fb.force_n = Vec3::zeros();
+            fb.torque_nm = Vec3::zeros();
+        }
+        self.counters.blowups_contained += 1;
+    }
+
+    fn cut(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        for tool in 0..self.tools.len() {
+            let wants_cut = self.tools[tool].can_cut && commands[tool].cut;
+            let cutter = self.cutter.as_mut().expect("cut stage runs only with a cutter");
+            let Some(blade) = self.placed[tool].filter(|_| wants_cut) else {
+                cutter.end_stroke(tool);
+                continue;
+            };
+            let view = CutView {
+                x: &self.nodes.x,
+                v: &self.nodes.v,
+                topo: &self.topo,
+                grid: &self.grid,
+                max_edge_m: self.max_edge_m,
+            };
+            let next_id = self.nodes.len() as u32;
+            if let Some(plan) = cutter.update(tool, &blade, &view, next_id) {
+                feedback[tool].cutting = true;
+                self.apply_cut(plan);
+            }
+        }
+    }
+
+    fn finish_feedback(&mut self, feedback: &mut [ToolFeedback]) {
+        for (fb, tool) in feedback.iter_mut().zip(&self.tools) {
+            if !(fb.force_n.iter().all(|c| c.is_finite()) && fb.torque_nm.iter().all(|c| c.is_finite())) {
+                fb.force_n = Vec3::zeros();
+                fb.torque_nm = Vec3::zeros();
+            }
+            fb.clamp_force(tool.max_force_n);
+            if fb.force_clamped {
+                self.counters.force_clamps += 1;
+            }
+        }
+    }
+
+    // ----- read access (tests, tools, reports) -----
+
+    /// Node positions by id, m (dead ids included; see [`Self::node_alive`]).
+    pub fn positions(&self) -> &[Vec3] {
+        &self.nodes.x
+    }
+
+    pub fn velocities(&self) -> &[Vec3] {
+        &self.nodes.v
+    }
+
+    pub fn masses(&self) -> &[f64] {
+        &self.nodes.mass
+    }
+
+    pub fn node_alive(&self, id: u32) -> bool {
+        self.nodes.alive.get(id as usize).copied().unwrap_or(false)
+    }
+
+    pub fn node_count(&self) -> usize {
+        self.nodes.alive_count()
+    }
+
+    pub fn spring_count(&self) -> usize {
+        self.springs.len()
+    }
+
+    /// Live triangles: (id, vertex ids).
+    pub fn triangles(&self) -> impl Iterator<Item = (u32, [u32; 3])> + '_ {
+        self.topo.tris.iter().enumerate().filter(|(t, _)| self.topo.tri_alive[*t]).map(|(t, tri)| (t as u32, *tri))
+    }
+
+    /// Sum of node masses, kg.
+    pub fn total_mass(&self) -> f64 {
+        self.nodes.mass.iter().sum()
+    }
+
+    /// ρ·t·(sum of the live triangles' reference areas), kg: what the total mass must be.
+    pub fn mass_of_triangles(&self) -> f64 {
+        let area: f64 = self.triangles().map(|(t, _)| self.topo.tri_area_ref[t as usize]).sum();
+        self.material.density_kg_per_m3 * self.material.thickness_m * area
+    }
+
+    pub fn kinetic_energy(&self) -> f64 {
+        forces::kinetic_energy(&self.nodes)
+    }
+
+    /// Elastic plus external-force potential, J (see `forces::potential_energy`).
+    pub fn potential_energy(&self) -> f64 {
+        forces::potential_energy(&self.nodes, &self.springs.list, self.gravity)
+    }
+
+    /// Net spring force on a node, N (for reactions at fixed nodes).
+    pub fn spring_force_on(&self, node: u32) -> Vec3 {
+        let mut f = Vec3::zeros();
+        for s in &self.springs.list {
+            if s.a != node && s.b != node {
+                continue;
+            }
+            let d = self.nodes.x[s.b as usize] - self.nodes.x[s.a as usize];
+            let len = d.norm();
+            if len > 0.0 {
+                let pull = d * (s.k * (len - s.l0) / len);
+                f += if s.a == node { pull } else { -pull };
+            }
+        }
+        f
+    }
+
+    /// Springs as (a, b, stiffness N/m, natural length m).
+    pub fn springs(&self) -> impl Iterator<Item = (u32, u32, f64, f64)> + '_ {
+        self.springs.list.iter().map(|s| (s.a, s.b, s.k, s.l0))
+    }
+
+    /// Moves a node (with zero velocity). On a fixed node this prescribes a displacement.
+    pub fn set_node_position(&mut self, id: u32, x: Vec3) {
+        self.nodes.x[id as usize] = x;
+        self.nodes.v[id as usize] = Vec3::zeros();
+        self.grid.update(id, &x);
+    }
+
+    /// The incisions made so far, with their curves and lips.
+    pub fn incisions(&self) -> &[Incision] {
+        self.cutter.as_ref().map_or(&[], |c| &c.incisions)
+    }
+
+    pub fn mean_edge_length_m(&self) -> f64 {
+        self.mean_edge_m
+    }
+
+    /// Stability of the explicit integrator at the current configuration.
+    pub fn stability_bound(&self) -> StabilityBound {
+        self.stability
+    }
+
+    /// Current explicit substeps (None for the implicit integrator).
+    pub fn substeps(&self) -> Option<u32> {
+        match &self.integrator {
+            Integrator::SymplecticEuler { substeps } => Some(*substeps),
+            Integrator::ImplicitEuler(_) => None,
+        }
+    }
+
+    /// CG iterations and relative residual of the last implicit step.
+    pub fn last_solve(&self) -> Option<(u32, f64)> {
+        match &self.integrator {
+            Integrator::ImplicitEuler(s) => Some((s.last_iterations, s.last_residual)),
+            Integrator::SymplecticEuler { .. } => None,
+        }
+    }
+
+    /// Smallest angle of the triangles the last cut update created, degrees.
+    pub fn last_cut_min_angle_deg(&self) -> Option<f64> {
+        self.last_cut_min_angle_deg
+    }
+
+    pub fn material(&self) -> MembraneMaterial {
+        self.material
+    }
+
+    pub fn residual_strain(&self) -> f64 {
+        self.residual_strain
+    }
+
+    /// Turns per-stage timing on (with fresh totals) or off.
+    pub fn set_profiling(&mut self, on: bool) {
+        self.profile = on.then(StageTimes::default);
+    }
+
+    pub fn stage_times(&self) -> Option<StageTimes> {
+        self.profile
+    }
+
+    /// Connected pieces of the mesh (triangles joined through shared vertices).
+    pub fn piece_count(&self) -> usize {
+        let n = self.nodes.len();
+        let mut parent: Vec<u32> = (0..n as u32).collect();
+        fn find(parent: &mut [u32], mut i: u32) -> u32 {
+            while parent[i as usize] != i {
+                parent[i as usize] = parent[parent[i as usize] as usize];
+                i = parent[i as usize];
+            }
+            i
+        }
+        for (_, [a, b, c]) in self.triangles() {
+            for (p, q) in [(a, b), (b, c)] {
+                let (rp, rq) = (find(&mut parent, p), find(&mut parent, q));
+                parent[rp as usize] = rq;
+            }
+        }
+        let mut roots: Vec<u32> = (0..n as u32)
+            .filter(|&i| self.nodes.alive[i as usize] && !self.topo.node_tris[i as usize].is_empty())
+            .map(|i| find(&mut parent, i))
+            .collect();
+        roots.sort_unstable();
+        roots.dedup();
+        roots.len()
+    }
+}
+
+impl Tissue for MassSpring {
+    fn model_name(&self) -> &'static str {
+        "msm"
+    }
+
+    fn time_step_s(&self) -> f64 {
+        self.dt_s
+    }
+
+    fn tools(&self) -> &[ToolShape] {
+        &self.tools
+    }
+
+    fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        MassSpring::step(self, commands, feedback);
+    }
+
+    fn step_index(&self) -> u64 {
+        self.step_index
+    }
+
+    fn snapshot(&self) -> SurfaceSnapshot {
+        let vertices = (0..self.nodes.len())
+            .filter(|&i| self.nodes.alive[i] && !self.topo.node_tris[i].is_empty())
+            .map(|i| {
+                let p = self.nodes.x[i];
+                SurfaceVertex { id: i as u32, position_m: [p.x as f32, p.y as f32, p.z as f32], material: 0 }
+            })
+            .collect();
+        let triangles = self.triangles().map(|(id, vertices)| SurfaceTriangle { id, vertices }).collect();
+        SurfaceSnapshot { version: self.topology_version, vertices, triangles }
+    }
+
+    fn topology_version(&self) -> u64 {
+        self.topology_version
+    }
+
+    fn drain_deltas(&mut self, out: &mut Vec<TopologyDelta>) {
+        out.append(&mut self.deltas);
+    }
+
+    fn vertex_capacity(&self) -> usize {
+        self.nodes.len()
+    }
+
+    fn write_positions(&self, out: &mut [[f32; 3]]) {
+        for (o, p) in out.iter_mut().zip(&self.nodes.x) {
+            *o = [p.x as f32, p.y as f32, p.z as f32];
+        }
+    }
+
+    fn vertex_alive(&self, id: u32) -> bool {
+        self.node_alive(id) && !self.topo.node_tris[id as usize].is_empty()
+    }
+
+    fn state_hash(&self) -> u64 {
+        let mut h = StateHasher::new();
+        h.write_u64(self.step_index);
+        h.write_u64(self.topology_version);
+        for i in 0..self.nodes.len() {
+            h.write_u8(u8::from(self.nodes.alive[i]));
+            for c in self.nodes.x[i].iter().chain(self.nodes.v[i].iter()) {
+                h.write_f64(*c);
+            }
+        }
+        for (id, tri) in self.triangles() {
+            h.write_u32(id);
+            for v in tri {
+                h.write_u32(v);
+            }
+        }
+        for s in &self.springs.list {
+            h.write_u32(s.a);
+            h.write_u32(s.b);
+            h.write_f64(s.k);
+            h.write_f64(s.l0);
+        }
+        h.finish()
+    }
+
+    fn counters(&self) -> TissueCounters {
+        TissueCounters {
+            nodes: self.nodes.alive_count() as u64,
+            elements: self.springs.len() as u64,
+            surface_vertices: (0..self.nodes.len()).filter(|&i| self.vertex_alive(i as u32)).count() as u64,
+            surface_triangles: self.topo.alive_tris as u64,
+            ..self.counters
+        }
+    }
+
+    fn pieces(&self) -> usize {
+        self.piece_count()
+    }
+}

@@ -1,0 +1,168 @@
+//! Reading scenes: JSON text → [`Scene`], with errors that say where and why.
+
+use std::path::{Path, PathBuf};
+
+use super::Scene;
+
+/// A scene that cannot be used: where (file, JSON path) and why (with units and ranges).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{origin}: {}: {message}", if path.is_empty() { "(scene)" } else { path.as_str() })]
+pub struct SceneError {
+    /// The scene file, or "inline scene".
+    pub origin: String,
+    /// JSON path of the offending value, e.g. `model.msm.material.young_pa`.
+    pub path: String,
+    pub message: String,
+}
+
+impl SceneError {
+    pub fn new(origin: impl Into<String>, path: impl Into<String>, message: impl Into<String>) -> Self {
+        Self { origin: origin.into(), path: path.into(), message: message.into() }
+    }
+}
+
+impl Scene {
+    /// Parses a scene from JSON text. `origin` names it in errors; relative paths are
+    /// resolved against `base_dir` (the current directory when `None`).
+    pub fn from_json_str(text: &str, origin: &str, base_dir: Option<&Path>) -> Result<Scene, SceneError> {
+        let deserializer = &mut serde_json::Deserializer::from_str(text);
+        let mut scene: Scene = serde_path_to_error::deserialize(deserializer).map_err(|err| {
+            let path = err.path().to_string();
+            let inner = err.into_inner();
+            let message = explain_json_error(text, &inner);
+            SceneError::new(origin, if path == "." { String::new() } else { path }, message)
+        })?;
+        scene.base_dir = base_dir.map(Path::to_path_buf);
+        scene.origin = origin.to_owned();
+        scene.check_cross_fields(origin)?;
+        Ok(scene)
+    }
+
+    /// Reads and parses a scene file.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let origin = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| SceneError::new(&origin, "", format!("cannot read the scene file: {e}")))?;
+        Scene::from_json_str(&text, &origin, path.parent())
+    }
+
+    /// Resolves a path written in this scene (relative to the scene file).
+    pub fn resolve_path(&self, relative: &str) -> PathBuf {
+        match &self.base_dir {
+            Some(dir) => dir.join(relative),
+            None => PathBuf::from(relative),
+        }
+    }
+
+    fn check_cross_fields(&self, origin: &str) -> Result<(), SceneError> {
+        if self.name.trim().is_empty() {
+            return Err(SceneError::new(origin, "name", "the scene needs a non-empty name"));
+        }
+        for (i, tool) in self.tools.iter().enumerate() {
+            if tool.name.trim().is_empty() {
+                return Err(SceneError::new(origin, format!("tools[{i}].name"), "a tool needs a non-empty name"));
+            }
+            if let Some(j) = self.tools[..i].iter().position(|t| t.name == tool.name) {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].name"),
+                    format!("tool name {:?} is already used by tools[{j}]; tool names must be unique", tool.name),
+                ));
+            }
+        }
+        let super::ModelSpec::Msm(msm) = &self.model;
+        for (i, fixed) in msm.fixed.iter().enumerate() {
+            if let super::FixedSpec::Box { min_m, max_m, .. } = fixed {
+                for axis in 0..3 {
+                    if min_m[axis].get() > max_m[axis].get() {
+                        return Err(SceneError::new(
+                            origin,
+                            format!("model.msm.fixed[{i}].box"),
+                            format!(
+                                "min_m[{axis}] = {} m is above max_m[{axis}] = {} m; a box needs min ≤ max on every axis",
+                                min_m[axis].get(),
+                                max_m[axis].get()
+                            ),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// serde_json's message, made plainer where JSON's rules surprise people.
+fn explain_json_error(text: &str, err: &serde_json::Error) -> String {
+    let base = err.to_string();
+    if err.is_syntax() {
+        // JSON has no NaN or Infinity; serde_json reports them as a bare syntax error.
+        let line = text.lines().nth(err.line().saturating_sub(1)).unwrap_or("");
+        let tail = line.get(err.column().saturating_sub(1)..).unwrap_or("");
+        let head = line.get(..err.column().saturating_sub(1)).unwrap_or("");
+        let near = format!("{}{}", head.rsplit([' ', ':', ',', '[']).next().unwrap_or(""), tail);
+        let near = near.trim_start_matches('-');
+        if near.starts_with("NaN") || near.starts_with("Infinity") || near.starts_with("inf") {
+            return format!("NaN and Infinity are not numbers JSON allows; give a finite value ({base})");
+        }
+    }
+    base
+}
+
+/// The JSON Schema of scene files, generated from the types (docs/scene.schema.json).
+pub fn json_schema() -> serde_json::Value {
+    let schema = schemars::schema_for!(Scene);
+    serde_json::to_value(schema).expect("schema serialises")
+}
+
+/// Finds a scene by bundled name (`skin-patch` → `<dir>/skin-patch.json` in the first
+/// directory that has it) or by path (anything containing a `/` or ending in `.json`).
+pub fn resolve_scene_path(name_or_path: &str, scene_dirs: &[PathBuf]) -> Result<PathBuf, SceneError> {
+    let looks_like_path = name_or_path.contains('/') || name_or_path.ends_with(".json");
+    if looks_like_path {
+        let path = PathBuf::from(name_or_path);
+        return if path.is_file() {
+            Ok(path)
+        } else {
+            Err(SceneError::new(name_or_path, "", "no such scene file"))
+        };
+    }
+    let valid_name = !name_or_path.is_empty()
+        && name_or_path.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    if !valid_name {
+        return Err(SceneError::new(
+            name_or_path,
+            "",
+            "a bundled scene name uses only letters, digits, '-' and '_'",
+        ));
+    }
+    for dir in scene_dirs {
+        let candidate = dir.join(format!("{name_or_path}.json"));
+        if candidate.is_file() {
+            return Ok(candidate);
+        }
+    }
+    let known = bundled_scene_names(scene_dirs);
+    Err(SceneError::new(
+        name_or_path,
+        "",
+        format!("unknown scene; bundled scenes are: {}", if known.is_empty() { "(none found)".into() } else { known.join(", ") }),
+    ))
+}
+
+/// Names of the `.json` scenes in the given directories, sorted.
+pub fn bundled_scene_names(scene_dirs: &[PathBuf]) -> Vec<String> {
+    let mut names: Vec<String> = scene_dirs
+        .iter()
+        .filter_map(|d| std::fs::read_dir(d).ok())
+        .flatten()
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            name.strip_suffix(".json").map(str::to_owned)
+        })
+        .collect();
+    names.sort();
+    names.dedup();
+    names
+}

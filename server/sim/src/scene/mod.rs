@@ -1,0 +1,331 @@
+//! Scene files: what a session simulates, and nothing more.
+//!
+//! A scene names its tissue model with the model's geometry source, material,
+//! boundary conditions, integrator and optional effects (gravity, residual stress,
+//! cutting), and its tools. What a scene does not name is not built or computed.
+//! Unknown keys and out-of-range values are refused with the JSON path, the unit and
+//! the allowed range (see [`load`]). Units are SI and written in every key.
+//!
+//! Choices are externally tagged objects, e.g. `"geometry": {"patch": {...}}`: that
+//! keeps the JSON path of every error exact.
+
+mod load;
+
+pub use load::{SceneError, bundled_scene_names, json_schema, resolve_scene_path};
+
+use std::path::PathBuf;
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::quantity::*;
+
+/// A complete scene.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Short name shown in session lists.
+    pub name: String,
+    /// One or two sentences for people choosing a scene.
+    #[serde(default)]
+    pub description: String,
+    /// Physics step in seconds (0.001 = 1 kHz).
+    #[serde(default = "default_time_step")]
+    pub time_step_s: TimeStepS,
+    /// Gravity in m/s². Absent: no gravity term is built.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gravity_m_per_s2: Option<[AccelerationMPerS2; 3]>,
+    /// The tissue model.
+    pub model: ModelSpec,
+    /// Tools the session drives; commands address them by index in this list.
+    #[serde(default)]
+    pub tools: Vec<ToolSpec>,
+    /// Directory that relative file paths in this scene are resolved against (the scene
+    /// file's directory); not part of the JSON.
+    #[serde(skip)]
+    #[schemars(skip)]
+    pub base_dir: Option<PathBuf>,
+    /// Where the scene came from (a file path or "inline scene"), for error messages;
+    /// not part of the JSON.
+    #[serde(skip)]
+    #[schemars(skip)]
+    pub origin: String,
+}
+
+fn default_time_step() -> TimeStepS {
+    TimeStepS(0.001)
+}
+
+/// The tissue model and its settings.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum ModelSpec {
+    /// Surface mass-spring skin with residual stress and three-stage cutting.
+    Msm(MsmSpec),
+}
+
+/// Settings of the mass-spring skin model.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MsmSpec {
+    pub geometry: SurfaceGeometry,
+    pub material: MembraneMaterialSpec,
+    /// Residual strain εr of living skin: springs rest at their imported length / (1 + εr).
+    #[serde(default = "default_residual_strain")]
+    pub residual_strain: ResidualStrain,
+    #[serde(default)]
+    pub damping: DampingSpec,
+    /// Boundary conditions: nodes held fixed (on some or all axes).
+    #[serde(default)]
+    pub fixed: Vec<FixedSpec>,
+    pub integrator: IntegratorSpec,
+    /// Cutting settings. Absent: the scene cannot be cut and no cutting machinery is built.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cutting: Option<CuttingSpec>,
+}
+
+fn default_residual_strain() -> ResidualStrain {
+    ResidualStrain(0.1)
+}
+
+/// A triangulated surface source.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum SurfaceGeometry {
+    /// A procedural rectangular patch in the z = 0 plane, centred on the origin, normal +z.
+    Patch(PatchSpec),
+    /// A Wavefront OBJ triangle mesh.
+    Obj(ObjSpec),
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PatchSpec {
+    /// Side lengths along x and y, m.
+    pub size_m: [LengthM; 2],
+    /// Cells along x and y. Rows alternate by half a cell, so the triangles are
+    /// equilateral when the y spacing is √3/2 of the x spacing.
+    pub resolution: [Resolution; 2],
+    /// Random displacement of interior nodes, as a fraction of the x spacing.
+    #[serde(default = "zero_jitter")]
+    pub jitter: Jitter,
+    /// Seed of the jitter (the same seed gives the same mesh).
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn zero_jitter() -> Jitter {
+    Jitter(0.0)
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ObjSpec {
+    /// Path of the .obj file, relative to the scene file.
+    pub path: String,
+    /// Metres per file unit: 0.001 for a file in millimetres.
+    #[serde(default = "unit_scale")]
+    pub scale_m_per_unit: ScaleMPerUnit,
+    /// Translation applied after scaling, m.
+    #[serde(default)]
+    pub offset_m: Option<[CoordinateM; 3]>,
+}
+
+fn unit_scale() -> ScaleMPerUnit {
+    ScaleMPerUnit(1.0)
+}
+
+/// Physical parameters of a membrane (skin).
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MembraneMaterialSpec {
+    pub young_pa: YoungPa,
+    /// A triangle spring mesh has an effective Poisson ratio of 1/3; the value is
+    /// recorded and reported, and E is matched exactly (see docs/msm.md).
+    #[serde(default = "one_third")]
+    pub poisson: Poisson,
+    pub thickness_m: ThicknessM,
+    pub density_kg_per_m3: DensityKgPerM3,
+}
+
+fn one_third() -> Poisson {
+    Poisson(1.0 / 3.0)
+}
+
+/// Damping: −α·m·v on every node (the paper's −D·v) and optional spring damping.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DampingSpec {
+    /// α in 1/s.
+    #[serde(default = "default_mass_damping")]
+    pub mass_per_s: DampingPerS,
+    /// β in s: each spring also resists its rate of extension with β·k.
+    #[serde(default = "zero_spring_damping")]
+    pub spring_s: SpringDampingS,
+}
+
+impl Default for DampingSpec {
+    fn default() -> Self {
+        Self { mass_per_s: default_mass_damping(), spring_s: zero_spring_damping() }
+    }
+}
+
+fn default_mass_damping() -> DampingPerS {
+    DampingPerS(10.0)
+}
+
+fn zero_spring_damping() -> SpringDampingS {
+    SpringDampingS(0.0)
+}
+
+/// Which nodes are held, and on which axes.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum FixedSpec {
+    /// Every node on the mesh boundary.
+    Boundary {
+        #[serde(default)]
+        axes: Axes,
+    },
+    /// Every node inside an axis-aligned box (in scene coordinates, m).
+    Box {
+        min_m: [CoordinateM; 3],
+        max_m: [CoordinateM; 3],
+        #[serde(default)]
+        axes: Axes,
+    },
+    /// Nodes by index in the geometry source (0-based).
+    Nodes {
+        indices: Vec<u32>,
+        #[serde(default)]
+        axes: Axes,
+    },
+}
+
+/// A set of axes, written as a string such as "xyz", "z" or "xy".
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(into = "String")]
+pub struct Axes {
+    pub x: bool,
+    pub y: bool,
+    pub z: bool,
+}
+
+impl Default for Axes {
+    fn default() -> Self {
+        Self { x: true, y: true, z: true }
+    }
+}
+
+impl From<Axes> for String {
+    fn from(a: Axes) -> String {
+        [(a.x, 'x'), (a.y, 'y'), (a.z, 'z')].iter().filter(|(on, _)| *on).map(|(_, c)| *c).collect()
+    }
+}
+
+impl<'de> Deserialize<'de> for Axes {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        let mut axes = Axes { x: false, y: false, z: false };
+        for c in text.chars() {
+            let slot = match c {
+                'x' => &mut axes.x,
+                'y' => &mut axes.y,
+                'z' => &mut axes.z,
+                _ => {
+                    return Err(serde::de::Error::custom(format!(
+                        "axes must be a combination of x, y and z such as \"xyz\" or \"z\", got {text:?}"
+                    )));
+                }
+            };
+            *slot = true;
+        }
+        if text.is_empty() {
+            return Err(serde::de::Error::custom("axes must name at least one of x, y, z"));
+        }
+        Ok(axes)
+    }
+}
+
+impl JsonSchema for Axes {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "Axes".into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({
+            "type": "string",
+            "pattern": "^(?=.)x?y?z?$",
+            "description": "Axes held fixed, e.g. \"xyz\" (default) or \"z\"",
+        })
+    }
+}
+
+/// Time integration.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum IntegratorSpec {
+    /// Symplectic (semi-implicit) Euler with substeps: fast, conditionally stable; a
+    /// substep above the stability bound is refused with the bound in the message.
+    SymplecticEuler { substeps: Substeps },
+    /// Linearised backward Euler solved by warm-started conjugate gradient:
+    /// unconditionally stable, numerically damped.
+    ImplicitEuler {
+        #[serde(default = "default_cg_iterations")]
+        cg_max_iterations: CgIterations,
+        #[serde(default = "default_cg_tolerance")]
+        cg_tolerance: CgTolerance,
+    },
+}
+
+fn default_cg_iterations() -> CgIterations {
+    CgIterations(100)
+}
+
+fn default_cg_tolerance() -> CgTolerance {
+    CgTolerance(1e-6)
+}
+
+/// Three-stage cutting settings.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(deny_unknown_fields)]
+pub struct CuttingSpec {
+    /// Radius of the swept volume around the blade path, m. Default: the larger of the
+    /// blade radius and half the mean edge length.
+    #[serde(default)]
+    pub sweep_radius_m: Option<RadiusM>,
+    /// How far the blade must travel along the surface before the incision grows, m.
+    /// Default: the mean edge length.
+    #[serde(default)]
+    pub min_advance_m: Option<LengthM>,
+}
+
+/// A tool the session drives.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ToolSpec {
+    pub name: String,
+    pub shape: ToolShapeSpec,
+    #[serde(default = "default_contact_stiffness")]
+    pub contact_stiffness_n_per_m: StiffnessNPerM,
+    /// True for a blade that cuts when the device's cut button is held.
+    #[serde(default)]
+    pub can_cut: bool,
+    /// Largest force reported to the device, N.
+    #[serde(default = "default_max_force")]
+    pub max_force_n: ForceN,
+}
+
+fn default_contact_stiffness() -> StiffnessNPerM {
+    StiffnessNPerM(200.0)
+}
+
+fn default_max_force() -> ForceN {
+    ForceN(20.0)
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum ToolShapeSpec {
+    /// A segment from the tip along the tool's +z axis, with a radius.
+    Cylinder { radius_m: RadiusM, length_m: ToolLengthM },
+}

@@ -1,0 +1,85 @@
+//! The one interface the session uses for every tissue model.
+//!
+//! A model steps with tool commands, reports tool forces and contacts, applies cuts
+//! (as a result of the commands), exposes its surface with stable ids and drains the
+//! topology deltas its cuts produced. Everything else about a model stays inside it.
+
+use crate::surface::{SurfaceSnapshot, TopologyDelta};
+use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
+
+/// Running totals a model keeps, for reports and the viewer's panel.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TissueCounters {
+    /// Simulation nodes (mass points or grid nodes) alive now.
+    pub nodes: u64,
+    /// Force elements alive now (springs or hexahedra).
+    pub elements: u64,
+    pub surface_vertices: u64,
+    pub surface_triangles: u64,
+    /// Separate cut strokes that removed tissue.
+    pub cuts: u64,
+    /// Topology updates made by those strokes (one per cutting step).
+    pub cut_updates: u64,
+    /// Surface triangles removed by cuts (for the branched grid: voxels removed).
+    pub removed_elements: u64,
+    pub removed_triangles: u64,
+    pub added_triangles: u64,
+    /// Total length of the incisions' centre curves, m.
+    pub incision_length_m: f64,
+    /// Cut updates where the wound could not be stitched and was left as an open hole.
+    pub reconstruction_fallbacks: u64,
+    /// Steps in which a non-finite state was detected and contained.
+    pub blowups_contained: u64,
+    /// Times the model raised its substep count to stay stable after a cut.
+    pub stability_adjustments: u64,
+    /// Tool forces that were above the tool's limit and were clamped.
+    pub force_clamps: u64,
+    /// Tool commands ignored because their pose was not finite.
+    pub rejected_poses: u64,
+}
+
+/// A tissue model behind the session: mass-spring skin or branched grid.
+pub trait Tissue: Send {
+    /// "msm" or "branched-grid".
+    fn model_name(&self) -> &'static str;
+
+    /// The fixed physics step, s.
+    fn time_step_s(&self) -> f64;
+
+    /// The tools, in the scene's order; `step` takes one command and one feedback per tool.
+    fn tools(&self) -> &[ToolShape];
+
+    /// Advances one step of `time_step_s`. `commands` and `feedback` have one entry per tool.
+    /// Allocation-free unless a cut changes the topology.
+    fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]);
+
+    /// Steps taken since the scene was built.
+    fn step_index(&self) -> u64;
+
+    /// The whole surface now.
+    fn snapshot(&self) -> SurfaceSnapshot;
+
+    /// Current topology version (0 before any cut; +1 per delta).
+    fn topology_version(&self) -> u64;
+
+    /// Moves the deltas produced since the last call into `out`, oldest first.
+    fn drain_deltas(&mut self, out: &mut Vec<TopologyDelta>);
+
+    /// Number of vertex id slots: every live vertex id is below it.
+    fn vertex_capacity(&self) -> usize;
+
+    /// Writes the position (m) of every vertex slot into `out[id]`; `out.len()` must be
+    /// at least `vertex_capacity()`. Dead slots are left unspecified.
+    fn write_positions(&self, out: &mut [[f32; 3]]);
+
+    /// True for a live surface vertex id.
+    fn vertex_alive(&self, id: u32) -> bool;
+
+    /// Hash of the full simulation state (bit-exact).
+    fn state_hash(&self) -> u64;
+
+    fn counters(&self) -> TissueCounters;
+
+    /// Connected pieces of tissue (1 for an intact body).
+    fn pieces(&self) -> usize;
+}

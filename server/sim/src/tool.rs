@@ -1,0 +1,83 @@
+//! Tools: their shapes (from the scene), the commands that move them each step, and
+//! the feedback (force, torque, contacts) the tissue returns for the haptic device.
+
+use crate::math::{Pose, Vec3};
+
+/// A cylindrical tool (a scalpel blade or a probe): the segment from its tip along its
+/// local +z axis, with a radius. Built once from the scene.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ToolShape {
+    pub name: String,
+    pub radius_m: f64,
+    pub length_m: f64,
+    /// Penalty stiffness of the contact between the tool and a tissue node, N/m.
+    pub contact_stiffness_n_per_m: f64,
+    /// Whether the tool may cut (a blade) or only push (a probe).
+    pub can_cut: bool,
+    /// The largest force ever reported to the device, N; larger forces are clamped and counted.
+    pub max_force_n: f64,
+}
+
+/// What the device (or a script) asks of one tool for one step.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ToolCommand {
+    /// Pose of the tool's tip; its axis is the local +z.
+    pub pose: Pose,
+    /// False when the tool is away (not in the scene this step).
+    pub active: bool,
+    /// Cutting enabled (a pedal or button on the device); ignored for tools that cannot cut.
+    pub cut: bool,
+}
+
+/// What the tissue returns for one tool after a step.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ToolFeedback {
+    /// Force the tissue exerts on the tool, N (what the haptic device renders).
+    pub force_n: Vec3,
+    /// Torque about the tool tip, N·m.
+    pub torque_nm: Vec3,
+    /// Tissue nodes in contact with the tool.
+    pub contacts: u32,
+    /// True when the tool removed tissue this step.
+    pub cutting: bool,
+    /// True when the force was above the tool's limit and was clamped.
+    pub force_clamped: bool,
+}
+
+/// A tool placed in space for one step: the segment from `tip` to `top`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlacedTool {
+    pub tip: Vec3,
+    pub top: Vec3,
+    /// Unit axis from tip to top.
+    pub axis: Vec3,
+    pub radius_m: f64,
+    pub length_m: f64,
+}
+
+impl PlacedTool {
+    pub fn new(shape: &ToolShape, pose: &Pose) -> Self {
+        let axis = pose.axis();
+        let tip = pose.position_m;
+        Self { tip, top: tip + axis * shape.length_m, axis, radius_m: shape.radius_m, length_m: shape.length_m }
+    }
+
+    /// Axis-aligned box around the tool grown by `margin` m: (min, max).
+    pub fn bounds(&self, margin: f64) -> (Vec3, Vec3) {
+        let grow = Vec3::repeat(self.radius_m + margin);
+        (self.tip.inf(&self.top) - grow, self.tip.sup(&self.top) + grow)
+    }
+}
+
+impl ToolFeedback {
+    /// Clamps the force magnitude to `max_force_n`, scaling the torque with it.
+    pub fn clamp_force(&mut self, max_force_n: f64) {
+        let magnitude = self.force_n.norm();
+        if magnitude > max_force_n {
+            let scale = max_force_n / magnitude;
+            self.force_n *= scale;
+            self.torque_nm *= scale;
+            self.force_clamped = true;
+        }
+    }
+}
