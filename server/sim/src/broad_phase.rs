@@ -12,6 +12,15 @@ use crate::math::Vec3;
 
 const NONE: u32 = u32::MAX;
 
+/// ⌊v⌋ as i32 without a libm call (f64::floor is one on baseline x86-64, and this runs
+/// for every node every substep). `as` saturates and maps NaN to 0: a broken position
+/// lands in some cell and is dealt with by the model's blow-up containment.
+#[inline]
+fn floor_i32(v: f64) -> i32 {
+    let t = v as i32;
+    t - i32::from((t as f64) > v)
+}
+
 #[derive(Debug, Clone)]
 pub struct PointGrid {
     inv_cell: f64,
@@ -54,9 +63,7 @@ impl PointGrid {
     }
 
     fn cell_of(&self, p: &Vec3) -> [i32; 3] {
-        // `as` saturates and maps NaN to 0: a broken position lands in some cell and is
-        // dealt with by the model's blow-up containment, never by a panic here.
-        [(p.x * self.inv_cell).floor() as i32, (p.y * self.inv_cell).floor() as i32, (p.z * self.inv_cell).floor() as i32]
+        [floor_i32(p.x * self.inv_cell), floor_i32(p.y * self.inv_cell), floor_i32(p.z * self.inv_cell)]
     }
 
     fn bucket(&self, c: [i32; 3]) -> usize {
@@ -195,6 +202,14 @@ mod tests {
             if inside {
                 assert!(found.contains(&(i as u32)), "missing {i}");
             }
+        }
+    }
+
+    #[test]
+    fn floor_matches_std() {
+        for v in [-2.5, -2.0, -0.1, 0.0, 0.1, 1.0, 1.9, 1e12, -1e12, f64::NAN] {
+            let expected = if v.is_nan() { 0 } else { v.floor() as i32 };
+            assert_eq!(floor_i32(v), expected, "{v}");
         }
     }
 

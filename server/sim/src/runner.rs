@@ -1,0 +1,123 @@
+//! Lockstep runs: a tissue stepped as fast as the CPU allows, with tool commands from a
+//! script by step index, ending with a report. No wall clock enters the physics, so the
+//! same scene and script always give the same state hash.
+
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::hash::hash_hex;
+use crate::script::{CompiledScript, ExpectationResult};
+use crate::stats::LatencyHistogram;
+use crate::tissue::{Tissue, TissueCounters};
+use crate::tool::{ToolCommand, ToolFeedback};
+
+/// What a lockstep run did, as printed by `cutsim-server run --json` and returned by
+/// the gRPC script API.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunReport {
+    pub scene: String,
+    pub model: String,
+    pub steps: u64,
+    /// steps × time step, s.
+    pub simulated_time_s: f64,
+    pub cuts: u64,
+    pub cut_updates: u64,
+    pub removed_elements: u64,
+    pub removed_triangles: u64,
+    pub incision_length_m: f64,
+    pub pieces: u64,
+    pub reconstruction_fallbacks: u64,
+    /// Largest tool force over the run (after the tool's clamp), N.
+    pub max_tool_force_n: f64,
+    pub step_time_p50_us: f64,
+    pub step_time_p99_us: f64,
+    pub step_time_max_us: f64,
+    pub wall_time_s: f64,
+    pub steps_per_second: f64,
+    pub surface_vertices: u64,
+    pub surface_triangles: u64,
+    pub topology_version: u64,
+    /// 16 hex digits; equal for equal scene + commands.
+    pub state_hash: String,
+    pub counters: TissueCounters,
+    pub expectations: Vec<ExpectationResult>,
+    /// True when every expectation holds (and there are none that fail).
+    pub passed: bool,
+}
+
+/// Progress of a run, reported every few steps.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Progress {
+    pub step: u64,
+    pub total: u64,
+    pub cuts: u64,
+    pub max_tool_force_n: f64,
+}
+
+/// Steps `tissue` `steps` times with the script's commands (tools away without one),
+/// calling `on_progress` about every `progress_every` steps and at the end.
+pub fn run(
+    tissue: &mut dyn Tissue,
+    scene_name: &str,
+    script: Option<&CompiledScript>,
+    steps: u64,
+    progress_every: u64,
+    mut on_progress: impl FnMut(&Progress),
+) -> RunReport {
+    let tools = tissue.tools().len();
+    let mut commands = vec![ToolCommand::default(); tools];
+    let mut feedback = vec![ToolFeedback::default(); tools];
+    let mut histogram = LatencyHistogram::new();
+    let mut max_force: f64 = 0.0;
+    let start = Instant::now();
+    for step in 0..steps {
+        if let Some(s) = script {
+            s.commands_at(step, &mut commands);
+        }
+        let t0 = Instant::now();
+        tissue.step(&commands, &mut feedback);
+        histogram.record(t0.elapsed());
+        for fb in &feedback {
+            max_force = max_force.max(fb.force_n.norm());
+        }
+        if progress_every > 0 && (step + 1) % progress_every == 0 && step + 1 < steps {
+            on_progress(&Progress { step: step + 1, total: steps, cuts: tissue.counters().cuts, max_tool_force_n: max_force });
+        }
+    }
+    let wall = start.elapsed().as_secs_f64();
+    let counters = tissue.counters();
+    on_progress(&Progress { step: steps, total: steps, cuts: counters.cuts, max_tool_force_n: max_force });
+    let us = |ns: u64| ns as f64 / 1e3;
+    let mut report = RunReport {
+        scene: scene_name.to_owned(),
+        model: tissue.model_name().to_owned(),
+        steps,
+        simulated_time_s: steps as f64 * tissue.time_step_s(),
+        cuts: counters.cuts,
+        cut_updates: counters.cut_updates,
+        removed_elements: counters.removed_elements,
+        removed_triangles: counters.removed_triangles,
+        incision_length_m: counters.incision_length_m,
+        pieces: tissue.pieces() as u64,
+        reconstruction_fallbacks: counters.reconstruction_fallbacks,
+        max_tool_force_n: max_force,
+        step_time_p50_us: us(histogram.quantile_ns(0.5)),
+        step_time_p99_us: us(histogram.quantile_ns(0.99)),
+        step_time_max_us: us(histogram.max_ns()),
+        wall_time_s: wall,
+        steps_per_second: if wall > 0.0 { steps as f64 / wall } else { 0.0 },
+        surface_vertices: counters.surface_vertices,
+        surface_triangles: counters.surface_triangles,
+        topology_version: tissue.topology_version(),
+        state_hash: hash_hex(tissue.state_hash()),
+        counters,
+        expectations: Vec::new(),
+        passed: true,
+    };
+    if let Some(s) = script {
+        report.expectations = s.expect.check(&report);
+        report.passed = report.expectations.iter().all(|e| e.passed);
+    }
+    report
+}

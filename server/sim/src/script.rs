@@ -1,0 +1,385 @@
+//! Cut scripts: timed tool poses and expectations on the result, run in lockstep.
+//!
+//! A script lists, per tool, keyframes at a step index (or a time, converted with the
+//! scene's step). Between keyframes the position is interpolated linearly and the
+//! orientation by slerp; the cut button and presence hold the earlier keyframe's value.
+//! Before its first keyframe a tool is away. The format is documented in
+//! docs/cut-script.md and shared by `cutsim-server run`, the gRPC API and `cut-bot`.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::math::{Pose, Quat, Vec3};
+use crate::quantity::CoordinateM;
+use crate::scene::SceneError;
+use crate::tool::{ToolCommand, ToolShape};
+
+/// The most steps a script may ask for (about 2.8 h at 1 kHz).
+pub const MAX_SCRIPT_STEPS: u64 = 10_000_000;
+/// The most keyframes a script may hold over all tools.
+pub const MAX_KEYFRAMES: usize = 1_000_000;
+
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(deny_unknown_fields)]
+pub struct CutScript {
+    /// Scene to run (bundled name or path) when the caller does not give one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<String>,
+    /// Steps to run. Default: up to and including the last keyframe.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub steps: Option<u64>,
+    #[serde(default)]
+    pub tools: Vec<ToolTrack>,
+    #[serde(default)]
+    pub expect: Expectations,
+}
+
+/// The keyframes of one tool.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ToolTrack {
+    /// Name of the tool in the scene.
+    pub tool: String,
+    pub keyframes: Vec<Keyframe>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Keyframe {
+    /// Step index of this pose (give either `step` or `time_s`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step: Option<u64>,
+    /// Time of this pose, s from the start (rounded to the nearest step).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_s: Option<f64>,
+    /// Position of the tool tip, m.
+    pub position_m: [CoordinateM; 3],
+    /// Orientation as a unit quaternion (w, x, y, z); the tool's axis is its local +z.
+    /// Default: identity (axis along +z).
+    #[serde(default = "identity_wxyz")]
+    pub orientation_wxyz: [f64; 4],
+    /// Cut button held (from this keyframe to the next).
+    #[serde(default)]
+    pub cut: bool,
+    /// Tool present (from this keyframe to the next).
+    #[serde(default = "yes")]
+    pub active: bool,
+}
+
+fn identity_wxyz() -> [f64; 4] {
+    [1.0, 0.0, 0.0, 0.0]
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// Expectations on the run's report; each one that is given is checked.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Expectations {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuts: Option<Bound>,
+    /// Surface elements removed by cuts (triangles for msm, voxels for the branched grid).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub removed_elements: Option<Bound>,
+    /// Connected pieces of tissue at the end.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pieces: Option<Bound>,
+    /// Total incision length, m.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub incision_length_m: Option<Bound>,
+    /// Largest tool force over the run, N.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_force_n: Option<Bound>,
+    /// Cut updates the model could not stitch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reconstruction_fallbacks: Option<Bound>,
+    /// Final state hash (16 hex digits).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub state_hash: Option<String>,
+}
+
+/// A numeric expectation: any of min, max, equals, or approx with tolerance.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, JsonSchema, Default, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Bound {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub equals: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub approx: Option<f64>,
+    /// Absolute tolerance of `approx` (default: 1 % of it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<f64>,
+}
+
+impl Bound {
+    pub fn holds(&self, value: f64) -> bool {
+        self.min.is_none_or(|m| value >= m)
+            && self.max.is_none_or(|m| value <= m)
+            && self.equals.is_none_or(|e| value == e)
+            && self.approx.is_none_or(|a| (value - a).abs() <= self.tolerance.unwrap_or(0.01 * a.abs()))
+    }
+
+    pub fn describe(&self) -> String {
+        let mut parts = Vec::new();
+        if let Some(v) = self.equals {
+            parts.push(format!("= {v}"));
+        }
+        if let Some(v) = self.min {
+            parts.push(format!("≥ {v}"));
+        }
+        if let Some(v) = self.max {
+            parts.push(format!("≤ {v}"));
+        }
+        if let Some(v) = self.approx {
+            parts.push(format!("≈ {v} ± {}", self.tolerance.unwrap_or(0.01 * v.abs())));
+        }
+        parts.join(" and ")
+    }
+
+    fn is_empty(&self) -> bool {
+        self.min.is_none() && self.max.is_none() && self.equals.is_none() && self.approx.is_none()
+    }
+}
+
+impl CutScript {
+    /// Parses a script; errors name the JSON path.
+    pub fn from_json_str(text: &str, origin: &str) -> Result<CutScript, SceneError> {
+        let de = &mut serde_json::Deserializer::from_str(text);
+        serde_path_to_error::deserialize(de)
+            .map_err(|e| SceneError::new(origin, e.path().to_string().trim_start_matches('.'), e.into_inner().to_string()))
+    }
+
+    pub fn load(path: &std::path::Path) -> Result<CutScript, SceneError> {
+        let origin = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| SceneError::new(&origin, "", format!("cannot read the script: {e}")))?;
+        Self::from_json_str(&text, &origin)
+    }
+
+    /// Checks the script against a scene's tools and step, and prepares it for playing.
+    pub fn compile(&self, tools: &[ToolShape], time_step_s: f64, origin: &str) -> Result<CompiledScript, SceneError> {
+        let err = |path: String, message: String| SceneError::new(origin, path, message);
+        let total_keyframes: usize = self.tools.iter().map(|t| t.keyframes.len()).sum();
+        if total_keyframes > MAX_KEYFRAMES {
+            return Err(err("tools".into(), format!("{total_keyframes} keyframes; at most {MAX_KEYFRAMES} are allowed")));
+        }
+        let mut tracks: Vec<Vec<CompiledKey>> = vec![Vec::new(); tools.len()];
+        for (ti, track) in self.tools.iter().enumerate() {
+            let Some(tool) = tools.iter().position(|t| t.name == track.tool) else {
+                let names: Vec<&str> = tools.iter().map(|t| t.name.as_str()).collect();
+                return Err(err(
+                    format!("tools[{ti}].tool"),
+                    format!("no tool named {:?} in the scene; its tools are: {}", track.tool, if names.is_empty() { "(none)".into() } else { names.join(", ") }),
+                ));
+            };
+            if !tracks[tool].is_empty() {
+                return Err(err(format!("tools[{ti}].tool"), format!("tool {:?} has two tracks; give one", track.tool)));
+            }
+            let mut keys = Vec::with_capacity(track.keyframes.len());
+            for (ki, k) in track.keyframes.iter().enumerate() {
+                let path = |field: &str| format!("tools[{ti}].keyframes[{ki}]{field}");
+                let step = match (k.step, k.time_s) {
+                    (Some(s), None) => s,
+                    (None, Some(t)) if t.is_finite() && t >= 0.0 => (t / time_step_s).round() as u64,
+                    (None, Some(t)) => return Err(err(path(".time_s"), format!("time must be a finite number of seconds ≥ 0, got {t}"))),
+                    _ => return Err(err(path(""), "give exactly one of step and time_s".into())),
+                };
+                if step > MAX_SCRIPT_STEPS {
+                    return Err(err(path(""), format!("step {step} is beyond the limit of {MAX_SCRIPT_STEPS} steps")));
+                }
+                if let Some(prev) = keys.last().map(|p: &CompiledKey| p.step) {
+                    if step <= prev {
+                        return Err(err(path(""), format!("keyframes must be in increasing step order; step {step} follows step {prev}")));
+                    }
+                }
+                let [w, x, y, z] = k.orientation_wxyz;
+                let norm = (w * w + x * x + y * y + z * z).sqrt();
+                if !norm.is_finite() || (norm - 1.0).abs() > 1e-3 {
+                    return Err(err(path(".orientation_wxyz"), format!("must be a unit quaternion (w, x, y, z), got norm {norm}")));
+                }
+                let orientation = Quat::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+                let position = Vec3::new(k.position_m[0].get(), k.position_m[1].get(), k.position_m[2].get());
+                keys.push(CompiledKey { step, pose: Pose::new(position, orientation), cut: k.cut, active: k.active });
+            }
+            tracks[tool] = keys;
+        }
+        let last_key = tracks.iter().filter_map(|t| t.last()).map(|k| k.step).max();
+        let steps = match self.steps {
+            Some(s) if s > MAX_SCRIPT_STEPS => {
+                return Err(err("steps".into(), format!("{s} steps is beyond the limit of {MAX_SCRIPT_STEPS}")));
+            }
+            Some(s) => s,
+            None => last_key.map_or(0, |s| s + 1),
+        };
+        for (name, bound) in self.expect.bounds() {
+            if bound.is_empty() {
+                return Err(err(format!("expect.{name}"), "give at least one of min, max, equals, approx".into()));
+            }
+        }
+        if let Some(h) = &self.expect.state_hash {
+            if h.len() != 16 || !h.chars().all(|c| c.is_ascii_hexdigit()) {
+                return Err(err("expect.state_hash".into(), format!("a state hash is 16 hexadecimal digits, got {h:?}")));
+            }
+        }
+        Ok(CompiledScript { tracks, steps, expect: self.expect.clone() })
+    }
+}
+
+impl Expectations {
+    fn bounds(&self) -> Vec<(&'static str, &Bound)> {
+        [
+            ("cuts", &self.cuts),
+            ("removed_elements", &self.removed_elements),
+            ("pieces", &self.pieces),
+            ("incision_length_m", &self.incision_length_m),
+            ("max_force_n", &self.max_force_n),
+            ("reconstruction_fallbacks", &self.reconstruction_fallbacks),
+        ]
+        .into_iter()
+        .filter_map(|(n, b)| b.as_ref().map(|b| (n, b)))
+        .collect()
+    }
+
+    /// Checks every given expectation against the report's values.
+    pub fn check(&self, report: &crate::runner::RunReport) -> Vec<ExpectationResult> {
+        let mut out = Vec::new();
+        for (name, bound) in self.bounds() {
+            let actual = match name {
+                "cuts" => report.cuts as f64,
+                "removed_elements" => report.removed_elements as f64,
+                "pieces" => report.pieces as f64,
+                "incision_length_m" => report.incision_length_m,
+                "max_force_n" => report.max_tool_force_n,
+                _ => report.reconstruction_fallbacks as f64,
+            };
+            out.push(ExpectationResult {
+                name: name.to_owned(),
+                expected: bound.describe(),
+                actual: format!("{actual}"),
+                passed: bound.holds(actual),
+            });
+        }
+        if let Some(hash) = &self.state_hash {
+            out.push(ExpectationResult {
+                name: "state_hash".into(),
+                expected: hash.to_lowercase(),
+                actual: report.state_hash.clone(),
+                passed: hash.eq_ignore_ascii_case(&report.state_hash),
+            });
+        }
+        out
+    }
+}
+
+/// One expectation's outcome.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExpectationResult {
+    pub name: String,
+    pub expected: String,
+    pub actual: String,
+    pub passed: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct CompiledKey {
+    step: u64,
+    pose: Pose,
+    cut: bool,
+    active: bool,
+}
+
+/// A script checked against a scene, ready to give tool commands per step.
+#[derive(Debug, Clone)]
+pub struct CompiledScript {
+    tracks: Vec<Vec<CompiledKey>>,
+    pub steps: u64,
+    pub expect: Expectations,
+}
+
+impl CompiledScript {
+    /// The commands for step `step`, one per tool.
+    pub fn commands_at(&self, step: u64, out: &mut [ToolCommand]) {
+        for (track, command) in self.tracks.iter().zip(out.iter_mut()) {
+            *command = command_at(track, step);
+        }
+    }
+}
+
+fn command_at(keys: &[CompiledKey], step: u64) -> ToolCommand {
+    let after = keys.partition_point(|k| k.step <= step);
+    if after == 0 {
+        return ToolCommand::default();
+    }
+    let k0 = keys[after - 1];
+    let pose = match keys.get(after) {
+        Some(k1) => {
+            let s = (step - k0.step) as f64 / (k1.step - k0.step) as f64;
+            let position = k0.pose.position_m.lerp(&k1.pose.position_m, s);
+            let orientation = k0.pose.orientation.try_slerp(&k1.pose.orientation, s, 1e-9).unwrap_or(k0.pose.orientation);
+            Pose::new(position, orientation)
+        }
+        None => k0.pose,
+    };
+    ToolCommand { pose, active: k0.active, cut: k0.cut }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn blade() -> Vec<ToolShape> {
+        vec![ToolShape { name: "scalpel".into(), radius_m: 5e-4, length_m: 0.03, contact_stiffness_n_per_m: 100.0, can_cut: true, max_force_n: 10.0 }]
+    }
+
+    #[test]
+    fn interpolates_between_keyframes_and_holds_buttons() {
+        let text = r#"{"tools":[{"tool":"scalpel","keyframes":[
+            {"step":10,"position_m":[0,0,0],"cut":true},
+            {"time_s":0.02,"position_m":[0.01,0,0]}]}]}"#;
+        let script = CutScript::from_json_str(text, "t").unwrap().compile(&blade(), 0.001, "t").unwrap();
+        assert_eq!(script.steps, 21);
+        let mut c = [ToolCommand::default()];
+        script.commands_at(5, &mut c);
+        assert!(!c[0].active);
+        script.commands_at(15, &mut c);
+        assert!(c[0].active && c[0].cut);
+        assert!((c[0].pose.position_m.x - 0.005).abs() < 1e-15);
+        script.commands_at(30, &mut c);
+        assert!(!c[0].cut && (c[0].pose.position_m.x - 0.01).abs() < 1e-15);
+    }
+
+    #[test]
+    fn bad_scripts_name_the_path() {
+        let unknown = r#"{"tools":[{"tool":"laser","keyframes":[]}]}"#;
+        let e = CutScript::from_json_str(unknown, "s").unwrap().compile(&blade(), 0.001, "s").unwrap_err();
+        assert_eq!(e.path, "tools[0].tool");
+        assert!(e.message.contains("scalpel"));
+        let order = r#"{"tools":[{"tool":"scalpel","keyframes":[{"step":5,"position_m":[0,0,0]},{"step":5,"position_m":[0,0,0]}]}]}"#;
+        let e = CutScript::from_json_str(order, "s").unwrap().compile(&blade(), 0.001, "s").unwrap_err();
+        assert_eq!(e.path, "tools[0].keyframes[1]");
+        let quat = r#"{"tools":[{"tool":"scalpel","keyframes":[{"step":5,"position_m":[0,0,0],"orientation_wxyz":[2,0,0,0]}]}]}"#;
+        let e = CutScript::from_json_str(quat, "s").unwrap().compile(&blade(), 0.001, "s").unwrap_err();
+        assert_eq!(e.path, "tools[0].keyframes[0].orientation_wxyz");
+        let typo = r#"{"tool":[]}"#;
+        let e = CutScript::from_json_str(typo, "s").unwrap_err();
+        assert_eq!(e.path, "tool");
+        let far = r#"{"tools":[{"tool":"scalpel","keyframes":[{"step":5,"position_m":[0,0,1e9]}]}]}"#;
+        let e = CutScript::from_json_str(far, "s").unwrap_err();
+        assert_eq!(e.path, "tools[0].keyframes[0].position_m[2]");
+    }
+
+    #[test]
+    fn bounds_check_and_describe() {
+        let b = Bound { min: Some(1.0), max: Some(3.0), ..Default::default() };
+        assert!(b.holds(2.0) && !b.holds(3.5));
+        assert_eq!(b.describe(), "≥ 1 and ≤ 3");
+        let a = Bound { approx: Some(0.04), tolerance: Some(0.004), ..Default::default() };
+        assert!(a.holds(0.043) && !a.holds(0.045));
+    }
+}

@@ -126,6 +126,9 @@ impl MassSpring {
         self.counters.added_triangles += plan.new_triangles.len() as u64;
         self.counters.incision_length_m += plan.incision_length_m;
         self.last_cut_min_angle_deg = plan.min_angle_deg;
+        if let Some(a) = plan.min_angle_deg {
+            self.min_cut_angle_deg = Some(self.min_cut_angle_deg.map_or(a, |m| m.min(a)));
+        }
 
         let n = self.nodes.len();
         if self.contacts.capacity() < n {

@@ -207,6 +207,7 @@ impl MassSpring {
             stability,
             profile: None,
             last_cut_min_angle_deg: None,
+            min_cut_angle_deg: None,
         })
     }
 

@@ -83,6 +83,7 @@ pub struct MassSpring {
     stability: StabilityBound,
     profile: Option<StageTimes>,
     last_cut_min_angle_deg: Option<f64>,
+    min_cut_angle_deg: Option<f64>,
 }
 
 impl MassSpring {
@@ -360,6 +361,16 @@ impl MassSpring {
             Integrator::ImplicitEuler(s) => Some((s.last_iterations, s.last_residual)),
             Integrator::SymplecticEuler { .. } => None,
         }
+    }
+
+    /// Why the last cut update that could not stitch the wound failed.
+    pub fn last_fallback_reason(&self) -> Option<&str> {
+        self.cutter.as_ref().and_then(|c| c.last_fallback_reason.as_deref())
+    }
+
+    /// Smallest angle of all triangles cut updates have created, degrees.
+    pub fn min_cut_angle_deg(&self) -> Option<f64> {
+        self.min_cut_angle_deg
     }
 
     /// Smallest angle of the triangles the last cut update created, degrees.

@@ -10,7 +10,7 @@
 //! tool, and a cut made over many steps has the same structure as one made at once.
 
 pub mod bezier;
-pub(crate) mod node_matching;
+pub mod node_matching;
 pub mod swept_volume;
 
 use bezier::BezierChain;
@@ -98,11 +98,13 @@ pub(crate) struct Cutter {
     pub incisions: Vec<Incision>,
     /// Scratch for candidate triangles (kept to avoid allocating while the blade is in).
     candidates: Vec<u32>,
+    /// Why the last stitching failed, for reports.
+    pub last_fallback_reason: Option<String>,
 }
 
 impl Cutter {
     pub fn new(params: CuttingParams, tools: usize) -> Self {
-        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096) }
+        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096), last_fallback_reason: None }
     }
 
     /// Ends the tool's stroke (blade lifted, button released or tool away).
@@ -149,7 +151,8 @@ impl Cutter {
 
         let mut plan = CutPlan { starts_new_cut: stroke.incision.is_none(), incision_length_m: length, ..Default::default() };
         let mut matched = None;
-        for _attempt in 0..4 {
+        let mut failure = String::from("the removed area kept needing to grow");
+        for _attempt in 0..8 {
             let normal = area_normal(&removed, view);
             let input = MatchInput { topo: view.topo, x: view.x, removed_tris: &removed, curve: &curve, normal, next_vertex_id };
             match match_nodes(&input) {
@@ -162,7 +165,10 @@ impl Cutter {
                     removed.sort_unstable();
                     removed.dedup();
                 }
-                Err(_) => break,
+                Err(e) => {
+                    failure = e.to_string();
+                    break;
+                }
             }
         }
         match matched {
@@ -204,6 +210,7 @@ impl Cutter {
                 });
             }
             None => {
+                self.last_fallback_reason = Some(failure);
                 plan.fallback = true;
                 plan.incision_length_m = 0.0;
                 self.strokes[tool] = None;

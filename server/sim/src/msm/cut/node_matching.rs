@@ -17,8 +17,12 @@
 //!    arcs, one on each side of the curve.
 //! 3. Every curve vertex except the closed ends is split in two, one per lip.
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
-//!    closing the quad between them with its shorter diagonal (the green springs).
-//! 5. A few Lawson flips inside the new triangles raise the smallest angle.
+//!    closing the quad between them with its shorter diagonal (the green springs). Where
+//!    the border zigzags so that no such zipper fits without folding a triangle over,
+//!    that strip is triangulated as a polygon by ear clipping instead.
+//! 5. A few Lawson flips inside the new triangles raise the smallest angle; a triangle
+//!    still under [`MIN_ANGLE_DEG`] makes the caller remove the kept triangles around it
+//!    and try again.
 //!
 //! The result is manifold by construction; orientation and the smallest angle are
 //! checked and reported. When the grey area is not a simple hole (it pinches at a
@@ -27,6 +31,11 @@
 
 use crate::math::{Vec3, closest_point_on_segment, triangle_min_angle_deg, triangle_normal};
 use crate::msm::state::Topology;
+
+/// Every triangle a cut creates has all its angles at least this large (degrees) in
+/// the configuration it is created in; when stitching cannot reach it, the update falls
+/// back to leaving the swept area open (and says so).
+pub const MIN_ANGLE_DEG: f64 = 10.0;
 
 /// What node matching needs to see.
 pub(crate) struct MatchInput<'a> {
@@ -160,9 +169,8 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     let (start_open, end_open) = (start_ends.len() == 2, end_ends.len() == 2);
 
     // Yellow nodes at the closed ends.
-    let outward = |from: usize, to: usize| (input.curve[to] - input.curve[from]).normalize();
-    let yellow_start = (!start_open).then(|| pick_yellow(&chains, input.x, &start_point, &outward(1, 0)));
-    let yellow_end = (!end_open).then(|| pick_yellow(&chains, input.x, &end_point, &outward(n - 1, n)));
+    let yellow_start = (!start_open).then(|| pick_yellow(&chains, &frame, input.x, &start_point));
+    let yellow_end = (!end_open).then(|| pick_yellow(&chains, &frame, input.x, &end_point));
     if yellow_start.is_some() && yellow_start == yellow_end {
         return Err(MatchError::Unsupported("both ends of the incision reach the same border node".into()));
     }
@@ -234,30 +242,58 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
         if q.is_empty() {
             return Err(MatchError::Unsupported("a lip has no vertex between its ends".into()));
         }
-        let before = out.new_triangles.len();
         let mut strip = Vec::new();
-        zip_shortest_diagonal(arc, q, |id| position(id, &out), &mut strip);
-        out.new_triangles.extend(strip);
-        for t in &out.new_triangles[before..] {
+        zip_shortest_diagonal(arc, q, |id| position(id, &out), &input.normal, &mut strip);
+        let upright = |t: &[u32; 3]| {
             let [a, b, c] = t.map(|id| position(id, &out));
-            if triangle_normal(&a, &b, &c).dot(&input.normal) <= 0.0 {
-                return Err(MatchError::Unsupported("stitching would fold a triangle over".into()));
-            }
+            triangle_normal(&a, &b, &c).dot(&input.normal) > 0.0
+        };
+        if !strip.iter().all(upright) {
+            // The border zigzags so that no arc-to-lip zipper fits: triangulate the strip
+            // as a polygon instead (arc backwards, then the lip).
+            let mut polygon: Vec<u32> = arc.iter().rev().copied().collect();
+            polygon.extend(lip.iter().copied().filter(|v| !arc.contains(v)));
+            let kept_edge = |a: u32, b: u32| {
+                a < base && b < base && input.topo.edge_tris(a, b).any(|t| input.removed_tris.binary_search(&t).is_err())
+            };
+            strip = ear_clip(&polygon, |id| position(id, &out), &input.normal, kept_edge).ok_or_else(|| {
+                MatchError::Unsupported("the border around the incision cannot be stitched without folding".into())
+            })?;
         }
+        out.new_triangles.extend(strip);
     }
 
     let positions = |id: u32| if id >= base { out.new_vertices[(id - base) as usize] } else { input.x[id as usize] };
     let mut triangles = std::mem::take(&mut out.new_triangles);
     lawson_flips(&mut triangles, &positions, &input.normal, |a, b| {
-        input.topo.edge_tris(a, b).any(|t| input.removed_tris.binary_search(&t).is_err())
+        // New vertices have no kept triangles yet.
+        a < base && b < base && input.topo.edge_tris(a, b).any(|t| input.removed_tris.binary_search(&t).is_err())
     });
-    out.min_angle_deg = triangles
+    let (worst, min_angle) = triangles
         .iter()
         .map(|t| {
             let [a, b, c] = t.map(positions);
-            triangle_min_angle_deg(&a, &b, &c)
+            (*t, triangle_min_angle_deg(&a, &b, &c))
         })
-        .fold(f64::INFINITY, f64::min);
+        .fold(([0; 3], f64::INFINITY), |best, next| if next.1 < best.1 { next } else { best });
+    if min_angle < MIN_ANGLE_DEG {
+        // Too thin: take the kept triangles around its border vertices away as well, so
+        // the border moves back from the incision, and try again.
+        let mut grow: Vec<u32> = worst
+            .iter()
+            .filter(|&&v| v < base)
+            .flat_map(|&v| input.topo.node_tris[v as usize].iter().copied())
+            .filter(|t| input.removed_tris.binary_search(t).is_err())
+            .collect();
+        grow.sort_unstable();
+        grow.dedup();
+        return Err(if grow.is_empty() {
+            MatchError::Unsupported(format!("the best stitching has a {min_angle:.1}° angle, below the {MIN_ANGLE_DEG}° bound"))
+        } else {
+            MatchError::Grow(grow)
+        });
+    }
+    out.min_angle_deg = min_angle;
     out.new_triangles = triangles;
     Ok(out)
 }
@@ -277,6 +313,28 @@ fn grey_chains(input: &MatchInput) -> Result<Vec<Chain>, MatchError> {
         }
     }
     edges.sort_unstable();
+    // A kept triangle with two or three edges on the hole is an ear poking into it (the
+    // border would zigzag): it goes with the removed area.
+    let mut ears: Vec<u32> = Vec::new();
+    for &t in input.removed_tris {
+        let tri = input.topo.tris[t as usize];
+        for k in 0..3 {
+            let (a, b) = (tri[k], tri[(k + 1) % 3]);
+            let Some(o) = input.topo.across(t, a, b).filter(|&o| !removed(o)) else { continue };
+            let ot = input.topo.tris[o as usize];
+            let on_hole = (0..3)
+                .filter(|&j| input.topo.across(o, ot[j], ot[(j + 1) % 3]).is_some_and(|r| removed(r)))
+                .count();
+            if on_hole >= 2 {
+                ears.push(o);
+            }
+        }
+    }
+    if !ears.is_empty() {
+        ears.sort_unstable();
+        ears.dedup();
+        return Err(MatchError::Grow(ears));
+    }
     // A vertex with two outgoing border edges is a pinch: remove its triangles too.
     for w in edges.windows(2) {
         if w[0].0 == w[1].0 {
@@ -358,19 +416,39 @@ fn flood_island(input: &MatchInput, loop_vertices: &[u32], removed: &dyn Fn(u32)
     island
 }
 
-/// The border vertex nearest to a closed curve end, preferring those ahead of it.
-fn pick_yellow(chains: &[Chain], x: &[Vec3], end: &Vec3, outward: &Vec3) -> u32 {
+/// The yellow node of a closed curve end: where the border, walking around that end,
+/// passes from one side of the curve (extended along its end tangent) to the other. Of
+/// the two vertices of that crossing, the one nearer the end is taken.
+fn pick_yellow(chains: &[Chain], frame: &CurveFrame, x: &[Vec3], end: &Vec3) -> u32 {
     let mut best = (f64::INFINITY, u32::MAX);
-    for &v in chains.iter().flat_map(|c| c.vertices.iter()) {
-        let d = x[v as usize] - end;
-        let dist = d.norm();
-        let cos = if dist > 0.0 { d.dot(outward) / dist } else { 1.0 };
-        let score = dist * (2.0 - cos);
-        if score < best.0 || (score == best.0 && v < best.1) {
-            best = (score, v);
+    let mut consider = |a: u32, b: u32| {
+        let (pa, pb) = (x[a as usize], x[b as usize]);
+        if frame.locate(&pa).1 == frame.locate(&pb).1 {
+            return;
+        }
+        let (da, db) = ((pa - end).norm(), (pb - end).norm());
+        let (d, v) = if da <= db { (da, a) } else { (db, b) };
+        if d < best.0 || (d == best.0 && v < best.1) {
+            best = (d, v);
+        }
+    };
+    for chain in chains {
+        for w in chain.vertices.windows(2) {
+            consider(w[0], w[1]);
+        }
+        if chain.closed {
+            consider(*chain.vertices.last().unwrap(), chain.vertices[0]);
         }
     }
-    best.1
+    if best.1 != u32::MAX {
+        return best.1;
+    }
+    // No side change at all (a degenerate border): the nearest vertex.
+    chains
+        .iter()
+        .flat_map(|c| c.vertices.iter().copied())
+        .min_by(|&a, &b| (x[a as usize] - end).norm().total_cmp(&(x[b as usize] - end).norm()).then(a.cmp(&b)))
+        .expect("chains are not empty")
 }
 
 /// Splits loops and open chains at the yellow nodes into arcs (each in walk order).
@@ -419,17 +497,28 @@ fn arc_side(arc: &[u32], frame: &CurveFrame, x: &[Vec3]) -> f64 {
 }
 
 /// Triangulates the strip between the arc `p` (walked with the hole on its right) and
-/// the lip `q` (walked the same way), closing each quad with its shorter diagonal.
-fn zip_shortest_diagonal(p: &[u32], q: &[u32], pos: impl Fn(u32) -> Vec3, out: &mut Vec<[u32; 3]>) {
+/// the lip `q` (walked the same way), closing each quad with its shorter diagonal (the
+/// paper's rule) unless only the other diagonal gives an upright triangle (a border
+/// that zigzags after the wound opened).
+fn zip_shortest_diagonal(p: &[u32], q: &[u32], pos: impl Fn(u32) -> Vec3, normal: &Vec3, out: &mut Vec<[u32; 3]>) {
+    let upright = |t: &[u32; 3]| {
+        let [a, b, c] = t.map(&pos);
+        triangle_normal(&a, &b, &c).dot(normal) > 0.0
+    };
     let (m, k) = (p.len() - 1, q.len() - 1);
     let (mut i, mut j) = (0, 0);
     while i < m || j < k {
-        let advance_p = if i == m {
-            false
-        } else if j == k {
-            true
-        } else {
-            (pos(p[i + 1]) - pos(q[j])).norm() <= (pos(p[i]) - pos(q[j + 1])).norm()
+        let along_p = (i < m).then(|| [p[i + 1], p[i], q[j]]);
+        let along_q = (j < k).then(|| [p[i], q[j], q[j + 1]]);
+        let advance_p = match (along_p, along_q) {
+            (Some(_), None) => true,
+            (None, Some(_)) => false,
+            (Some(tp), Some(tq)) => match (upright(&tp), upright(&tq)) {
+                (true, false) => true,
+                (false, true) => false,
+                _ => (pos(p[i + 1]) - pos(q[j])).norm() <= (pos(p[i]) - pos(q[j + 1])).norm(),
+            },
+            (None, None) => unreachable!("the loop stops when both walks are done"),
         };
         if advance_p {
             out.push([p[i + 1], p[i], q[j]]);
@@ -439,6 +528,57 @@ fn zip_shortest_diagonal(p: &[u32], q: &[u32], pos: impl Fn(u32) -> Vec3, out: &
             j += 1;
         }
     }
+}
+
+/// Triangulates a simple polygon (counter-clockwise seen from `normal`) by clipping,
+/// at each turn, the ear with the largest smallest angle. `forbidden(a, b)` marks
+/// diagonals that may not be made (edges the kept mesh already has). `None` when no
+/// valid ear is left.
+fn ear_clip(polygon: &[u32], pos: impl Fn(u32) -> Vec3, normal: &Vec3, forbidden: impl Fn(u32, u32) -> bool) -> Option<Vec<[u32; 3]>> {
+    let u = crate::math::any_perpendicular(normal);
+    let v = normal.cross(&u);
+    let flat = |id: u32| {
+        let p = pos(id);
+        (p.dot(&u), p.dot(&v))
+    };
+    let cross = |a: (f64, f64), b: (f64, f64), c: (f64, f64)| (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0);
+    let mut ring: Vec<u32> = polygon.to_vec();
+    let mut out = Vec::with_capacity(ring.len().saturating_sub(2));
+    while ring.len() > 3 {
+        let n = ring.len();
+        let mut best: Option<(f64, usize)> = None;
+        for i in 0..n {
+            let (a, b, c) = (ring[(i + n - 1) % n], ring[i], ring[(i + 1) % n]);
+            let (pa, pb, pc) = (flat(a), flat(b), flat(c));
+            if cross(pa, pb, pc) <= 0.0 || forbidden(a, c) {
+                continue;
+            }
+            let blocked = ring.iter().any(|&w| {
+                if w == a || w == b || w == c {
+                    return false;
+                }
+                let pw = flat(w);
+                cross(pa, pb, pw) >= 0.0 && cross(pb, pc, pw) >= 0.0 && cross(pc, pa, pw) >= 0.0
+            });
+            if blocked {
+                continue;
+            }
+            let quality = triangle_min_angle_deg(&pos(a), &pos(b), &pos(c));
+            if best.is_none_or(|(q, _)| quality > q) {
+                best = Some((quality, i));
+            }
+        }
+        let (_, i) = best?;
+        let n = ring.len();
+        out.push([ring[(i + n - 1) % n], ring[i], ring[(i + 1) % n]]);
+        ring.remove(i);
+    }
+    let (pa, pb, pc) = (flat(ring[0]), flat(ring[1]), flat(ring[2]));
+    if cross(pa, pb, pc) <= 0.0 {
+        return None;
+    }
+    out.push([ring[0], ring[1], ring[2]]);
+    Some(out)
 }
 
 /// Flips interior edges of `tris` while that raises the smaller angle of the two
@@ -512,7 +652,7 @@ mod tests {
         let p = [0u32, 1, 2];
         let q = [3u32, 4, 5];
         let mut tris = Vec::new();
-        zip_shortest_diagonal(&p, &q, |i| pts[i as usize], &mut tris);
+        zip_shortest_diagonal(&p, &q, |i| pts[i as usize], &Vec3::z(), &mut tris);
         assert_eq!(tris.len(), 4);
         for t in &tris {
             let [a, b, c] = t.map(|i| pts[i as usize]);

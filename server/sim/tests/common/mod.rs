@@ -1,0 +1,103 @@
+//! Helpers shared by the integration tests: scenes written inline, and tool drivers.
+#![allow(dead_code)]
+
+use cutsim_sim::geometry::TriMesh;
+use cutsim_sim::math::{Pose, Quat, Vec3};
+use cutsim_sim::msm::{MassSpring, build_from_scene};
+use cutsim_sim::scene::{ModelSpec, Scene};
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+
+/// Path of the shared data directory (../shared/data beside the project).
+pub fn shared_data(relative: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(relative)
+}
+
+pub fn scenes_dir() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes")
+}
+
+/// A skin patch scene with a scalpel; `msm_extra` is spliced into the msm object.
+pub fn patch_scene(size_m: [f64; 2], resolution: [u32; 2], residual_strain: f64, msm_extra: &str) -> String {
+    format!(
+        r#"{{
+        "name": "test-patch",
+        "model": {{ "msm": {{
+            "geometry": {{ "patch": {{ "size_m": [{}, {}], "resolution": [{}, {}] }} }},
+            "material": {{ "young_pa": 100000, "thickness_m": 0.002, "density_kg_per_m3": 1100 }},
+            "residual_strain": {residual_strain},
+            "damping": {{ "mass_per_s": 20 }},
+            "fixed": [ {{ "boundary": {{}} }} ],
+            "integrator": {{ "symplectic-euler": {{ "substeps": 12 }} }},
+            "cutting": {{}}
+            {msm_extra}
+        }} }},
+        "tools": [ {{ "name": "scalpel", "shape": {{ "cylinder": {{ "radius_m": 0.0005, "length_m": 0.04 }} }}, "can_cut": true }} ]
+    }}"#,
+        size_m[0], size_m[1], resolution[0], resolution[1]
+    )
+}
+
+pub fn scene(text: &str) -> Scene {
+    Scene::from_json_str(text, "test scene", None).unwrap_or_else(|e| panic!("{e}"))
+}
+
+pub fn build(scene: &Scene) -> MassSpring {
+    let ModelSpec::Msm(spec) = &scene.model;
+    build_from_scene(scene, spec).unwrap_or_else(|e| panic!("{e}"))
+}
+
+pub fn load_scene(path: &std::path::Path) -> Scene {
+    Scene::load(path).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// A pose with the tool's tip at `tip` and its axis along `axis`.
+pub fn pose(tip: Vec3, axis: Vec3) -> Pose {
+    let rotation = Quat::rotation_between(&Vec3::z(), &axis.normalize()).unwrap_or_else(Quat::identity);
+    Pose::new(tip, rotation)
+}
+
+/// Steps the model with tool 0 held at `pose` (cut button `cut`), `steps` times.
+pub fn step_with(model: &mut MassSpring, pose: Option<Pose>, cut: bool, steps: usize) -> ToolFeedback {
+    let tools = cutsim_sim::tissue::Tissue::tools(model).len();
+    let mut commands = vec![ToolCommand::default(); tools];
+    let mut feedback = vec![ToolFeedback::default(); tools];
+    if let Some(p) = pose {
+        commands[0] = ToolCommand { pose: p, active: true, cut };
+    }
+    for _ in 0..steps {
+        model.step(&commands, &mut feedback);
+    }
+    feedback[0]
+}
+
+/// Cuts along a straight line in `steps` steps with a blade whose tip is `depth` below
+/// the surface point (along −axis), then lifts it away.
+pub fn straight_cut(model: &mut MassSpring, from: Vec3, to: Vec3, axis: Vec3, depth: f64, steps: usize) {
+    for k in 0..=steps {
+        let p = from + (to - from) * (k as f64 / steps as f64);
+        step_with(model, Some(pose(p - axis.normalize() * depth, axis)), true, 1);
+    }
+    step_with(model, None, false, 1);
+}
+
+/// The live triangles as a compact mesh (for manifold checks).
+pub fn live_mesh(model: &MassSpring) -> TriMesh {
+    let mut map = vec![u32::MAX; model.positions().len()];
+    let mut mesh = TriMesh::default();
+    for (_, tri) in model.triangles() {
+        let mut out = [0u32; 3];
+        for (k, &v) in tri.iter().enumerate() {
+            if map[v as usize] == u32::MAX {
+                map[v as usize] = mesh.positions.len() as u32;
+                mesh.positions.push(model.positions()[v as usize]);
+            }
+            out[k] = map[v as usize];
+        }
+        mesh.triangles.push(out);
+    }
+    mesh
+}
+
+pub fn max_speed(model: &MassSpring) -> f64 {
+    model.velocities().iter().map(|v| v.norm()).fold(0.0, f64::max)
+}
