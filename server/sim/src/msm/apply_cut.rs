@@ -4,8 +4,11 @@
 //! Springs and masses of everything the cut touched are recomputed from the live
 //! triangles (not patched by differences), so they cannot drift: an edge's stiffness is
 //! the sum of its triangles' Van Gelder shares, a node's mass the sum of its triangles'
-//! thirds. New triangles take the current positions as their reference (the skin there
-//! is already prestressed and stays so: their springs rest at length / (1 + εr)).
+//! thirds. New triangles take their rest geometry from the reference (in-vivo)
+//! positions of their vertices — for a new lip vertex, the material point of the
+//! removed skin it was cut from — so they are prestressed like the skin they replace
+//! (springs rest at reference length / (1 + εr)), and stitching a wound that has already
+//! opened does not create skin.
 
 use super::MassSpring;
 use super::cut::CutPlan;
@@ -33,14 +36,15 @@ impl MassSpring {
         }
 
         let first_new = self.nodes.len() as u32;
-        for &(x, v) in &plan.new_vertices {
-            let id = self.nodes.push(x, v);
+        for new in &plan.new_vertices {
+            let id = self.nodes.push(new.position, new.velocity);
+            self.nodes.x_ref[id as usize] = new.reference;
             self.topo.node_tris.push(Vec::new());
-            self.grid.insert(id, &x);
+            self.grid.insert(id, &new.position);
         }
         let mut added_tris = Vec::with_capacity(plan.new_triangles.len());
         for &tri in &plan.new_triangles {
-            let [a, b, c] = tri.map(|v| self.nodes.x[v as usize]);
+            let [a, b, c] = tri.map(|v| self.nodes.x_ref[v as usize]);
             let id = self.topo.push_tri(tri, triangle_area(&a, &b, &c));
             note_tri(tri, &mut touched_nodes, &mut touched_edges);
             added_tris.push(SurfaceTriangle { id, vertices: tri });
@@ -56,7 +60,7 @@ impl MassSpring {
             let existing = self.springs.get(a, b);
             let l_ref = match existing {
                 Some(slot) => self.springs.list[slot].l_ref,
-                None => (self.nodes.x[a as usize] - self.nodes.x[b as usize]).norm(),
+                None => (self.nodes.x_ref[a as usize] - self.nodes.x_ref[b as usize]).norm(),
             };
             let k: f64 = self
                 .topo

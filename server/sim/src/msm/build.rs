@@ -93,7 +93,8 @@ impl MassSpring {
             .iter()
             .map(|&(a, b)| (mesh.positions[a as usize] - mesh.positions[b as usize]).norm())
             .fold(0.0, f64::max);
-        Self::assemble(nodes, springs, topo, params, tools, mean_edge_m, max_edge_m, true)
+        let interior: Vec<bool> = mesh.boundary_vertices().iter().map(|b| !b).collect();
+        Self::assemble(nodes, springs, topo, params, tools, mean_edge_m, max_edge_m, Some(&interior))
     }
 
     /// Builds a bare model from nodes and springs, without triangles (no surface, no
@@ -122,7 +123,7 @@ impl MassSpring {
         let mean = if lengths.is_empty() { 1.0 } else { lengths.iter().sum::<f64>() / lengths.len() as f64 };
         let max = lengths.iter().copied().fold(0.0, f64::max);
         let params = MsmParams { cutting: None, ..*params };
-        Self::assemble(nodes, set, topo, &params, Vec::new(), mean.max(1e-6), max, false)
+        Self::assemble(nodes, set, topo, &params, Vec::new(), mean.max(1e-6), max, None)
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -134,7 +135,7 @@ impl MassSpring {
         tools: Vec<ToolShape>,
         mean_edge_m: f64,
         max_edge_m: f64,
-        with_support: bool,
+        supported: Option<&[bool]>,
     ) -> Result<Self, MsmBuildError> {
         let n = nodes.len();
         for i in 0..n {
@@ -142,14 +143,18 @@ impl MassSpring {
                 nodes.free[i] = Vec3::zeros();
             }
         }
-        if with_support {
-            // The underlying tissue holds the imported (in-vivo) shape at rest: a constant
-            // support force balances the prestressed springs there. It vanishes inside a
-            // regular flat patch; it carries the discretisation imbalance of irregular
-            // meshes and the membrane pressure of curved ones.
+        if let Some(supported) = supported {
+            // The underlying tissue holds the imported (in-vivo) shape of the interior at
+            // rest: a constant support force balances the prestressed springs at each
+            // interior node. It vanishes inside a regular flat patch; it carries the
+            // discretisation imbalance of irregular meshes and the membrane pressure of
+            // curved ones. The border is held by the scene's fixed nodes, or not at all:
+            // an unheld border pulls in, as excised skin shrinks.
             super::forces::accumulate(&mut nodes, &springs.list, None, 0.0);
             for i in 0..n {
-                nodes.support[i] = -nodes.f[i];
+                if supported[i] {
+                    nodes.support[i] = -nodes.f[i];
+                }
             }
         }
         let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max);

@@ -227,6 +227,7 @@ impl MassSpring {
             let view = CutView {
                 x: &self.nodes.x,
                 v: &self.nodes.v,
+                x_ref: &self.nodes.x_ref,
                 topo: &self.topo,
                 grid: &self.grid,
                 max_edge_m: self.max_edge_m,

@@ -67,7 +67,7 @@ pub fn step_with(model: &mut MassSpring, pose: Option<Pose>, cut: bool, steps: u
     for _ in 0..steps {
         model.step(&commands, &mut feedback);
     }
-    feedback[0]
+    feedback.first().copied().unwrap_or_default()
 }
 
 /// Cuts along a straight line in `steps` steps with a blade whose tip is `depth` below

@@ -63,8 +63,8 @@ struct Stroke {
 #[derive(Debug, Clone, Default)]
 pub(crate) struct CutPlan {
     pub removed_tris: Vec<u32>,
-    /// New vertices (position m, velocity m/s); ids follow the current node count.
-    pub new_vertices: Vec<(Vec3, Vec3)>,
+    /// New vertices; ids follow the current node count.
+    pub new_vertices: Vec<NewVertex>,
     pub new_triangles: Vec<[u32; 3]>,
     pub incision_length_m: f64,
     pub starts_new_cut: bool,
@@ -73,10 +73,24 @@ pub(crate) struct CutPlan {
     pub min_angle_deg: Option<f64>,
 }
 
+/// A vertex a cut update creates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct NewVertex {
+    /// Where it is now, m.
+    pub position: Vec3,
+    /// How fast the skin there moved, m/s.
+    pub velocity: Vec3,
+    /// The same material point in the reference (imported, in-vivo) configuration, m:
+    /// new triangles and springs take their rest geometry from here, so that stitching
+    /// an already gaping wound does not create skin.
+    pub reference: Vec3,
+}
+
 /// Read-only view of the model a cut update needs.
 pub(crate) struct CutView<'a> {
     pub x: &'a [Vec3],
     pub v: &'a [Vec3],
+    pub x_ref: &'a [Vec3],
     pub topo: &'a Topology,
     pub grid: &'a PointGrid,
     /// Longest edge of the mesh, m (bounds the search around the blade).
@@ -173,8 +187,7 @@ impl Cutter {
         }
         match matched {
             Some(out) => {
-                plan.new_vertices =
-                    out.new_vertices.iter().map(|p| (*p, interpolated_velocity(p, &removed, view))).collect();
+                plan.new_vertices = out.new_vertices.iter().map(|p| material_point(p, &removed, view)).collect();
                 plan.new_triangles = out.new_triangles;
                 plan.min_angle_deg = Some(out.min_angle_deg);
                 let index = match stroke.incision {
@@ -283,17 +296,21 @@ fn area_normal(tris: &[u32], view: &CutView) -> Vec3 {
     if n > 0.0 { sum / n } else { Vec3::z() }
 }
 
-/// Velocity of the removed skin at `p`: new vertices move on as the tissue there did.
-fn interpolated_velocity(p: &Vec3, removed: &[u32], view: &CutView) -> Vec3 {
-    let mut best = (f64::INFINITY, Vec3::zeros());
+/// The removed skin at `p`: its velocity and its reference position, interpolated in
+/// the removed triangle nearest to `p` (new vertices move on as the tissue there did).
+fn material_point(p: &Vec3, removed: &[u32], view: &CutView) -> NewVertex {
+    let mut best = (f64::INFINITY, NewVertex { position: *p, velocity: Vec3::zeros(), reference: *p });
     for &t in removed {
         let ids = view.topo.tris[t as usize];
         let [a, b, c] = ids.map(|v| view.x[v as usize]);
         let d = (closest_point_on_triangle(p, &a, &b, &c) - p).norm_squared();
         if d < best.0 {
             let w = barycentric_closest(p, &a, &b, &c);
-            let v = view.v[ids[0] as usize] * w[0] + view.v[ids[1] as usize] * w[1] + view.v[ids[2] as usize] * w[2];
-            best = (d, v);
+            let blend = |field: &[Vec3]| field[ids[0] as usize] * w[0] + field[ids[1] as usize] * w[1] + field[ids[2] as usize] * w[2];
+            // The offset off the triangle's plane (the curve may lie slightly off the
+            // surface) is carried over unchanged.
+            let on_triangle = blend(view.x);
+            best = (d, NewVertex { position: *p, velocity: blend(view.v), reference: blend(view.x_ref) + (p - on_triangle) });
         }
     }
     best.1
