@@ -254,7 +254,7 @@ impl JsonSchema for Axes {
     fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
         schemars::json_schema!({
             "type": "string",
-            "pattern": "^(?=.)x?y?z?$",
+            "pattern": "^(x|y|z|xy|xz|yz|xyz)$",
             "description": "Axes held fixed, e.g. \"xyz\" (default) or \"z\"",
         })
     }

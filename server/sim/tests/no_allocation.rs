@@ -1,0 +1,110 @@
+//! The 1 kHz path allocates nothing: steps with a tool pressing the skin, and steps with
+//! the blade in the skin and its cut button held, make no heap allocation. Only a cut
+//! update (a topology change) may allocate; the count is printed for the record.
+
+mod common;
+use common::*;
+use cutsim_sim::math::Vec3;
+use cutsim_sim::msm::MassSpring;
+use cutsim_sim::tissue::Tissue;
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+
+/// Counts allocations made by the current thread while counting is on (tests run on
+/// several threads; only the measuring thread's allocations count).
+struct Counting;
+
+thread_local! {
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+}
+
+fn note_allocation() {
+    if COUNTING.with(Cell::get) {
+        ALLOCATIONS.with(|a| a.set(a.get() + 1));
+    }
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        note_allocation();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        note_allocation();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// Allocations this thread makes while `f` runs.
+fn allocations_during(f: impl FnOnce()) -> u64 {
+    ALLOCATIONS.with(|a| a.set(0));
+    COUNTING.with(|c| c.set(true));
+    f();
+    COUNTING.with(|c| c.set(false));
+    ALLOCATIONS.with(Cell::get)
+}
+
+fn run(model: &mut MassSpring, commands: &[ToolCommand], feedback: &mut [ToolFeedback], steps: usize) {
+    for _ in 0..steps {
+        model.step(commands, feedback);
+    }
+}
+
+#[test]
+fn steps_with_contact_allocate_nothing() {
+    for integrator in ["", "implicit"] {
+        let mut scene = load_scene(&scenes_dir().join("skin-patch.json"));
+        if integrator == "implicit" {
+            let text = std::fs::read_to_string(scenes_dir().join("skin-patch.json"))
+                .unwrap()
+                .replace(r#"{ "symplectic-euler": { "substeps": 10 } }"#, r#"{ "implicit-euler": { "cg_max_iterations": 30 } }"#);
+            scene = cutsim_sim::scene::Scene::from_json_str(&text, "implicit", None).unwrap();
+        }
+        let mut m = build(&scene);
+        // The probe (tool 1) lowered onto the skin, tip first, 2 mm deep.
+        let mut commands = vec![ToolCommand::default(); 2];
+        let mut fb = vec![ToolFeedback::default(); 2];
+        for k in 0..=100 {
+            let z = 0.0005 - 0.0025 * f64::from(k) / 100.0;
+            commands[1] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false };
+            run(&mut m, &commands, &mut fb, 1);
+        }
+        let count = allocations_during(|| run(&mut m, &commands, &mut fb, 200));
+        assert_eq!(count, 0, "{integrator} steps with contact allocated {count} times");
+        // The skin pushes the probe back up, and the sideways forces cancel.
+        assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "the probe is pushed back: {:?}", fb[1]);
+        assert!(fb[1].force_n.xy().norm() < 1e-3 * fb[1].force_n.z, "{:?}", fb[1]);
+    }
+}
+
+#[test]
+fn blade_in_the_skin_between_cut_updates_allocates_nothing() {
+    let mut m = build(&load_scene(&scenes_dir().join("skin-patch.json")));
+    let blade = |x: f64| {
+        let mut c = vec![ToolCommand::default(); 2];
+        c[0] = ToolCommand { pose: pose(Vec3::new(x, 0.0, -0.005), Vec3::z()), active: true, cut: true };
+        c
+    };
+    let mut fb = vec![ToolFeedback::default(); 2];
+    // Start a stroke and make a first update, then hold the blade still (it crosses the
+    // skin every step, but does not advance).
+    run(&mut m, &blade(-0.02), &mut fb, 2);
+    let held = blade(-0.01);
+    run(&mut m, &held, &mut fb, 2);
+    assert_eq!(m.counters().cut_updates, 1);
+    let count = allocations_during(|| run(&mut m, &held, &mut fb, 200));
+    assert_eq!(count, 0, "holding the blade in the skin allocated {count} times");
+    // A cut update itself allocates (new vertices, triangles, the delta): record how much.
+    let next = blade(0.0);
+    let count = allocations_during(|| run(&mut m, &next, &mut fb, 1));
+    assert_eq!(m.counters().cut_updates, 2);
+    println!("one cut update: {count} allocations");
+}
