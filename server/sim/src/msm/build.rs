@@ -150,7 +150,7 @@ impl MassSpring {
             // discretisation imbalance of irregular meshes and the membrane pressure of
             // curved ones. The border is held by the scene's fixed nodes, or not at all:
             // an unheld border pulls in, as excised skin shrinks.
-            super::forces::accumulate(&mut nodes, &springs.list, None, 0.0);
+            super::forces::accumulate(&mut nodes, &springs.list, None, 0.0, &mut Default::default());
             for i in 0..n {
                 if supported[i] {
                     nodes.support[i] = -nodes.f[i];
@@ -210,6 +210,7 @@ impl MassSpring {
             max_edge_m,
             max_contact_stiffness,
             stability,
+            spring_scratch: Default::default(),
             profile: None,
             last_cut_min_angle_deg: None,
             min_cut_angle_deg: None,

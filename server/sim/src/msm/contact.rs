@@ -75,8 +75,9 @@ pub(crate) fn apply_tool_contacts(
     contacts: &mut Vec<Contact>,
     feedback: &mut ToolFeedback,
     weight: f64,
+    query_margin_m: f64,
 ) {
-    let (min, max) = tool.bounds(0.0);
+    let (min, max) = tool.bounds(query_margin_m);
     let mut count = 0u32;
     let (mut force, mut torque) = (Vec3::zeros(), Vec3::zeros());
     grid.query_box(&min, &max, |id| {

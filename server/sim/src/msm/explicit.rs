@@ -14,8 +14,9 @@ use crate::broad_phase::PointGrid;
 use crate::math::Vec3;
 
 /// One substep for every node. Returns a sum of all coordinates, which is finite
-/// exactly when the whole state is (a NaN check at no extra pass).
-pub(crate) fn substep(nodes: &mut Nodes, grid: &mut PointGrid, h: f64, mass_damping_per_s: f64) -> f64 {
+/// exactly when the whole state is (a NaN check at no extra pass). The broad phase is
+/// refreshed once per step, not here.
+pub(crate) fn substep(nodes: &mut Nodes, h: f64, mass_damping_per_s: f64) -> f64 {
     let damp = 1.0 / (1.0 + h * mass_damping_per_s);
     let mut check = 0.0;
     let Nodes { x, v, f, inv_mass, free, .. } = nodes;
@@ -23,10 +24,16 @@ pub(crate) fn substep(nodes: &mut Nodes, grid: &mut PointGrid, h: f64, mass_damp
         let vi = (v[i] + f[i] * (h * inv_mass[i])).component_mul(&free[i]) * damp;
         v[i] = vi;
         x[i] += vi * h;
-        grid.update(i as u32, &x[i]);
         check += x[i].x + x[i].y + x[i].z + vi.x + vi.y + vi.z;
     }
     check
+}
+
+/// Moves every live node to its current cell of the broad phase.
+pub(crate) fn refresh_grid(nodes: &Nodes, grid: &mut PointGrid) {
+    for (i, x) in nodes.x.iter().enumerate() {
+        grid.update(i as u32, x);
+    }
 }
 
 /// The explicit stability limit of a configuration.

@@ -11,7 +11,13 @@ use crate::math::Vec3;
 
 /// Resets the accumulators to the external forces (support and gravity), then adds the
 /// springs. `spring_damping_s` > 0 adds β·k·(relative speed along the spring).
-pub(crate) fn accumulate(nodes: &mut Nodes, springs: &[Spring], gravity: Option<Vec3>, spring_damping_s: f64) {
+pub(crate) fn accumulate(
+    nodes: &mut Nodes,
+    springs: &[Spring],
+    gravity: Option<Vec3>,
+    spring_damping_s: f64,
+    scratch: &mut SpringScratch,
+) {
     let Nodes { x, v, f, mass, support, .. } = nodes;
     match gravity {
         Some(g) => {
@@ -34,17 +40,54 @@ pub(crate) fn accumulate(nodes: &mut Nodes, springs: &[Spring], gravity: Option<
             }
         }
     } else {
-        for s in springs {
-            let (a, b) = (s.a as usize, s.b as usize);
-            let d = x[b] - x[a];
-            let len = d.norm();
-            if len > 0.0 {
-                let pull = d * (s.k * (len - s.l0) / len);
-                f[a] += pull;
-                f[b] -= pull;
-            }
-        }
+        spring_forces(x, f, springs, scratch);
     }
+}
+
+/// Adds the spring forces to `f`, in three passes: the spring vectors and squared
+/// lengths (gathers), 1/length over a contiguous array (vectorised square roots and
+/// divisions, off any dependency chain), then the forces. Springs are stored sorted by
+/// their first node (they come from sorted edges; cuts disturb the order only locally),
+/// so the force on that node is summed in a register over each run of springs sharing
+/// it, which avoids a store → load chain on `f[a]`.
+#[inline]
+fn spring_forces(x: &[Vec3], f: &mut [Vec3], springs: &[Spring], scratch: &mut SpringScratch) {
+    let n = springs.len();
+    scratch.d.resize(n, Vec3::zeros());
+    scratch.inv_len.resize(n, 0.0);
+    for ((s, d), l2) in springs.iter().zip(scratch.d.iter_mut()).zip(scratch.inv_len.iter_mut()) {
+        *d = x[s.b as usize] - x[s.a as usize];
+        *l2 = d.norm_squared();
+    }
+    for l in scratch.inv_len.iter_mut() {
+        // max() keeps a zero-length spring at zero force instead of NaN, without a branch.
+        *l = 1.0 / l.sqrt().max(1e-300);
+    }
+    let mut current = u32::MAX;
+    let mut on_current = Vec3::zeros();
+    for ((s, d), inv_len) in springs.iter().zip(&scratch.d).zip(&scratch.inv_len) {
+        let pull = d * (s.k * (1.0 - s.l0 * inv_len));
+        if s.a != current {
+            if current != u32::MAX {
+                f[current as usize] += on_current;
+            }
+            current = s.a;
+            on_current = pull;
+        } else {
+            on_current += pull;
+        }
+        f[s.b as usize] -= pull;
+    }
+    if current != u32::MAX {
+        f[current as usize] += on_current;
+    }
+}
+
+/// Per-spring scratch of the force pass (sized to the springs; grows only after cuts).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct SpringScratch {
+    d: Vec<Vec3>,
+    inv_len: Vec<f64>,
 }
 
 /// Kinetic energy, J.

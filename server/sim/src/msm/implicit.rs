@@ -9,7 +9,6 @@
 
 use super::contact::Contact;
 use super::state::{Nodes, Spring};
-use crate::broad_phase::PointGrid;
 use crate::math::Vec3;
 
 #[derive(Debug, Clone, Copy, Default)]
@@ -59,7 +58,6 @@ impl ImplicitSolver {
         nodes: &mut Nodes,
         springs: &[Spring],
         contacts: &[Contact],
-        grid: &mut PointGrid,
         h: f64,
         mass_damping_per_s: f64,
         spring_damping_s: f64,
@@ -104,49 +102,53 @@ impl ImplicitSolver {
             self.inv_diag[i] = Vec3::new(inv_or_zero(d.x), inv_or_zero(d.y), inv_or_zero(d.z)).component_mul(&nodes.free[i]);
         }
 
-        // PCG on A·dv = b, starting from the previous solution.
-        let apply_a = |p: &[Vec3], out: &mut [Vec3], tangents: &[SpringTangent]| {
-            apply_stiffness(tangents, springs, contacts, p, out);
-            for i in 0..n {
-                out[i] = (out[i] * stiff_coef + p[i] * (nodes.mass[i] * mass_coef)).component_mul(&nodes.free[i]);
-            }
-        };
+        // PCG on A·dv = b, starting from the previous solution. Node passes are fused so
+        // that an iteration is one pass over the springs and two over the nodes.
         for i in 0..n {
             self.dv[i] = self.dv[i].component_mul(&nodes.free[i]);
         }
-        apply_a(&self.dv, &mut self.q, &self.tangents);
+        let coefficients = Coefficients { mass: mass_coef, stiffness: stiff_coef };
+        apply_a(&self.tangents, springs, contacts, nodes, coefficients, &self.dv, &mut self.q);
         let b_norm = dot(&self.b, &self.b).sqrt();
+        let mut rz = 0.0;
+        let mut rr = 0.0;
         for i in 0..n {
-            self.r[i] = self.b[i] - self.q[i];
-            self.z[i] = self.r[i].component_mul(&self.inv_diag[i]);
-            self.p[i] = self.z[i];
+            let r = self.b[i] - self.q[i];
+            let z = r.component_mul(&self.inv_diag[i]);
+            self.r[i] = r;
+            self.z[i] = z;
+            self.p[i] = z;
+            rz += r.dot(&z);
+            rr += r.norm_squared();
         }
-        let mut rz = dot(&self.r, &self.z);
         let mut iterations = 0;
-        let mut residual = if b_norm > 0.0 { dot(&self.r, &self.r).sqrt() / b_norm } else { 0.0 };
+        let mut residual = if b_norm > 0.0 { rr.sqrt() / b_norm } else { 0.0 };
         if b_norm == 0.0 {
             self.dv.iter_mut().for_each(|x| *x = Vec3::zeros());
         }
         while b_norm > 0.0 && residual > self.tolerance && iterations < self.max_iterations {
-            apply_a(&self.p, &mut self.q, &self.tangents);
-            let pq = dot(&self.p, &self.q);
+            let pq = apply_a(&self.tangents, springs, contacts, nodes, coefficients, &self.p, &mut self.q);
             if pq <= 0.0 || !pq.is_finite() {
                 break;
             }
             let alpha = rz / pq;
+            let (mut rz_next, mut rr_next) = (0.0, 0.0);
             for i in 0..n {
                 self.dv[i] += self.p[i] * alpha;
-                self.r[i] -= self.q[i] * alpha;
-                self.z[i] = self.r[i].component_mul(&self.inv_diag[i]);
+                let r = self.r[i] - self.q[i] * alpha;
+                let z = r.component_mul(&self.inv_diag[i]);
+                self.r[i] = r;
+                self.z[i] = z;
+                rz_next += r.dot(&z);
+                rr_next += r.norm_squared();
             }
-            let rz_next = dot(&self.r, &self.z);
             let beta = rz_next / rz;
             rz = rz_next;
             for i in 0..n {
                 self.p[i] = self.z[i] + self.p[i] * beta;
             }
             iterations += 1;
-            residual = dot(&self.r, &self.r).sqrt() / b_norm;
+            residual = rr_next.sqrt() / b_norm;
         }
         self.last_iterations = iterations;
         self.last_residual = residual;
@@ -156,7 +158,6 @@ impl ImplicitSolver {
             let v = nodes.v[i] + self.dv[i];
             nodes.v[i] = v;
             nodes.x[i] += v * h;
-            grid.update(i as u32, &nodes.x[i]);
             check += nodes.x[i].x + nodes.x[i].y + nodes.x[i].z + v.x + v.y + v.z;
         }
         check
@@ -176,15 +177,56 @@ fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x.dot(y)).sum()
 }
 
-/// out = K·p for the springs and contacts.
+#[derive(Debug, Clone, Copy)]
+struct Coefficients {
+    /// 1 + hα: multiplies the mass.
+    mass: f64,
+    /// h² + hβ: multiplies the stiffness.
+    stiffness: f64,
+}
+
+/// out = A·p = (M(1 + hα) + (h² + hβ)K)·p on free axes; returns p·out.
+fn apply_a(
+    tangents: &[SpringTangent],
+    springs: &[Spring],
+    contacts: &[Contact],
+    nodes: &Nodes,
+    c: Coefficients,
+    p: &[Vec3],
+    out: &mut [Vec3],
+) -> f64 {
+    apply_stiffness(tangents, springs, contacts, p, out);
+    let mut p_dot_out = 0.0;
+    for i in 0..p.len() {
+        let a = (out[i] * c.stiffness + p[i] * (nodes.mass[i] * c.mass)).component_mul(&nodes.free[i]);
+        out[i] = a;
+        p_dot_out += p[i].dot(&a);
+    }
+    p_dot_out
+}
+
+/// out = K·p for the springs and contacts. As in the force pass, the product on each
+/// spring's first node is summed in a register over runs of springs sharing it.
 fn apply_stiffness(tangents: &[SpringTangent], springs: &[Spring], contacts: &[Contact], p: &[Vec3], out: &mut [Vec3]) {
     out.iter_mut().for_each(|x| *x = Vec3::zeros());
+    let mut current = u32::MAX;
+    let mut on_current = Vec3::zeros();
     for (t, s) in tangents.iter().zip(springs) {
-        let (a, b) = (s.a as usize, s.b as usize);
-        let d = p[b] - p[a];
+        let d = p[s.b as usize] - p[s.a as usize];
         let kd = d * t.lateral + t.n * ((t.axial - t.lateral) * t.n.dot(&d));
-        out[a] -= kd;
-        out[b] += kd;
+        if s.a != current {
+            if current != u32::MAX {
+                out[current as usize] -= on_current;
+            }
+            current = s.a;
+            on_current = kd;
+        } else {
+            on_current += kd;
+        }
+        out[s.b as usize] += kd;
+    }
+    if current != u32::MAX {
+        out[current as usize] -= on_current;
     }
     for c in contacts {
         let i = c.node as usize;

@@ -81,6 +81,7 @@ pub struct MassSpring {
     max_edge_m: f64,
     max_contact_stiffness: f64,
     stability: StabilityBound,
+    spring_scratch: forces::SpringScratch,
     profile: Option<StageTimes>,
     last_cut_min_angle_deg: Option<f64>,
     min_cut_angle_deg: Option<f64>,
@@ -103,7 +104,7 @@ impl MassSpring {
                     self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                     self.timed(|s| s.add_contacts(commands, feedback, weight), |t, ns| t.contacts_ns += ns);
                     check = self.timed(
-                        |s| explicit::substep(&mut s.nodes, &mut s.grid, h, s.mass_damping_per_s),
+                        |s| explicit::substep(&mut s.nodes, h, s.mass_damping_per_s),
                         |t, ns| t.integrate_ns += ns,
                     );
                 }
@@ -118,6 +119,7 @@ impl MassSpring {
         if !finite_check.is_finite() {
             self.contain_blowup(feedback);
         }
+        self.timed(|s| explicit::refresh_grid(&s.nodes, &mut s.grid), |t, ns| t.integrate_ns += ns);
         if self.cutter.is_some() {
             self.timed(|s| s.cut(commands, feedback), |t, ns| t.cut_ns += ns);
         }
@@ -158,7 +160,7 @@ impl MassSpring {
 
     fn accumulate_forces(&mut self) {
         let beta = if matches!(self.integrator, Integrator::ImplicitEuler(_)) { 0.0 } else { self.spring_damping_s };
-        forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta);
+        forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta, &mut self.spring_scratch);
     }
 
     fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
@@ -166,6 +168,9 @@ impl MassSpring {
         for (i, placed) in self.placed.iter().enumerate() {
             let Some(tool) = placed else { continue };
             let shape = &self.tools[i];
+            // The broad phase is refreshed once per step: half a cell of margin covers
+            // what nodes travel in between.
+            let margin = 0.5 * self.grid.cell_size_m();
             let radial_only = shape.can_cut && commands[i].cut;
             apply_tool_contacts(
                 tool,
@@ -176,6 +181,7 @@ impl MassSpring {
                 &mut self.contacts,
                 &mut feedback[i],
                 weight,
+                margin,
             );
         }
     }
@@ -186,7 +192,6 @@ impl MassSpring {
             &mut self.nodes,
             &self.springs.list,
             &self.contacts,
-            &mut self.grid,
             self.dt_s,
             self.mass_damping_per_s,
             self.spring_damping_s,

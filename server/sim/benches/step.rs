@@ -1,0 +1,127 @@
+//! One physics step of the default scene (skin-patch) at three sizes — about 1k, 10k
+//! and 40k nodes on the same 10 × 8 cm patch — with and without a cut in progress, for
+//! both integrators.
+//!
+//! Run: `cargo bench -p cutsim-sim --bench step` (add `-- --quick` for a short run).
+//! Prints, per case, steps per second and the p50/p99/max step time measured over every
+//! step, plus the time per stage; then divan's statistics of the intact step.
+
+use std::time::Instant;
+
+use cutsim_sim::math::{Pose, Quat, Vec3};
+use cutsim_sim::msm::{MassSpring, build_from_scene};
+use cutsim_sim::scene::{ModelSpec, Scene};
+use cutsim_sim::stats::LatencyHistogram;
+use cutsim_sim::tissue::Tissue;
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+
+const SIZES: [(&str, u32, u32); 3] = [("1k", 40, 37), ("10k", 124, 115), ("40k", 248, 230)];
+
+fn scene_text(cells_x: u32, cells_y: u32, integrator: &str) -> String {
+    let base = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/skin-patch.json")).unwrap();
+    base.replace(r#""resolution": [40, 37]"#, &format!(r#""resolution": [{cells_x}, {cells_y}]"#))
+        .replace(r#"{ "symplectic-euler": { "substeps": 10 } }"#, integrator)
+}
+
+/// The default scene at a size, with the fewest stable substeps (explicit) or with CG.
+fn build(cells_x: u32, cells_y: u32, explicit: bool) -> MassSpring {
+    let make = |integrator: &str| {
+        let scene = Scene::from_json_str(&scene_text(cells_x, cells_y, integrator), "bench", None).unwrap();
+        let ModelSpec::Msm(spec) = &scene.model;
+        build_from_scene(&scene, spec)
+    };
+    if !explicit {
+        return make(r#"{ "implicit-euler": { "cg_max_iterations": 20, "cg_tolerance": 1e-4 } }"#).unwrap();
+    }
+    let probe = make(r#"{ "implicit-euler": {} }"#).unwrap();
+    let substeps = (0.001 / probe.stability_bound().max_substep_s).ceil() as u32;
+    make(&format!(r#"{{ "symplectic-euler": {{ "substeps": {substeps} }} }}"#)).unwrap()
+}
+
+fn blade_at(x: f64) -> [ToolCommand; 2] {
+    let pose = Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity());
+    [ToolCommand { pose, active: true, cut: true }, ToolCommand::default()]
+}
+
+fn probe_at(depth: f64) -> [ToolCommand; 2] {
+    let pose = Pose::new(Vec3::new(0.01, 0.01, -depth), Quat::identity());
+    [ToolCommand::default(), ToolCommand { pose, active: true, cut: false }]
+}
+
+struct Row {
+    case: String,
+    nodes: usize,
+    substeps: String,
+    histogram: LatencyHistogram,
+    stages: cutsim_sim::msm::StageTimes,
+}
+
+fn measure(case: &str, model: &mut MassSpring, steps: usize, command: impl Fn(usize) -> [ToolCommand; 2]) -> Row {
+    let mut feedback = [ToolFeedback::default(); 2];
+    let mut histogram = LatencyHistogram::new();
+    model.set_profiling(true);
+    for step in 0..steps {
+        let c = command(step);
+        let t = Instant::now();
+        model.step(&c, &mut feedback);
+        histogram.record(t.elapsed());
+    }
+    let stages = model.stage_times().unwrap();
+    let substeps = model.substeps().map_or_else(|| "CG≤20".to_owned(), |s| s.to_string());
+    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages }
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    println!("cutsim-sim step benchmark (release, one core): skin-patch 10 × 8 cm at three resolutions");
+    println!(
+        "{:<34} {:>7} {:>6} {:>10} {:>9} {:>9} {:>9}   stages per step (forces / contacts / integrate / cut)",
+        "case", "nodes", "subst", "steps/s", "p50 µs", "p99 µs", "max µs"
+    );
+    for (label, cx, cy) in SIZES {
+        for explicit in [true, false] {
+            let integrator = if explicit { "explicit" } else { "implicit" };
+            let steps = if quick { 200 } else { 2000 };
+            let mut m = build(cx, cy, explicit);
+            // Intact, with the probe resting on the skin (contacts every step).
+            let mut m2 = m.clone();
+            for k in 0..50 {
+                m2.step(&probe_at(0.0005 + 0.001 * k as f64 / 50.0), &mut [ToolFeedback::default(); 2]);
+            }
+            let rows = [
+                measure(&format!("{label} {integrator} intact, probe in contact"), &mut m2, steps, |_| probe_at(0.0015)),
+                measure(&format!("{label} {integrator} cutting (4 cm at 0.1 m/s)"), &mut m, 400, |s| blade_at(-0.02 + 0.04 * s as f64 / 400.0)),
+            ];
+            for r in rows {
+                let per = |ns: u64| ns as f64 / r.stages.steps.max(1) as f64 / 1e3;
+                println!(
+                    "{:<34} {:>7} {:>6} {:>10.0} {:>9.1} {:>9.1} {:>9.1}   {:.1} / {:.1} / {:.1} / {:.1} µs",
+                    r.case,
+                    r.nodes,
+                    r.substeps,
+                    1e9 / r.histogram.mean_ns(),
+                    r.histogram.quantile_ns(0.5) as f64 / 1e3,
+                    r.histogram.quantile_ns(0.99) as f64 / 1e3,
+                    r.histogram.max_ns() as f64 / 1e3,
+                    per(r.stages.forces_ns),
+                    per(r.stages.contacts_ns),
+                    per(r.stages.integrate_ns),
+                    per(r.stages.cut_ns),
+                );
+            }
+        }
+    }
+    if !quick {
+        divan::main();
+    }
+}
+
+/// divan's view of one intact explicit step at each size.
+#[divan::bench(args = ["1k", "10k", "40k"], sample_count = 20)]
+fn intact_explicit_step(bencher: divan::Bencher, size: &str) {
+    let (_, cx, cy) = SIZES.iter().copied().find(|s| s.0 == size).unwrap();
+    let mut m = build(cx, cy, true);
+    let c = probe_at(0.0);
+    let mut fb = [ToolFeedback::default(); 2];
+    bencher.bench_local(|| m.step(&c, &mut fb));
+}
