@@ -18,7 +18,7 @@ const NONE: u32 = u32::MAX;
 #[inline]
 fn floor_i32(v: f64) -> i32 {
     let t = v as i32;
-    t - i32::from((t as f64) > v)
+    t.saturating_sub(i32::from((t as f64) > v))
 }
 
 #[derive(Debug, Clone)]
