@@ -1,1 +1,6 @@
-fn main(){}
+//! `haptic-bridge`: arrives with the clients issue; until then it says so and exits.
+
+fn main() -> std::process::ExitCode {
+    eprintln!("haptic-bridge is not available yet in this build of cutsim");
+    std::process::ExitCode::from(2)
+}

@@ -12,7 +12,6 @@ use cutsim_sim::math::{Pose, Quat, Vec3};
 use cutsim_sim::msm::{MassSpring, build_from_scene};
 use cutsim_sim::scene::{ModelSpec, Scene};
 use cutsim_sim::stats::LatencyHistogram;
-use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
 const SIZES: [(&str, u32, u32); 3] = [("1k", 40, 37), ("10k", 124, 115), ("40k", 248, 230)];
@@ -56,11 +55,17 @@ struct Row {
     stages: cutsim_sim::msm::StageTimes,
 }
 
-fn measure(case: &str, model: &mut MassSpring, steps: usize, command: impl Fn(usize) -> [ToolCommand; 2]) -> Row {
+/// Steps until `steps` are done, or (for `budget_s`) until the time budget is spent
+/// after at least 50 steps.
+fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f64>, command: impl Fn(usize) -> [ToolCommand; 2]) -> Row {
     let mut feedback = [ToolFeedback::default(); 2];
     let mut histogram = LatencyHistogram::new();
     model.set_profiling(true);
+    let start = Instant::now();
     for step in 0..steps {
+        if budget_s.is_some_and(|b| step >= 50 && start.elapsed().as_secs_f64() > b) {
+            break;
+        }
         let c = command(step);
         let t = Instant::now();
         model.step(&c, &mut feedback);
@@ -81,7 +86,7 @@ fn main() {
     for (label, cx, cy) in SIZES {
         for explicit in [true, false] {
             let integrator = if explicit { "explicit" } else { "implicit" };
-            let steps = if quick { 200 } else { 2000 };
+            let (steps, budget) = if quick { (200, Some(0.5)) } else { (5000, Some(3.0)) };
             let mut m = build(cx, cy, explicit);
             // Intact, with the probe resting on the skin (contacts every step).
             let mut m2 = m.clone();
@@ -89,8 +94,8 @@ fn main() {
                 m2.step(&probe_at(0.0005 + 0.001 * k as f64 / 50.0), &mut [ToolFeedback::default(); 2]);
             }
             let rows = [
-                measure(&format!("{label} {integrator} intact, probe in contact"), &mut m2, steps, |_| probe_at(0.0015)),
-                measure(&format!("{label} {integrator} cutting (4 cm at 0.1 m/s)"), &mut m, 400, |s| blade_at(-0.02 + 0.04 * s as f64 / 400.0)),
+                measure(&format!("{label} {integrator} intact, probe in contact"), &mut m2, steps, budget, |_| probe_at(0.0015)),
+                measure(&format!("{label} {integrator} cutting (4 cm at 0.1 m/s)"), &mut m, 400, None, |s| blade_at(-0.02 + 0.04 * s as f64 / 400.0)),
             ];
             for r in rows {
                 let per = |ns: u64| ns as f64 / r.stages.steps.max(1) as f64 / 1e3;

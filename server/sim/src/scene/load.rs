@@ -46,11 +46,15 @@ impl Scene {
         Scene::from_json_str(&text, &origin, path.parent())
     }
 
-    /// Resolves a path written in this scene (relative to the scene file).
-    pub fn resolve_path(&self, relative: &str) -> PathBuf {
+    /// Resolves a path written in this scene: `data:<path>` is inside the data directory
+    /// (see [`data_dir`]); anything else is relative to the scene file.
+    pub fn resolve_path(&self, written: &str) -> PathBuf {
+        if let Some(inside) = written.strip_prefix("data:") {
+            return data_dir().join(inside);
+        }
         match &self.base_dir {
-            Some(dir) => dir.join(relative),
-            None => PathBuf::from(relative),
+            Some(dir) => dir.join(written),
+            None => PathBuf::from(written),
         }
     }
 
@@ -89,6 +93,15 @@ impl Scene {
             }
         }
         Ok(())
+    }
+}
+
+/// The directory of shared anatomical data that `data:` paths point into:
+/// `$CUTSIM_DATA_DIR` when set, else `../shared/data` beside the repository.
+pub fn data_dir() -> PathBuf {
+    match std::env::var_os("CUTSIM_DATA_DIR") {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data"),
     }
 }
 

@@ -11,7 +11,7 @@
 
 mod load;
 
-pub use load::{SceneError, bundled_scene_names, json_schema, resolve_scene_path};
+pub use load::{SceneError, bundled_scene_names, data_dir, json_schema, resolve_scene_path};
 
 use std::path::PathBuf;
 
@@ -121,7 +121,8 @@ fn zero_jitter() -> Jitter {
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ObjSpec {
-    /// Path of the .obj file, relative to the scene file.
+    /// Path of the .obj file: relative to the scene file, or `data:<path>` inside the
+    /// shared data directory ($CUTSIM_DATA_DIR, default ../shared/data beside the repository).
     pub path: String,
     /// Metres per file unit: 0.001 for a file in millimetres.
     #[serde(default = "unit_scale")]

@@ -7,9 +7,11 @@ use cutsim_sim::msm::{MassSpring, build_from_scene};
 use cutsim_sim::scene::{ModelSpec, Scene};
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
-/// Path of the shared data directory (../shared/data beside the project).
+/// A file in the shared data directory; fails loudly when the data is not there.
 pub fn shared_data(relative: &str) -> std::path::PathBuf {
-    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(relative)
+    let path = cutsim_sim::scene::data_dir().join(relative);
+    assert!(path.exists(), "shared data {} not found; set CUTSIM_DATA_DIR to the shared data directory", path.display());
+    path
 }
 
 pub fn scenes_dir() -> std::path::PathBuf {
