@@ -1,32 +1,84 @@
 //! `cutsim-server`: the cutsim server binary.
 //!
-//! `cutsim-server run SCENE [--steps N] [--script SCRIPT.json] [--json]` runs a scene
-//! headless in lockstep (optionally driven by a cut script) and prints a report;
-//! `cutsim-server scene-schema` prints the JSON Schema of scene files.
+//! - `cutsim-server [serve] [--grpc-addr A] [--http-addr A] [--scene NAME|PATH] [--config FILE]`
+//!   serves sessions over gRPC and the viewer over HTTP/WebSocket, with one session open
+//!   on the scene (the default subcommand).
+//! - `cutsim-server run SCENE [--steps N] [--script SCRIPT.json] [--json]` runs a scene
+//!   headless in lockstep and prints a report.
+//! - `cutsim-server replay RECORDING.jsonl [--json]` replays a session recording and checks
+//!   its state-hash checkpoints.
+//! - `cutsim-server scene-schema` prints the JSON Schema of scene files.
 
+mod auth;
+mod config;
+mod convert;
+mod error;
+mod grpc;
 mod headless;
+mod http;
+mod metrics;
+mod serve;
+mod session;
+mod ws;
 
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 
 #[derive(Parser)]
 #[command(name = "cutsim-server", version, about = "Soft-tissue cutting simulator server")]
 struct Cli {
-    /// Directory of bundled scenes (repeatable; default: the repository's server/scenes).
+    /// Directory of bundled scenes (repeatable; default: $CUTSIM_SCENES_DIR, else the
+    /// repository's server/scenes).
     #[arg(long = "scenes-dir", global = true)]
     scenes_dir: Vec<PathBuf>,
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
 }
 
 #[derive(Subcommand)]
 enum Command {
+    /// Serve sessions (gRPC) and the viewer (HTTP, WebSocket). The default.
+    Serve(ServeArgs),
     /// Run a scene headless in lockstep (as fast as the CPU allows) and print a report.
     Run(headless::RunArgs),
+    /// Replay a session recording and check its state-hash checkpoints.
+    Replay(ReplayArgs),
     /// Print the JSON Schema of scene files.
     SceneSchema,
+}
+
+#[derive(Args, Default)]
+struct ServeArgs {
+    /// gRPC address (port 0: any free port, printed at start).
+    #[arg(long)]
+    grpc_addr: Option<SocketAddr>,
+    /// HTTP/WebSocket address (port 0: any free port, printed at start).
+    #[arg(long)]
+    http_addr: Option<SocketAddr>,
+    /// Scene of the session opened at start (bundled name or path).
+    #[arg(long, default_value = "skin-patch")]
+    scene: String,
+    /// Open no session at start.
+    #[arg(long)]
+    no_session: bool,
+    /// JSON config file (docs/server.md); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Where session recordings are written.
+    #[arg(long)]
+    recordings_dir: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct ReplayArgs {
+    /// A recording written by `cutsim-server serve` (recordings/<session>.jsonl).
+    recording: PathBuf,
+    /// Print the report as one JSON object.
+    #[arg(long)]
+    json: bool,
 }
 
 /// Where bundled scenes are looked up: the given directories, else $CUTSIM_SCENES_DIR,
@@ -44,11 +96,80 @@ pub fn scene_dirs(given: &[PathBuf]) -> Vec<PathBuf> {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let dirs = scene_dirs(&cli.scenes_dir);
-    match cli.command {
+    match cli.command.unwrap_or(Command::Serve(ServeArgs { scene: "skin-patch".into(), ..Default::default() })) {
         Command::Run(args) => headless::run(&args, &dirs),
         Command::SceneSchema => {
             println!("{}", serde_json::to_string_pretty(&cutsim_sim::scene::json_schema()).expect("schema is JSON"));
             ExitCode::SUCCESS
+        }
+        Command::Replay(args) => replay(&args),
+        Command::Serve(args) => serve(args, dirs, !cli.scenes_dir.is_empty()),
+    }
+}
+
+fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let mut config = match &args.config {
+        Some(path) => match config::ServerConfig::load(path) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("error: {e}");
+                return ExitCode::from(2);
+            }
+        },
+        None => config::ServerConfig::default(),
+    };
+    if dirs_given || args.config.is_none() {
+        config.scene_dirs = dirs;
+    }
+    if let Some(a) = args.grpc_addr {
+        config.grpc_addr = a;
+    }
+    if let Some(a) = args.http_addr {
+        config.http_addr = a;
+    }
+    if let Some(d) = args.recordings_dir {
+        config.recordings_dir = d;
+    }
+    let first = (!args.no_session).then_some(args.scene);
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("a tokio runtime");
+    match runtime.block_on(serve::serve(config, first)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn replay(args: &ReplayArgs) -> ExitCode {
+    match session::recording::replay(&args.recording) {
+        Ok(report) => {
+            if args.json {
+                println!("{}", serde_json::to_string(&report).expect("report is JSON"));
+            } else {
+                println!("recording        {}", report.recording);
+                println!("session          {} (scene {})", report.session, report.scene);
+                println!("steps replayed   {} ({} resets, {} commands)", report.steps, report.resets, report.commands);
+                println!("checkpoints      {} verified, {} mismatched", report.checkpoints_verified, report.checkpoint_mismatches.len());
+                for (step, recorded, replayed) in &report.checkpoint_mismatches {
+                    println!("  step {step}: recorded {recorded}, replayed {replayed}");
+                }
+                if report.lost_events > 0 {
+                    println!("lost events      {} (the recording is incomplete; replay cannot be exact past them)", report.lost_events);
+                }
+                println!("ended cleanly    {}", if report.ended_cleanly { "yes" } else { "no (the server stopped without closing the session)" });
+                println!("final            step {}, state_hash {}", report.final_step, report.final_state_hash);
+                println!("result           {}", if report.passed { "PASS" } else { "FAIL" });
+            }
+            if report.passed { ExitCode::SUCCESS } else { ExitCode::from(1) }
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
         }
     }
 }

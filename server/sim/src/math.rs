@@ -1,7 +1,19 @@
 //! Small geometric helpers shared by the tissue models: closest points, distances,
 //! intersections and triangle quality. All lengths are in metres.
 
-pub use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+pub use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
+
+/// A unit quaternion from (w, x, y, z), renormalised (inputs are checked to be within
+/// 1e-3 of unit length before they get here).
+pub fn quat_from_wxyz(w: f64, x: f64, y: f64, z: f64) -> Quat {
+    Quat::from_quaternion(Quaternion::new(w, x, y, z))
+}
+
+/// A unit quaternion from (w, x, y, z) taken as is, bit for bit (they were normalised
+/// before, e.g. on the other side of a lock-free handoff).
+pub fn quat_from_wxyz_exact(w: f64, x: f64, y: f64, z: f64) -> Quat {
+    Quat::new_unchecked(Quaternion::new(w, x, y, z))
+}
 
 /// A 3-vector of f64 (positions in m, velocities in m/s, forces in N).
 pub type Vec3 = Vector3<f64>;

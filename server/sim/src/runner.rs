@@ -63,7 +63,21 @@ pub fn run(
     script: Option<&CompiledScript>,
     steps: u64,
     progress_every: u64,
+    on_progress: impl FnMut(&Progress),
+) -> RunReport {
+    run_with_hook(tissue, scene_name, script, steps, progress_every, on_progress, |_, _, _| {})
+}
+
+/// [`run`], calling `after_step(tissue, commands, feedback)` after every step (the
+/// server publishes deltas and frames and records commands there; it is not timed).
+pub fn run_with_hook(
+    tissue: &mut dyn Tissue,
+    scene_name: &str,
+    script: Option<&CompiledScript>,
+    steps: u64,
+    progress_every: u64,
     mut on_progress: impl FnMut(&Progress),
+    mut after_step: impl FnMut(&mut dyn Tissue, &[ToolCommand], &[ToolFeedback]),
 ) -> RunReport {
     let tools = tissue.tools().len();
     let mut commands = vec![ToolCommand::default(); tools];
@@ -78,6 +92,7 @@ pub fn run(
         let t0 = Instant::now();
         tissue.step(&commands, &mut feedback);
         histogram.record(t0.elapsed());
+        after_step(tissue, &commands, &feedback);
         for fb in &feedback {
             max_force = max_force.max(fb.force_n.norm());
         }

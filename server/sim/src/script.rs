@@ -9,7 +9,7 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use crate::math::{Pose, Quat, Vec3};
+use crate::math::{Pose, Vec3, quat_from_wxyz};
 use crate::quantity::CoordinateM;
 use crate::scene::SceneError;
 use crate::tool::{ToolCommand, ToolShape};
@@ -203,7 +203,7 @@ impl CutScript {
                 if !norm.is_finite() || (norm - 1.0).abs() > 1e-3 {
                     return Err(err(path(".orientation_wxyz"), format!("must be a unit quaternion (w, x, y, z), got norm {norm}")));
                 }
-                let orientation = Quat::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+                let orientation = quat_from_wxyz(w, x, y, z);
                 let position = Vec3::new(k.position_m[0].get(), k.position_m[1].get(), k.position_m[2].get());
                 keys.push(CompiledKey { step, pose: Pose::new(position, orientation), cut: k.cut, active: k.active });
             }

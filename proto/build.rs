@@ -1,0 +1,14 @@
+//! Compiles proto/cutsim.proto with protox (pure Rust, no protoc needed) and generates
+//! the prost messages and tonic clients/servers. The encoded file descriptor set is
+//! written too, for gRPC server reflection.
+
+use prost::Message;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    println!("cargo:rerun-if-changed=cutsim.proto");
+    let fds = protox::compile(["cutsim.proto"], ["."])?;
+    let out = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
+    std::fs::write(out.join("cutsim_descriptor.bin"), fds.encode_to_vec())?;
+    tonic_prost_build::configure().compile_fds(fds)?;
+    Ok(())
+}

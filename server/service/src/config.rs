@@ -1,0 +1,90 @@
+//! Server configuration: listening addresses, directories and limits, from flags and an
+//! optional JSON config file (docs/server.md).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use serde::Deserialize;
+
+/// Limits, each refused with a clear status when exceeded.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Limits {
+    /// Sessions the server holds at once.
+    pub max_sessions: usize,
+    /// WebSocket viewers per session.
+    pub max_viewers_per_session: usize,
+    /// Haptic streams per session.
+    pub max_haptic_clients_per_session: usize,
+    /// Largest gRPC message the server accepts, bytes.
+    pub max_message_bytes: usize,
+    /// Largest inline scene JSON, bytes.
+    pub max_scene_bytes: usize,
+    /// Largest cut script JSON, bytes.
+    pub max_script_bytes: usize,
+    /// Most steps a script may run.
+    pub max_script_steps: u64,
+    /// How far outside the tissue's bounding box a tool may be, m.
+    pub pose_margin_m: f64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_sessions: 16,
+            max_viewers_per_session: 32,
+            max_haptic_clients_per_session: 8,
+            max_message_bytes: 4 << 20,
+            max_scene_bytes: 1 << 20,
+            max_script_bytes: 4 << 20,
+            max_script_steps: 2_000_000,
+            pose_margin_m: 1.0,
+        }
+    }
+}
+
+/// Everything `cutsim-server serve` needs.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    pub grpc_addr: SocketAddr,
+    pub http_addr: SocketAddr,
+    /// Directories of bundled scenes.
+    pub scene_dirs: Vec<PathBuf>,
+    /// Where session recordings are written.
+    pub recordings_dir: PathBuf,
+    /// The web viewer's files.
+    pub viewer_dir: PathBuf,
+    /// Position frames per second sent to a viewer that asks for nothing else.
+    pub viewer_rate_hz: f64,
+    pub limits: Limits,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            grpc_addr: "127.0.0.1:50051".parse().expect("valid address"),
+            http_addr: "127.0.0.1:8080".parse().expect("valid address"),
+            scene_dirs: crate::scene_dirs(&[]),
+            recordings_dir: PathBuf::from("recordings"),
+            viewer_dir: default_viewer_dir(),
+            viewer_rate_hz: 60.0,
+            limits: Limits::default(),
+        }
+    }
+}
+
+fn default_viewer_dir() -> PathBuf {
+    let root = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../web-viewer"));
+    let dist = root.join("dist");
+    if dist.join("index.html").is_file() { dist } else { root }
+}
+
+impl ServerConfig {
+    /// Reads a JSON config file; unknown keys are errors.
+    pub fn load(path: &std::path::Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read config {}: {e}", path.display()))?;
+        let de = &mut serde_json::Deserializer::from_str(&text);
+        serde_path_to_error::deserialize(de).map_err(|e| format!("{}: {}: {}", path.display(), e.path(), e.inner()))
+    }
+}

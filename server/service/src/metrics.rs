@@ -1,0 +1,52 @@
+//! Prometheus metrics at `/metrics` (text exposition format 0.0.4).
+
+use std::fmt::Write;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::session::Registry;
+
+/// Server-wide counters.
+#[derive(Debug, Default)]
+pub struct Metrics {
+    pub viewer_bytes: AtomicU64,
+}
+
+pub fn render(registry: &Registry, metrics: &Metrics) -> String {
+    let sessions = registry.list();
+    let mut out = String::new();
+    let family = |name: &str, kind: &str, help: &str, out: &mut String| {
+        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
+    };
+    family("cutsim_sessions", "gauge", "Sessions open.", &mut out);
+    let _ = writeln!(out, "cutsim_sessions {}", sessions.len());
+    family("cutsim_sessions_created_total", "counter", "Sessions created since the server started.", &mut out);
+    let _ = writeln!(out, "cutsim_sessions_created_total {}", registry.created_total.load(Ordering::Relaxed));
+    family("cutsim_bytes_sent_total", "counter", "Bytes sent to WebSocket viewers.", &mut out);
+    let _ = writeln!(out, "cutsim_bytes_sent_total{{transport=\"websocket\"}} {}", metrics.viewer_bytes.load(Ordering::Relaxed));
+    family("cutsim_step_time_microseconds", "summary", "Physics step computation time per session, µs.", &mut out);
+    for s in &sessions {
+        let f = s.frame.load();
+        let _ = writeln!(out, "cutsim_step_time_microseconds{{session=\"{}\",quantile=\"0.5\"}} {}", s.id, f.stats.p50_us);
+        let _ = writeln!(out, "cutsim_step_time_microseconds{{session=\"{}\",quantile=\"0.99\"}} {}", s.id, f.stats.p99_us);
+        let _ = writeln!(out, "cutsim_step_time_microseconds_count{{session=\"{}\"}} {}", s.id, f.stats.steps);
+    }
+    let per_session: [(&str, &str, &str, fn(&crate::session::Session) -> f64); 7] = [
+        ("cutsim_steps_total", "counter", "Physics steps taken.", |s| s.frame.load().total_steps as f64),
+        ("cutsim_missed_deadlines_total", "counter", "Steps that finished after their period.", |s| s.frame.load().stats.missed_deadlines as f64),
+        ("cutsim_achieved_rate_hertz", "gauge", "Steps per second over the last second.", |s| s.frame.load().stats.achieved_rate_hz),
+        ("cutsim_viewers", "gauge", "WebSocket viewers attached.", |s| f64::from(s.viewers.load(Ordering::Relaxed))),
+        ("cutsim_haptic_clients", "gauge", "Haptic streams attached.", |s| s.subscribers.count() as f64),
+        ("cutsim_session_bytes_sent_total", "counter", "Bytes sent to this session's viewers.", |s| s.bytes_sent.load(Ordering::Relaxed) as f64),
+        ("cutsim_recording_lost_events_total", "counter", "Recording events lost (full ring or failed writes).", |s| {
+            let (lost, errors) = s.recording_losses();
+            (lost + errors) as f64
+        }),
+    ];
+    for (name, kind, help, value) in per_session {
+        family(name, kind, help, &mut out);
+        for s in &sessions {
+            let _ = writeln!(out, "{name}{{session=\"{}\"}} {}", s.id, value(s));
+        }
+    }
+    out
+}

@@ -1,0 +1,105 @@
+//! `cutsim-server serve`: the gRPC and HTTP servers, and a first session.
+
+use std::sync::Arc;
+
+use anyhow::Context;
+use cutsim_proto::v1::haptics_server::HapticsServer;
+use cutsim_proto::v1::scripts_server::ScriptsServer;
+use cutsim_proto::v1::sessions_server::SessionsServer;
+use tokio::net::TcpListener;
+
+use crate::config::ServerConfig;
+use crate::grpc::Api;
+use crate::http::{self, AppState};
+use crate::metrics::Metrics;
+use crate::session::{Mode, Registry, SceneSource};
+
+/// Runs the servers until SIGINT or SIGTERM; `first_scene` opens a session at start.
+pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow::Result<()> {
+    let config = Arc::new(config);
+    let registry = Registry::new(config.clone());
+    let metrics = Arc::new(Metrics::default());
+
+    let grpc_listener = TcpListener::bind(config.grpc_addr).await.with_context(|| format!("cannot listen for gRPC on {}", config.grpc_addr))?;
+    let http_listener = TcpListener::bind(config.http_addr).await.with_context(|| format!("cannot listen for HTTP on {}", config.http_addr))?;
+    let grpc_addr = grpc_listener.local_addr()?;
+    let http_addr = http_listener.local_addr()?;
+
+    let api = Api { registry: registry.clone() };
+    let limit = config.limits.max_message_bytes;
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<SessionsServer<Api>>().await;
+    health.set_serving::<HapticsServer<Api>>().await;
+    health.set_serving::<ScriptsServer<Api>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(cutsim_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .context("building the reflection service")?;
+    let shutdown = shutdown_signal();
+    let (stop_tx, _) = tokio::sync::broadcast::channel::<()>(1);
+    let mut stop_grpc = stop_tx.subscribe();
+    let mut stop_http = stop_tx.subscribe();
+    let grpc = tonic::transport::Server::builder()
+        .tcp_nodelay(true)
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(SessionsServer::new(api.clone()).max_decoding_message_size(limit))
+        .add_service(HapticsServer::new(api.clone()).max_decoding_message_size(limit))
+        .add_service(ScriptsServer::new(api).max_decoding_message_size(limit))
+        .serve_with_incoming_shutdown(tonic::transport::server::TcpIncoming::from(grpc_listener).with_nodelay(Some(true)), async move {
+            let _ = stop_grpc.recv().await;
+        });
+    let app = http::router(AppState { registry: registry.clone(), metrics });
+    let http_server = axum::serve(
+        axum::serve::ListenerExt::tap_io(http_listener, |tcp| {
+            let _ = tcp.set_nodelay(true);
+        }),
+        app,
+    )
+    .with_graceful_shutdown(async move {
+        let _ = stop_http.recv().await;
+    });
+
+    println!("grpc listening on {grpc_addr}");
+    println!("http listening on {http_addr}");
+    tracing::info!(%grpc_addr, %http_addr, "cutsim-server listening");
+
+    if let Some(scene) = first_scene {
+        let session = registry.create(SceneSource::Bundled(scene), Mode::Realtime, "default".into()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let (control, observe) = session.tokens();
+        println!("session {} on scene {}", session.id, session.scene_name);
+        println!("  viewer:        http://{http_addr}/?session={}&token={observe}", session.id);
+        println!("  control token: {control}");
+        println!("  recording:     {}", session.recording_path().display());
+    }
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
+
+    let grpc_task = tokio::spawn(grpc);
+    let http_task = tokio::spawn(async move { http_server.await });
+    shutdown.await;
+    tracing::info!("shutting down: closing sessions");
+    let _ = stop_tx.send(());
+    let closing = registry.clone();
+    tokio::task::spawn_blocking(move || closing.close_all()).await?;
+    let _ = grpc_task.await;
+    let _ = http_task.await;
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).expect("a SIGTERM handler");
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}

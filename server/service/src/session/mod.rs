@@ -1,0 +1,328 @@
+//! Sessions: one tissue, one physics thread, its viewers, haptic clients and recording.
+
+pub mod hub;
+pub mod physics;
+pub mod records;
+pub mod recording;
+pub mod slots;
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use arc_swap::ArcSwap;
+use cutsim_sim::math::Vec3;
+use cutsim_sim::runner::{Progress, RunReport};
+use cutsim_sim::scene::{Scene, resolve_scene_path};
+use cutsim_sim::script::CompiledScript;
+use cutsim_sim::surface::SurfaceSnapshot;
+use cutsim_sim::tool::ToolShape;
+use tokio::sync::{mpsc, oneshot};
+
+use crate::auth::{Role, Token, authorize};
+use crate::config::ServerConfig;
+use crate::error::ApiError;
+use hub::{Frame, Hub};
+use records::{COMMAND_WORDS, FEEDBACK_WORDS, StampedCommand};
+use recording::Recorder;
+use slots::{SeqSlot, Subscribers};
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Status {
+    #[default]
+    Running,
+    Idle,
+    RunningScript,
+    Closed,
+    Degraded,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    Realtime,
+    Lockstep,
+}
+
+/// Requests to the physics thread (answered between two steps).
+pub enum Control {
+    Snapshot(oneshot::Sender<(SurfaceSnapshot, u64)>),
+    StateHash(oneshot::Sender<(u64, u64)>),
+    RunScript { script: CompiledScript, progress_every: u64, events: mpsc::UnboundedSender<ScriptEvent> },
+    Close,
+}
+
+/// What a script run streams back.
+pub enum ScriptEvent {
+    Progress(Progress),
+    Report(Box<RunReport>),
+    Failed(String),
+}
+
+/// Where a session's scene comes from.
+pub enum SceneSource {
+    Bundled(String),
+    Inline(String),
+}
+
+/// One training session. Networking holds it through an `Arc`; only its physics thread
+/// touches the tissue.
+pub struct Session {
+    pub id: String,
+    pub label: String,
+    pub scene_name: String,
+    pub model: &'static str,
+    pub mode: Mode,
+    pub rate_hz: f64,
+    pub tools: Vec<ToolShape>,
+    /// Bounding box of the tissue at the start, m.
+    pub bounds: (Vec3, Vec3),
+    created: Instant,
+    control_token: Token,
+    observe_token: Token,
+    /// Newest command per tool (written by haptic streams, read by the physics thread).
+    pub commands: Vec<SeqSlot<COMMAND_WORDS>>,
+    /// Newest feedback per tool (written by the physics thread).
+    pub feedback: Vec<SeqSlot<FEEDBACK_WORDS>>,
+    /// Haptic streams waiting for feedback.
+    pub subscribers: Subscribers,
+    /// The newest frame for viewers.
+    pub frame: ArcSwap<Frame>,
+    pub hub: Arc<Hub>,
+    pub viewers: AtomicU32,
+    pub bytes_sent: AtomicU64,
+    closed: AtomicBool,
+    control_tx: Mutex<std::sync::mpsc::Sender<Control>>,
+    physics_thread: std::thread::Thread,
+    physics_join: Mutex<Option<std::thread::JoinHandle<()>>>,
+    recorder: Mutex<Recorder>,
+}
+
+impl Session {
+    pub fn authorize(&self, token: Option<&str>, needed: Role) -> Result<Role, ApiError> {
+        authorize(token, &self.control_token, &self.observe_token, needed)
+    }
+
+    /// Nanoseconds since the session was created (the session clock).
+    pub fn now_ns(&self) -> u64 {
+        self.created.elapsed().as_nanos() as u64
+    }
+
+    pub fn age_s(&self) -> f64 {
+        self.created.elapsed().as_secs_f64()
+    }
+
+    pub fn is_closed(&self) -> bool {
+        self.closed.load(Ordering::Acquire)
+    }
+
+    /// Hands a command to the physics thread (newest wins) and wakes it.
+    pub fn submit(&self, tool: usize, command: StampedCommand) {
+        self.commands[tool].write(command.to_words());
+        self.physics_thread.unpark();
+    }
+
+    pub fn send_control(&self, message: Control) -> Result<(), ApiError> {
+        if self.is_closed() {
+            return Err(ApiError::FailedPrecondition(format!("session {} is closed", self.id)));
+        }
+        self.control_tx
+            .lock()
+            .expect("control lock")
+            .send(message)
+            .map_err(|_| ApiError::FailedPrecondition(format!("session {} has stopped", self.id)))?;
+        self.physics_thread.unpark();
+        Ok(())
+    }
+
+    /// The surface now, from the physics thread (between two steps).
+    pub async fn snapshot(&self) -> Result<(SurfaceSnapshot, u64), ApiError> {
+        let (tx, rx) = oneshot::channel();
+        self.send_control(Control::Snapshot(tx))?;
+        rx.await.map_err(|_| ApiError::FailedPrecondition(format!("session {} stopped", self.id)))
+    }
+
+    /// (steps since the tissue was built, full state hash), also written as a checkpoint.
+    pub async fn state_hash(&self) -> Result<(u64, u64), ApiError> {
+        let (tx, rx) = oneshot::channel();
+        self.send_control(Control::StateHash(tx))?;
+        rx.await.map_err(|_| ApiError::FailedPrecondition(format!("session {} stopped", self.id)))
+    }
+
+    /// Recording losses so far: (events the ring could not take, write failures).
+    pub fn recording_losses(&self) -> (u64, u64) {
+        self.recorder.lock().expect("recorder lock").losses()
+    }
+
+    pub fn recording_path(&self) -> std::path::PathBuf {
+        self.recorder.lock().expect("recorder lock").path.clone()
+    }
+
+    /// Stops the physics thread, tells viewers, and finishes the recording.
+    pub fn close(&self) {
+        if self.closed.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        let _ = self.control_tx.lock().expect("control lock").send(Control::Close);
+        self.physics_thread.unpark();
+        if let Some(join) = self.physics_join.lock().expect("join lock").take() {
+            let _ = join.join();
+        }
+        self.hub.close();
+        self.recorder.lock().expect("recorder lock").finish();
+    }
+
+    pub fn tokens(&self) -> (&str, &str) {
+        (self.control_token.as_str(), self.observe_token.as_str())
+    }
+}
+
+/// All sessions of the server.
+pub struct Registry {
+    sessions: Mutex<BTreeMap<String, Arc<Session>>>,
+    pub config: Arc<ServerConfig>,
+    pub created_total: AtomicU64,
+}
+
+impl Registry {
+    pub fn new(config: Arc<ServerConfig>) -> Arc<Self> {
+        Arc::new(Self { sessions: Mutex::new(BTreeMap::new()), config, created_total: AtomicU64::new(0) })
+    }
+
+    pub fn get(&self, id: &str) -> Result<Arc<Session>, ApiError> {
+        self.sessions.lock().expect("registry lock").get(id).cloned().ok_or_else(|| ApiError::UnknownSession(id.to_owned()))
+    }
+
+    pub fn list(&self) -> Vec<Arc<Session>> {
+        self.sessions.lock().expect("registry lock").values().cloned().collect()
+    }
+
+    /// Creates a session and starts its physics.
+    pub async fn create(self: &Arc<Self>, source: SceneSource, mode: Mode, label: String) -> Result<Arc<Session>, ApiError> {
+        let limits = &self.config.limits;
+        if self.sessions.lock().expect("registry lock").len() >= limits.max_sessions {
+            return Err(ApiError::ResourceExhausted(format!(
+                "the server holds its maximum of {} sessions; close one first",
+                limits.max_sessions
+            )));
+        }
+        if label.len() > 200 {
+            return Err(ApiError::InvalidArgument(format!("label is {} bytes; at most 200", label.len())));
+        }
+        let (scene_json, origin, base_dir) = match source {
+            SceneSource::Bundled(name) => {
+                let path = resolve_scene_path(&name, &self.config.scene_dirs).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+                let text = std::fs::read_to_string(&path).map_err(|e| ApiError::Internal(format!("cannot read {}: {e}", path.display())))?;
+                (text, path.display().to_string(), path.parent().map(|p| p.to_path_buf()))
+            }
+            SceneSource::Inline(text) => {
+                if text.len() > limits.max_scene_bytes {
+                    return Err(ApiError::ResourceExhausted(format!(
+                        "scene_json is {} bytes; at most {} are allowed",
+                        text.len(),
+                        limits.max_scene_bytes
+                    )));
+                }
+                (text, "inline scene".to_owned(), None)
+            }
+        };
+        let scene = Scene::from_json_str(&scene_json, &origin, base_dir.as_deref()).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+        let building = scene.clone();
+        let tissue = tokio::task::spawn_blocking(move || cutsim_sim::build_tissue(&building))
+            .await
+            .map_err(|e| ApiError::Internal(e.to_string()))?
+            .map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+
+        let id = random_id();
+        let initial = tissue.snapshot();
+        let bounds = bounding_box(&initial);
+        let tools = tissue.tools().to_vec();
+        let (recorder, producer) = Recorder::start(&self.config.recordings_dir, &id, &scene, &scene_json).map_err(|e| {
+            ApiError::FailedPrecondition(format!("cannot record the session in {}: {e}", self.config.recordings_dir.display()))
+        })?;
+        let hub = Hub::new(&id, &initial);
+        let (hub_tx, hub_rx) = mpsc::unbounded_channel();
+        let (control_tx, control_rx) = std::sync::mpsc::channel();
+        let rate_hz = 1.0 / tissue.time_step_s();
+        let model = tissue.model_name();
+
+        // The physics thread starts parked until the session is assembled.
+        let (start_tx, start_rx) = std::sync::mpsc::channel::<Arc<Session>>();
+        let scene_for_thread = scene.clone();
+        let join = std::thread::Builder::new()
+            .name(format!("physics-{}", &id[..8]))
+            .spawn(move || {
+                let Ok(session) = start_rx.recv() else { return };
+                physics::Physics::new(session, scene_for_thread, tissue, control_rx, hub_tx, producer).run();
+            })
+            .map_err(|e| ApiError::Internal(format!("cannot start a physics thread: {e}")))?;
+        let session = Arc::new(Session {
+            id: id.clone(),
+            label,
+            scene_name: scene.name.clone(),
+            model,
+            mode,
+            rate_hz,
+            commands: (0..tools.len()).map(|_| SeqSlot::default()).collect(),
+            feedback: (0..tools.len()).map(|_| SeqSlot::default()).collect(),
+            tools,
+            bounds,
+            created: Instant::now(),
+            control_token: Token::generate(),
+            observe_token: Token::generate(),
+            subscribers: Subscribers::new(self.config.limits.max_haptic_clients_per_session),
+            frame: ArcSwap::from_pointee(Frame::default()),
+            hub: hub.clone(),
+            viewers: AtomicU32::new(0),
+            bytes_sent: AtomicU64::new(0),
+            closed: AtomicBool::new(false),
+            control_tx: Mutex::new(control_tx),
+            physics_thread: join.thread().clone(),
+            physics_join: Mutex::new(Some(join)),
+            recorder: Mutex::new(recorder),
+        });
+        tokio::spawn(hub.run(hub_rx));
+        start_tx.send(session.clone()).map_err(|_| ApiError::Internal("the physics thread did not start".into()))?;
+        self.sessions.lock().expect("registry lock").insert(id.clone(), session.clone());
+        self.created_total.fetch_add(1, Ordering::Relaxed);
+        tracing::info!(session = %id, scene = %session.scene_name, ?mode, "session created");
+        Ok(session)
+    }
+
+    /// Closes a session and forgets it.
+    pub async fn close(&self, id: &str) -> Result<(), ApiError> {
+        let session = self.sessions.lock().expect("registry lock").remove(id).ok_or_else(|| ApiError::UnknownSession(id.to_owned()))?;
+        tokio::task::spawn_blocking(move || session.close()).await.map_err(|e| ApiError::Internal(e.to_string()))?;
+        tracing::info!(session = %id, "session closed");
+        Ok(())
+    }
+
+    /// Closes every session (server shutdown): recordings end cleanly.
+    pub fn close_all(&self) {
+        let sessions: Vec<_> = std::mem::take(&mut *self.sessions.lock().expect("registry lock")).into_values().collect();
+        for s in sessions {
+            s.close();
+        }
+    }
+}
+
+/// 16 hex digits from the operating system's random source.
+fn random_id() -> String {
+    let mut bytes = [0u8; 8];
+    getrandom::fill(&mut bytes).expect("the operating system provides random bytes");
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn bounding_box(snapshot: &SurfaceSnapshot) -> (Vec3, Vec3) {
+    let mut lo = Vec3::repeat(f64::INFINITY);
+    let mut hi = Vec3::repeat(f64::NEG_INFINITY);
+    for v in &snapshot.vertices {
+        let p = Vec3::new(f64::from(v.position_m[0]), f64::from(v.position_m[1]), f64::from(v.position_m[2]));
+        lo = lo.inf(&p);
+        hi = hi.sup(&p);
+    }
+    if !lo.x.is_finite() {
+        return (Vec3::zeros(), Vec3::zeros());
+    }
+    (lo, hi)
+}

@@ -1,0 +1,377 @@
+//! The physics thread of one session.
+//!
+//! Real-time sessions step once per period of the scene's rate (1 kHz by default),
+//! against absolute deadlines: a step may start as early as its period begins, and
+//! starts at once when a fresh haptic command arrives (so a device's round trip does not
+//! wait for a whole period), or at the latest when the rest of the period just holds a
+//! step. Inputs and outputs cross to networking through lock-free slots; topology deltas
+//! go to the hub through a channel; frames through a lock-free cell; recording through a
+//! lock-free ring. Nothing here waits for a network task, logs per step or allocates per
+//! step (cuts and frames after a cut grew the surface excepted).
+//!
+//! Scripts run here too, in lockstep: the tissue is rebuilt from the scene and stepped
+//! as fast as the CPU allows, publishing to viewers as it goes.
+
+use std::sync::Arc;
+use std::sync::mpsc::Receiver;
+use std::time::{Duration, Instant};
+
+use cutsim_sim::runner::{self, Progress, RunReport};
+use cutsim_sim::scene::Scene;
+use cutsim_sim::stats::LatencyHistogram;
+use cutsim_sim::surface::{SurfaceSnapshot, TopologyDelta};
+use cutsim_sim::tissue::Tissue;
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+use tokio::sync::mpsc::UnboundedSender;
+
+use super::hub::{FramePool, HubEvent, StepStats, ToolFrame};
+use super::records::{FeedbackRecord, StampedCommand};
+use super::recording::{RecordEvent, RecordingProducer};
+use super::{Control, Mode, ScriptEvent, Session, Status};
+
+/// Frames per second published for viewers (they pick their own rate below it).
+const FRAME_RATE_HZ: f64 = 250.0;
+/// Margin kept before a period's end when waiting for a haptic command.
+const START_MARGIN: Duration = Duration::from_micros(150);
+/// Step-time statistics are recomputed this often (quantiles walk the histogram).
+const STATS_EVERY_STEPS: u64 = 100;
+
+pub struct Physics {
+    scene: Scene,
+    tissue: Box<dyn Tissue>,
+    control: Receiver<Control>,
+    stamped: Vec<StampedCommand>,
+    seen_versions: Vec<u64>,
+    histogram: LatencyHistogram,
+    missed: u64,
+    rate_window: (Instant, u64),
+    estimated_step: Duration,
+    out: Outputs,
+}
+
+/// Everything a step publishes (kept apart from the tissue so that a script's runner
+/// can hold the tissue while its per-step hook publishes).
+struct Outputs {
+    session: Arc<Session>,
+    hub: UnboundedSender<HubEvent>,
+    recording: RecordingProducer,
+    commands: Vec<ToolCommand>,
+    recorded: Vec<ToolCommand>,
+    feedback: Vec<ToolFeedback>,
+    deltas: Vec<TopologyDelta>,
+    stats: StepStats,
+    total_steps: u64,
+    /// Published topology version of the current tissue's version 0.
+    epoch_version: u64,
+    frames: FramePool,
+    publish_every: u64,
+    status: Status,
+    pieces: u64,
+}
+
+impl Physics {
+    pub fn new(
+        session: Arc<Session>,
+        scene: Scene,
+        tissue: Box<dyn Tissue>,
+        control: Receiver<Control>,
+        hub: UnboundedSender<HubEvent>,
+        recording: RecordingProducer,
+    ) -> Self {
+        let tools = tissue.tools().len();
+        let rate = 1.0 / tissue.time_step_s();
+        let status = if session.mode == Mode::Lockstep { Status::Idle } else { Status::Running };
+        let pieces = tissue.pieces() as u64;
+        Self {
+            scene,
+            tissue,
+            control,
+            stamped: vec![StampedCommand::default(); tools],
+            seen_versions: vec![0; tools],
+            histogram: LatencyHistogram::new(),
+            missed: 0,
+            rate_window: (Instant::now(), 0),
+            estimated_step: Duration::from_micros(200),
+            out: Outputs {
+                session,
+                hub,
+                recording,
+                commands: vec![ToolCommand::default(); tools],
+                recorded: vec![ToolCommand::default(); tools],
+                feedback: vec![ToolFeedback::default(); tools],
+                deltas: Vec::with_capacity(8),
+                stats: StepStats::default(),
+                total_steps: 0,
+                epoch_version: 0,
+                frames: FramePool::new(4),
+                publish_every: (rate / FRAME_RATE_HZ).round().max(1.0) as u64,
+                status,
+                pieces,
+            },
+        }
+    }
+
+    /// The thread's body: runs until the session closes.
+    pub fn run(mut self) {
+        let period = Duration::from_secs_f64(self.tissue.time_step_s());
+        let mut next = Instant::now();
+        self.out.publish_frame(self.tissue.as_ref());
+        loop {
+            while let Ok(message) = self.control.try_recv() {
+                if !self.handle(message) {
+                    return self.finish();
+                }
+                next = next.max(Instant::now());
+            }
+            if self.out.session.is_closed() {
+                return self.finish();
+            }
+            if self.out.session.mode == Mode::Lockstep {
+                std::thread::park_timeout(Duration::from_millis(20));
+                continue;
+            }
+            wait_until(next);
+            if self.out.session.subscribers.count() > 0 {
+                // Start as soon as a fresh command arrives, at the latest when the rest of
+                // the period just holds a step.
+                let latest = next + period.saturating_sub(self.estimated_step + START_MARGIN);
+                while !self.fresh_command() && Instant::now() < latest {
+                    std::thread::park_timeout(latest.saturating_duration_since(Instant::now()));
+                }
+            }
+            self.read_commands();
+            self.step_realtime();
+            let end = Instant::now();
+            if end > next + period {
+                self.missed += 1;
+            }
+            next += period;
+            if end > next + 5 * period {
+                // Far behind (a long cut update, a stalled machine): resume from now
+                // rather than run a burst of late steps.
+                next = end;
+            }
+        }
+    }
+
+    /// Handles a control message; false when the session must stop.
+    fn handle(&mut self, message: Control) -> bool {
+        match message {
+            Control::Close => return false,
+            Control::Snapshot(reply) => {
+                let _ = reply.send((self.snapshot(), self.tissue.step_index()));
+            }
+            Control::StateHash(reply) => {
+                let (step, hash) = (self.tissue.step_index(), self.tissue.state_hash());
+                self.out.recording.push(RecordEvent::Checkpoint { step, hash });
+                let _ = reply.send((step, hash));
+            }
+            Control::RunScript { script, progress_every, events } => self.run_script(&script, progress_every, &events),
+        }
+        true
+    }
+
+    fn snapshot(&self) -> SurfaceSnapshot {
+        let mut s = self.tissue.snapshot();
+        s.version += self.out.epoch_version;
+        s
+    }
+
+    fn fresh_command(&self) -> bool {
+        self.out.session.commands.iter().zip(&self.seen_versions).any(|(slot, &seen)| slot.version() != seen)
+    }
+
+    /// Takes the newest command of every tool (keeping the previous one if a writer is
+    /// caught mid-write: the physics never waits for networking).
+    fn read_commands(&mut self) {
+        for (tool, slot) in self.out.session.commands.iter().enumerate() {
+            if let Some((words, version)) = slot.try_read(16) {
+                self.seen_versions[tool] = version;
+                if version != 0 {
+                    self.stamped[tool] = StampedCommand::from_words(&words);
+                    self.out.commands[tool] = self.stamped[tool].command;
+                }
+            }
+        }
+    }
+
+    fn step_realtime(&mut self) {
+        let step = self.tissue.step_index();
+        self.out.record_commands(step);
+        let started = Instant::now();
+        self.tissue.step(&self.out.commands, &mut self.out.feedback);
+        let elapsed = started.elapsed();
+        self.histogram.record(elapsed);
+        // A slow-moving estimate that leans to the slow side: it sets how late a step
+        // may start.
+        self.estimated_step = if elapsed > self.estimated_step { elapsed } else { (self.estimated_step * 63 + elapsed) / 64 };
+        let now_ns = self.out.session.now_ns();
+        for (tool, slot) in self.out.session.feedback.iter().enumerate() {
+            let stamped = &self.stamped[tool];
+            let record = FeedbackRecord {
+                step: self.out.total_steps,
+                feedback: self.out.feedback[tool],
+                echo_client_time_ns: stamped.client_time_ns,
+                server_latency_ns: if stamped.client_time_ns == 0 { 0 } else { now_ns.saturating_sub(stamped.received_ns) },
+                step_time_ns: elapsed.as_nanos() as u64,
+            };
+            slot.write(record.to_words());
+        }
+        self.out.session.subscribers.wake_all();
+        self.out.after_step(self.tissue.as_mut());
+        if self.out.total_steps % STATS_EVERY_STEPS == 0 {
+            self.update_stats();
+        }
+        if self.out.total_steps % self.out.publish_every == 0 {
+            self.out.publish_frame(self.tissue.as_ref());
+        }
+    }
+
+    fn update_stats(&mut self) {
+        let h = &self.histogram;
+        let stats = &mut self.out.stats;
+        let (window_start, window_steps) = self.rate_window;
+        let elapsed = window_start.elapsed().as_secs_f64();
+        if elapsed >= 1.0 {
+            stats.achieved_rate_hz = (self.out.total_steps - window_steps) as f64 / elapsed;
+            self.rate_window = (Instant::now(), self.out.total_steps);
+        }
+        stats.p50_us = h.quantile_ns(0.5) as f64 / 1e3;
+        stats.p99_us = h.quantile_ns(0.99) as f64 / 1e3;
+        stats.max_us = h.max_ns() as f64 / 1e3;
+        stats.steps = h.count();
+        stats.missed_deadlines = self.missed;
+        if self.tissue.counters().blowups_contained > 0 && self.out.status == Status::Running {
+            self.out.status = Status::Degraded;
+        }
+    }
+
+    /// Resets the tissue to the scene's initial state and runs a script in lockstep.
+    fn run_script(&mut self, script: &cutsim_sim::script::CompiledScript, progress_every: u64, events: &UnboundedSender<ScriptEvent>) {
+        let previous_status = self.out.status;
+        self.out.status = Status::RunningScript;
+        if let Err(e) = self.reset() {
+            let _ = events.send(ScriptEvent::Failed(e));
+            self.out.status = previous_status;
+            return;
+        }
+        self.out.publish_frame(self.tissue.as_ref());
+        let frame_every = Duration::from_secs_f64(1.0 / 60.0);
+        let mut last_frame = Instant::now();
+        let steps = script.steps;
+        let every = if progress_every == 0 { (steps / 20).max(1) } else { progress_every };
+        let out = &mut self.out;
+        // The hook records, publishes deltas and, about 60 times a second of wall time,
+        // a frame for viewers; it is not part of the timed step.
+        let report: RunReport = runner::run_with_hook(
+            self.tissue.as_mut(),
+            &self.scene.name,
+            Some(script),
+            steps,
+            every,
+            |p: &Progress| {
+                let _ = events.send(ScriptEvent::Progress(*p));
+            },
+            |tissue, commands, feedback| {
+                out.commands.copy_from_slice(commands);
+                out.feedback.copy_from_slice(feedback);
+                // The runner has stepped already: the commands were those of the step before.
+                out.record_commands(tissue.step_index() - 1);
+                out.after_step(tissue);
+                if last_frame.elapsed() >= frame_every {
+                    out.publish_frame(tissue);
+                    last_frame = Instant::now();
+                }
+            },
+        );
+        let (step, hash) = (self.tissue.step_index(), self.tissue.state_hash());
+        self.out.recording.push(RecordEvent::Checkpoint { step, hash });
+        self.out.status = previous_status;
+        self.update_stats();
+        self.out.publish_frame(self.tissue.as_ref());
+        let _ = events.send(ScriptEvent::Report(Box::new(report)));
+    }
+
+    /// Rebuilds the tissue from the scene; viewers get the new surface as a snapshot.
+    fn reset(&mut self) -> Result<(), String> {
+        let tissue = cutsim_sim::build_tissue(&self.scene).map_err(|e| e.to_string())?;
+        self.out.recording.push(RecordEvent::Reset { step: self.tissue.step_index() });
+        self.out.epoch_version += self.tissue.topology_version() + 1;
+        self.tissue = tissue;
+        self.out.recorded.iter_mut().for_each(|c| *c = ToolCommand::default());
+        self.out.commands.iter_mut().for_each(|c| *c = ToolCommand::default());
+        self.out.pieces = self.tissue.pieces() as u64;
+        let _ = self.out.hub.send(HubEvent::Reset(self.snapshot()));
+        Ok(())
+    }
+
+    fn finish(mut self) {
+        self.out.recording.push(RecordEvent::End { step: self.tissue.step_index() });
+        self.out.status = Status::Closed;
+        self.out.publish_frame(self.tissue.as_ref());
+    }
+}
+
+impl Outputs {
+    /// Records the commands of step `step` that differ from the last recorded ones.
+    fn record_commands(&mut self, step: u64) {
+        for (tool, (command, recorded)) in self.commands.iter().zip(self.recorded.iter_mut()).enumerate() {
+            if command != recorded {
+                self.recording.push(RecordEvent::Command { step, tool: tool as u32, command: *command });
+                *recorded = *command;
+            }
+        }
+    }
+
+    /// Publishes what a step changed: its topology deltas (only after a cut).
+    fn after_step(&mut self, tissue: &mut dyn Tissue) {
+        self.total_steps += 1;
+        tissue.drain_deltas(&mut self.deltas);
+        if !self.deltas.is_empty() {
+            for mut delta in self.deltas.drain(..) {
+                delta.version += self.epoch_version;
+                let _ = self.hub.send(HubEvent::Delta(delta, tissue.step_index()));
+            }
+            self.pieces = tissue.pieces() as u64;
+        }
+    }
+
+    fn publish_frame(&mut self, tissue: &dyn Tissue) {
+        let (session, stats, status, pieces) = (&self.session, self.stats, self.status, self.pieces);
+        let (commands, feedback) = (&self.commands, &self.feedback);
+        let (epoch, total) = (self.epoch_version, self.total_steps);
+        self.frames.publish(&session.frame, |f| {
+            f.step = tissue.step_index();
+            f.total_steps = total;
+            f.topology_version = epoch + tissue.topology_version();
+            f.epoch_version = epoch;
+            f.session_time_ns = session.now_ns();
+            f.unix_ms = unix_ms();
+            f.positions.resize(tissue.vertex_capacity(), [0.0; 3]);
+            tissue.write_positions(&mut f.positions);
+            f.tools.resize(commands.len(), ToolFrame::default());
+            for (t, tool) in f.tools.iter_mut().enumerate() {
+                *tool = ToolFrame { command: commands[t], feedback: feedback[t] };
+            }
+            f.stats = stats;
+            f.counters = tissue.counters();
+            f.pieces = pieces;
+            f.status = status;
+        });
+    }
+}
+
+/// Sleeps until `deadline` (woken early by unpark, which only shortens one wait).
+fn wait_until(deadline: Instant) {
+    loop {
+        let now = Instant::now();
+        if now >= deadline {
+            return;
+        }
+        std::thread::park_timeout(deadline - now);
+    }
+}
+
+fn unix_ms() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64() * 1e3)
+}

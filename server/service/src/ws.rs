@@ -1,0 +1,280 @@
+//! The WebSocket viewer protocol at `/ws/sessions/{id}`: binary protobuf `ViewerFrame`s.
+//!
+//! On connect: Hello, then a Snapshot. Then, as they happen, TopologyDeltas (never
+//! dropped: a viewer that falls behind the hub's backlog gets a fresh Snapshot instead),
+//! and at the viewer's rate Positions (only the vertices that moved since the last
+//! frame sent to this viewer), ToolStates and, ten times less often, SessionStats. A slow
+//! viewer only slows itself: the physics never waits for it. The connection logic is
+//! generic over the sink and stream so tests can drive it without sockets.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade};
+use axum::extract::{Path, Query, State};
+use axum::http::HeaderMap;
+use axum::response::Response;
+use cutsim_proto::v1 as pb;
+use cutsim_sim::surface::SurfaceSnapshot;
+use futures_util::{Sink, SinkExt, Stream, StreamExt};
+use prost::Message as _;
+use serde::Deserialize;
+use tokio::sync::broadcast::error::RecvError;
+
+use crate::auth::{Role, TOKEN_KEY};
+use crate::convert;
+use crate::error::ApiError;
+use crate::http::AppState;
+use crate::session::Session;
+use crate::session::hub::{Frame, HubMessage};
+
+/// A viewer that does not take a frame within this time is disconnected.
+const SEND_TIMEOUT: Duration = Duration::from_secs(10);
+/// Largest message a viewer may send, bytes.
+const MAX_INCOMING_BYTES: usize = 64 * 1024;
+
+#[derive(Deserialize)]
+pub struct ViewerQuery {
+    token: Option<String>,
+    /// Positions frames per second (1 to 240).
+    rate_hz: Option<f64>,
+}
+
+/// `GET /ws/sessions/{id}?token=…[&rate_hz=…]`: checks the session, the token (observe or
+/// control; a missing or wrong one gets 401) and the viewer limit, then upgrades.
+pub async fn upgrade(
+    Path(id): Path<String>,
+    Query(query): Query<ViewerQuery>,
+    headers: HeaderMap,
+    State(app): State<AppState>,
+    ws: WebSocketUpgrade,
+) -> Result<Response, ApiError> {
+    let session = app.registry.get(&id)?;
+    let token = query.token.as_deref().or_else(|| headers.get(TOKEN_KEY).and_then(|v| v.to_str().ok()));
+    let role = session.authorize(token, Role::Observe)?;
+    let limit = app.registry.config.limits.max_viewers_per_session;
+    if session.viewers.load(Ordering::Relaxed) as usize >= limit {
+        return Err(ApiError::ResourceExhausted(format!("session {id} already has its maximum of {limit} viewers")));
+    }
+    let rate = match query.rate_hz {
+        Some(r) if (1.0..=240.0).contains(&r) => r,
+        Some(r) => return Err(ApiError::InvalidArgument(format!("rate_hz must be within [1, 240] Hz, got {r}"))),
+        None => app.registry.config.viewer_rate_hz,
+    };
+    let metrics = app.metrics.clone();
+    Ok(ws.max_message_size(MAX_INCOMING_BYTES).on_upgrade(move |socket: WebSocket| async move {
+        let (sink, stream) = socket.split();
+        let outcome = run_viewer(sink, stream, session.clone(), role == Role::Observe, rate, &metrics).await;
+        tracing::debug!(session = %session.id, ?outcome, "viewer left");
+    }))
+}
+
+/// Why a viewer connection ended.
+#[derive(Debug, PartialEq)]
+pub enum ViewerEnd {
+    ClientClosed,
+    SessionClosed,
+    SendFailed,
+    Protocol(String),
+}
+
+/// Counts the viewer in (and out, whatever happens).
+struct ViewerGuard(Arc<Session>);
+
+impl Drop for ViewerGuard {
+    fn drop(&mut self) {
+        self.0.viewers.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+/// What this viewer has been sent: the vertex positions it holds.
+struct Mirror {
+    version: u64,
+    epoch_version: u64,
+    /// Position last sent, by vertex id (None: not a vertex now).
+    positions: Vec<Option<[f32; 3]>>,
+    last_frame_step: u64,
+}
+
+impl Mirror {
+    fn from_snapshot(s: &SurfaceSnapshot, epoch_version: u64) -> Self {
+        let len = s.vertices.iter().map(|v| v.id as usize + 1).max().unwrap_or(0);
+        let mut positions = vec![None; len];
+        for v in &s.vertices {
+            positions[v.id as usize] = Some(v.position_m);
+        }
+        Self { version: s.version, epoch_version, positions, last_frame_step: u64::MAX }
+    }
+
+    fn apply(&mut self, d: &cutsim_sim::surface::TopologyDelta) {
+        for &id in &d.removed_vertices {
+            if let Some(p) = self.positions.get_mut(id as usize) {
+                *p = None;
+            }
+        }
+        for v in &d.added_vertices {
+            let i = v.id as usize;
+            if i >= self.positions.len() {
+                self.positions.resize(i + 1, None);
+            }
+            self.positions[i] = Some(v.position_m);
+        }
+        self.version = d.version;
+    }
+
+    /// The vertices whose position in `frame` differs from what was sent, as a
+    /// Positions message (and records them as sent).
+    fn moved(&mut self, frame: &Frame) -> Option<pb::Positions> {
+        if frame.epoch_version != self.epoch_version {
+            return None;
+        }
+        let mut ids = Vec::new();
+        let mut coords = Vec::new();
+        let mut previous = 0u32;
+        for (id, sent) in self.positions.iter_mut().enumerate() {
+            let (Some(sent), Some(now)) = (sent.as_mut(), frame.positions.get(id)) else { continue };
+            if sent.map(f32::to_bits) != now.map(f32::to_bits) {
+                *sent = *now;
+                ids.push(id as u32 - previous);
+                previous = id as u32;
+                coords.extend_from_slice(now);
+            }
+        }
+        (!ids.is_empty()).then(|| pb::Positions {
+            step: frame.total_steps,
+            topology_version: self.version,
+            id_deltas: ids,
+            positions_m: coords,
+        })
+    }
+}
+
+fn frame_bytes(frame: pb::viewer_frame::Frame) -> Vec<u8> {
+    pb::ViewerFrame { frame: Some(frame) }.encode_to_vec()
+}
+
+/// Runs one viewer until it leaves, the session closes or a send fails.
+pub async fn run_viewer<Tx, Rx, E>(
+    mut sink: Tx,
+    mut incoming: Rx,
+    session: Arc<Session>,
+    observer: bool,
+    rate_hz: f64,
+    metrics: &crate::metrics::Metrics,
+) -> ViewerEnd
+where
+    Tx: Sink<Message> + Unpin,
+    Rx: Stream<Item = Result<Message, E>> + Unpin,
+{
+    session.viewers.fetch_add(1, Ordering::Relaxed);
+    let _guard = ViewerGuard(session.clone());
+    let send = async |sink: &mut Tx, bytes: Vec<u8>| -> bool {
+        let len = bytes.len() as u64;
+        let ok = matches!(tokio::time::timeout(SEND_TIMEOUT, sink.send(Message::Binary(bytes.into()))).await, Ok(Ok(())));
+        if ok {
+            session.bytes_sent.fetch_add(len, Ordering::Relaxed);
+            metrics.viewer_bytes.fetch_add(len, Ordering::Relaxed);
+        }
+        ok
+    };
+    let hello = pb::Hello { session: Some(convert::session_info(&session)), rate_hz, observer };
+    if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Hello(hello))).await {
+        return ViewerEnd::SendFailed;
+    }
+    let subscribe = |session: &Session| {
+        let frame = session.frame.load();
+        let (snapshot, rx, epoch) = session.hub.subscribe(&frame);
+        (snapshot, rx, epoch, frame.total_steps)
+    };
+    let (snapshot, mut rx, epoch, step) = subscribe(&session);
+    let mut mirror = Mirror::from_snapshot(&snapshot, epoch);
+    if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Snapshot(convert::snapshot(&snapshot, &session.id, step)))).await {
+        return ViewerEnd::SendFailed;
+    }
+    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / rate_hz));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut ticks: u64 = 0;
+    loop {
+        let mut resync = false;
+        tokio::select! {
+            message = rx.recv() => match message {
+                Ok(HubMessage::Delta(delta, bytes)) => {
+                    if delta.version <= mirror.version {
+                        continue; // already in the snapshot this viewer got
+                    }
+                    if delta.version != mirror.version + 1 {
+                        resync = true;
+                    } else {
+                        mirror.apply(&delta);
+                        if !send(&mut sink, (*bytes).clone()).await {
+                            return ViewerEnd::SendFailed;
+                        }
+                    }
+                }
+                Ok(HubMessage::Reset) | Err(RecvError::Lagged(_)) => resync = true,
+                Ok(HubMessage::Closed) | Err(RecvError::Closed) => {
+                    let _ = sink.send(Message::Close(Some(CloseFrame { code: 1001, reason: "session closed".into() }))).await;
+                    return ViewerEnd::SessionClosed;
+                }
+            },
+            _ = ticker.tick() => {
+                let frame = session.frame.load();
+                if frame.total_steps == mirror.last_frame_step {
+                    continue;
+                }
+                mirror.last_frame_step = frame.total_steps;
+                if let Some(moved) = mirror.moved(&frame) {
+                    if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Positions(moved))).await {
+                        return ViewerEnd::SendFailed;
+                    }
+                }
+                if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Tools(convert::tool_states(&frame)))).await {
+                    return ViewerEnd::SendFailed;
+                }
+                if ticks % 10 == 0 {
+                    let stats = pb::SessionStats {
+                        step: frame.total_steps,
+                        stats: Some(convert::stats(&frame.stats)),
+                        counters: Some(convert::counters(&frame.counters, frame.pieces)),
+                        viewers: session.viewers.load(Ordering::Relaxed),
+                        haptic_clients: session.subscribers.count() as u32,
+                        status: convert::status(frame.status) as i32,
+                        server_unix_ms: frame.unix_ms,
+                    };
+                    if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Stats(stats))).await {
+                        return ViewerEnd::SendFailed;
+                    }
+                }
+                ticks += 1;
+            },
+            message = incoming.next() => match message {
+                Some(Ok(Message::Binary(bytes))) => match pb::ViewerRequest::decode(bytes.as_ref()) {
+                    Ok(pb::ViewerRequest { request: Some(pb::viewer_request::Request::Resync(_)) }) => resync = true,
+                    Ok(pb::ViewerRequest { request: Some(pb::viewer_request::Request::SetRateHz(hz)) }) if (1.0..=240.0).contains(&hz) => {
+                        ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / hz));
+                        ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+                    }
+                    Ok(other) => return close(&mut sink, 1008, &format!("unsupported request {other:?}: rates are 1 to 240 Hz")).await,
+                    Err(e) => return close(&mut sink, 1007, &format!("not a ViewerRequest: {e}")).await,
+                },
+                Some(Ok(Message::Text(_))) => return close(&mut sink, 1003, "send binary protobuf ViewerRequest frames").await,
+                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return ViewerEnd::ClientClosed,
+                Some(Ok(_)) => {} // ping/pong are answered by the socket
+            },
+        }
+        if resync {
+            let (snapshot, new_rx, epoch, step) = subscribe(&session);
+            rx = new_rx;
+            mirror = Mirror::from_snapshot(&snapshot, epoch);
+            if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Snapshot(convert::snapshot(&snapshot, &session.id, step)))).await {
+                return ViewerEnd::SendFailed;
+            }
+        }
+    }
+}
+
+async fn close<Tx: Sink<Message> + Unpin>(sink: &mut Tx, code: u16, reason: &str) -> ViewerEnd {
+    let _ = sink.send(Message::Close(Some(CloseFrame { code, reason: reason.to_owned().into() }))).await;
+    ViewerEnd::Protocol(reason.to_owned())
+}

@@ -1,0 +1,147 @@
+//! Bad tokens, observers trying to control, NaN and far-away poses, oversized messages,
+//! unknown sessions and bad scripts get the right status, and the session survives.
+
+use std::time::Duration;
+
+use cutsim_proto::v1 as pb;
+use tonic::Code;
+
+use crate::harness::*;
+use crate::haptics::open;
+use crate::sessions::http_get;
+
+async fn step_of(server: &Server, s: &Created) -> u64 {
+    server.sessions().await.get_session(authed(pb::GetSessionRequest { session_id: s.id.clone(), with_state_hash: false }, &s.observe)).await.unwrap().into_inner().step
+}
+
+/// Sends one command on a fresh haptic stream and returns how the stream ended.
+async fn send_one(server: &Server, s: &Created, token: &str, command: pb::ToolCommand) -> Code {
+    let (tx, response) = open(server, &s.id, token).await;
+    let mut stream = match response {
+        Ok(stream) => stream,
+        Err(status) => return status.code(),
+    };
+    tx.send(command).await.unwrap();
+    loop {
+        match tokio::time::timeout(Duration::from_secs(5), stream.message()).await {
+            Ok(Ok(Some(_))) => continue,
+            Ok(Ok(None)) => return Code::Ok,
+            Ok(Err(status)) => return status.code(),
+            Err(_) => return Code::DeadlineExceeded,
+        }
+    }
+}
+
+#[tokio::test]
+async fn bad_requests_get_the_right_status_and_the_session_survives() {
+    let server = Server::start();
+    let s = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+    let mut sessions = server.sessions().await;
+    let get = |token: &str| authed(pb::GetSessionRequest { session_id: s.id.clone(), with_state_hash: false }, token);
+
+    // Tokens.
+    assert_eq!(sessions.get_session(get("0123456789abcdef0123456789abcdef")).await.unwrap_err().code(), Code::Unauthenticated);
+    assert_eq!(sessions.get_session(pb::GetSessionRequest { session_id: s.id.clone(), with_state_hash: false }).await.unwrap_err().code(), Code::Unauthenticated);
+
+    // Unknown session.
+    let unknown = sessions.get_snapshot(authed(pb::GetSnapshotRequest { session_id: "nope".into() }, &s.observe)).await.unwrap_err();
+    assert_eq!(unknown.code(), Code::NotFound);
+    assert!(unknown.message().contains("nope"), "{}", unknown.message());
+    let (_, response) = open(&server, "nope", &s.control).await;
+    assert_eq!(response.unwrap_err().code(), Code::NotFound);
+
+    // Observers cannot move a tool or run a script.
+    let probe = |z: f64| pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, z)), active: true, cut: false, client_time_ns: 1, feedback_every_steps: 1 };
+    assert_eq!(send_one(&server, &s, &s.observe, probe(0.01)).await, Code::PermissionDenied);
+    let script = example_script("skin-patch-straight.json");
+    assert_eq!(run_script(&server, &Created { control: s.observe.clone(), ..clone_created(&s) }, &script).await.unwrap_err().code(), Code::PermissionDenied);
+
+    // Bad poses end the stream with INVALID_ARGUMENT, and nothing else.
+    let nan = pb::ToolCommand { pose: Some(pose(f64::NAN, 0.0, 0.0)), ..probe(0.0) };
+    assert_eq!(send_one(&server, &s, &s.control, nan).await, Code::InvalidArgument);
+    assert_eq!(send_one(&server, &s, &s.control, probe(25.0)).await, Code::InvalidArgument, "25 m away");
+    let tilted = pb::ToolCommand { pose: Some(pb::Pose { orientation: Some(pb::Quaternion { w: 2.0, x: 0.0, y: 0.0, z: 0.0 }), ..pose(0.0, 0.0, 0.0) }), ..probe(0.0) };
+    assert_eq!(send_one(&server, &s, &s.control, tilted).await, Code::InvalidArgument, "not a unit quaternion");
+    assert_eq!(send_one(&server, &s, &s.control, pb::ToolCommand { tool: 7, ..probe(0.01) }).await, Code::InvalidArgument);
+
+    // Oversized messages: a scene above the scene limit, and a message above the gRPC limit.
+    let big_scene = format!("{{\"name\": \"x\", \"description\": \"{}\"}}", "a".repeat(2 << 20));
+    let e = sessions
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(big_scene)), mode: 0, label: String::new() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{}", e.message());
+    assert!(e.message().contains("at most 1048576"), "{}", e.message());
+    let huge = "a".repeat(5 << 20);
+    let e = sessions
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(huge)), mode: 0, label: String::new() })
+        .await
+        .unwrap_err();
+    assert!(matches!(e.code(), Code::ResourceExhausted | Code::OutOfRange), "{:?}: {}", e.code(), e.message());
+
+    // Bad scenes and scripts name the JSON path.
+    let e = sessions
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson("{\"name\": \"x\", \"model\": {\"msm\": {\"geometry\": 5}}}".into())), mode: 0, label: String::new() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("model.msm.geometry"), "{}", e.message());
+    let e = sessions
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("../secret".into())), mode: 0, label: String::new() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    let bad_script = script.replace("\"tool\": \"scalpel\"", "\"tool\": \"laser\"");
+    let e = run_script(&server, &s, &bad_script).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("tools[0].tool"), "{}", e.message());
+
+    // WebSocket handshakes: no token or a wrong one → 401, unknown session → 404, a bad
+    // rate → 400.
+    assert_eq!(ws_status(&format!("ws://{}/ws/sessions/{}", server.http, s.id)).await, 401);
+    assert_eq!(ws_status(&format!("ws://{}/ws/sessions/{}?token=wrong", server.http, s.id)).await, 401);
+    assert_eq!(ws_status(&format!("ws://{}/ws/sessions/nope?token={}", server.http, s.observe)).await, 404);
+    assert_eq!(ws_status(&format!("ws://{}/ws/sessions/{}?token={}&rate_hz=5000", server.http, s.id, s.observe)).await, 400);
+    // A plain GET that is not a WebSocket handshake is refused too.
+    assert_eq!(http_get(&server.http, &format!("/ws/sessions/{}?token={}", s.id, s.observe)).await.0, 400);
+
+    // The session kept running through all of it.
+    let before = step_of(&server, &s).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let after = step_of(&server, &s).await;
+    assert!(after > before + 100, "still stepping: {before} → {after}");
+    let info = sessions.get_session(get(&s.observe)).await.unwrap().into_inner();
+    assert_eq!(info.status, pb::SessionStatus::Running as i32);
+    assert_eq!(info.counters.unwrap().blowups_contained, 0);
+}
+
+/// The HTTP status a WebSocket handshake is refused with (101 if it is accepted).
+async fn ws_status(url: &str) -> u16 {
+    match tokio_tungstenite::connect_async(url).await {
+        Ok(_) => 101,
+        Err(tokio_tungstenite::tungstenite::Error::Http(response)) => response.status().as_u16(),
+        Err(e) => panic!("handshake failed without a status: {e}"),
+    }
+}
+
+fn clone_created(s: &Created) -> Created {
+    Created { id: s.id.clone(), control: s.control.clone(), observe: s.observe.clone(), info: s.info.clone() }
+}
+
+#[tokio::test]
+async fn the_session_limit_is_refused_clearly() {
+    let dir = TempDir::new("config");
+    let config = dir.0.join("config.json");
+    std::fs::write(&config, r#"{"limits": {"max_sessions": 2}}"#).unwrap();
+    let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
+    create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    let e = server
+        .sessions()
+        .await
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 2, label: String::new() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted);
+    assert!(e.message().contains("maximum of 2 sessions"), "{}", e.message());
+}

@@ -1,0 +1,163 @@
+//! Starting the real `cutsim-server` binary on free loopback ports, and small client
+//! helpers shared by the end-to-end tests.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use cutsim_proto::v1 as pb;
+use cutsim_proto::v1::sessions_client::SessionsClient;
+use tonic::transport::Channel;
+
+pub const SERVER: &str = env!("CARGO_BIN_EXE_cutsim-server");
+
+pub fn repo(relative: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(relative)
+}
+
+/// A fresh directory under the system temp dir, removed when dropped.
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        let mut bytes = [0u8; 6];
+        getrandom::fill(&mut bytes).unwrap();
+        let name: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+        let dir = std::env::temp_dir().join(format!("cutsim-{tag}-{name}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        Self(dir)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A running server process, killed when dropped.
+pub struct Server {
+    child: Child,
+    pub grpc: String,
+    pub http: String,
+    pub recordings: TempDir,
+    pub lines: mpsc::Receiver<String>,
+}
+
+impl Server {
+    /// Starts the server with no session open.
+    pub fn start() -> Self {
+        Self::start_with(&["--no-session"])
+    }
+
+    pub fn start_with(extra: &[&str]) -> Self {
+        let recordings = TempDir::new("recordings");
+        let mut child = Command::new(SERVER)
+            .args(["serve", "--grpc-addr", "127.0.0.1:0", "--http-addr", "127.0.0.1:0", "--recordings-dir"])
+            .arg(&recordings.0)
+            .args(extra)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("the server binary starts");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let (mut grpc, mut http) = (None, None);
+        while grpc.is_none() || http.is_none() {
+            let line = lines.recv_timeout(Duration::from_secs(60)).expect("the server prints its addresses");
+            if let Some(a) = line.strip_prefix("grpc listening on ") {
+                grpc = Some(a.trim().to_owned());
+            }
+            if let Some(a) = line.strip_prefix("http listening on ") {
+                http = Some(a.trim().to_owned());
+            }
+        }
+        Self { child, grpc: grpc.unwrap(), http: http.unwrap(), recordings, lines }
+    }
+
+    pub async fn channel(&self) -> Channel {
+        Channel::from_shared(format!("http://{}", self.grpc)).unwrap().connect().await.expect("gRPC connects")
+    }
+
+    pub async fn sessions(&self) -> SessionsClient<Channel> {
+        SessionsClient::new(self.channel().await)
+    }
+
+    /// SIGKILL: no cleanup at all.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// A request with the token in its metadata.
+pub fn authed<T>(message: T, token: &str) -> tonic::Request<T> {
+    let mut r = tonic::Request::new(message);
+    r.metadata_mut().insert("cutsim-token", token.parse().unwrap());
+    r
+}
+
+pub struct Created {
+    pub id: String,
+    pub control: String,
+    pub observe: String,
+    pub info: pb::SessionInfo,
+}
+
+pub async fn create(server: &Server, scene: &str, mode: pb::SessionMode) -> Created {
+    let r = server
+        .sessions()
+        .await
+        .create_session(pb::CreateSessionRequest {
+            scene: Some(pb::create_session_request::Scene::SceneName(scene.into())),
+            mode: mode as i32,
+            label: "e2e".into(),
+        })
+        .await
+        .expect("session created")
+        .into_inner();
+    let info = r.session.unwrap();
+    Created { id: info.id.clone(), control: r.control_token, observe: r.observe_token, info }
+}
+
+pub fn pose(x: f64, y: f64, z: f64) -> pb::Pose {
+    pb::Pose { position_m: Some(pb::Vec3 { x, y, z }), orientation: Some(pb::Quaternion { w: 1.0, x: 0.0, y: 0.0, z: 0.0 }) }
+}
+
+pub fn example_script(name: &str) -> String {
+    std::fs::read_to_string(repo(&format!("clients/cut-bot/examples/{name}"))).unwrap()
+}
+
+/// Runs a script over gRPC and returns its report (the last event).
+pub async fn run_script(server: &Server, session: &Created, script: &str) -> Result<pb::ScriptReport, tonic::Status> {
+    let mut client = cutsim_proto::v1::scripts_client::ScriptsClient::new(server.channel().await);
+    let request = authed(pb::RunScriptRequest { session_id: session.id.clone(), script_json: script.into(), progress_every_steps: 0 }, &session.control);
+    let mut events = client.run_script(request).await?.into_inner();
+    let mut report = None;
+    let mut progress = 0;
+    while let Some(event) = events.message().await? {
+        match event.event {
+            Some(pb::script_event::Event::Progress(_)) => progress += 1,
+            Some(pb::script_event::Event::Report(r)) => report = Some(r),
+            None => {}
+        }
+    }
+    assert!(progress > 0, "progress events stream while the script runs");
+    Ok(report.expect("the last event is the report"))
+}

@@ -1,0 +1,12 @@
+//! End-to-end tests: the real `cutsim-server` binary on free loopback ports, driven by
+//! real clients — the generated Rust gRPC client, a tokio-tungstenite WebSocket client,
+//! and gRPC reflection and health clients as grpcurl would use them.
+
+mod bad_input;
+mod harness;
+mod haptics;
+mod recording;
+mod scripts;
+mod sessions;
+mod viewer_client;
+mod viewers;

@@ -1,0 +1,104 @@
+//! Session lifecycle, reflection, health and the HTTP session list.
+
+use cutsim_proto::v1 as pb;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+
+use crate::harness::*;
+
+#[tokio::test]
+async fn create_list_get_close() {
+    let server = Server::start();
+    let mut client = server.sessions().await;
+    let a = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+    assert_eq!(a.control.len(), 32);
+    assert_ne!(a.control, a.observe);
+    assert_eq!(a.info.scene, "skin-patch");
+    assert_eq!(a.info.model, "msm");
+    assert_eq!(a.info.rate_hz, 1000.0);
+    assert_eq!(a.info.tools.iter().map(|t| t.name.as_str()).collect::<Vec<_>>(), ["scalpel", "probe"]);
+
+    // An inline scene works too.
+    let text = std::fs::read_to_string(repo("server/scenes/skin-patch.json")).unwrap().replace("\"skin-patch\"", "\"inline-patch\"");
+    let b = client
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(text)), mode: pb::SessionMode::Lockstep as i32, label: "b".into() })
+        .await
+        .unwrap()
+        .into_inner();
+    let b_info = b.session.unwrap();
+    assert_eq!(b_info.scene, "inline-patch");
+
+    let list = client.list_sessions(pb::ListSessionsRequest {}).await.unwrap().into_inner();
+    let ids: Vec<_> = list.sessions.iter().map(|s| s.id.clone()).collect();
+    assert!(ids.contains(&a.id) && ids.contains(&b_info.id));
+
+    // The realtime session steps; the lockstep one waits.
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    let got = client.get_session(authed(pb::GetSessionRequest { session_id: a.id.clone(), with_state_hash: false }, &a.observe)).await.unwrap().into_inner();
+    assert!(got.step > 100, "the realtime session is stepping: {}", got.step);
+    assert_eq!(got.status, pb::SessionStatus::Running as i32);
+    let idle = client.get_session(authed(pb::GetSessionRequest { session_id: b_info.id.clone(), with_state_hash: false }, &b.observe_token)).await.unwrap().into_inner();
+    assert_eq!((idle.step, idle.status), (0, pb::SessionStatus::Idle as i32));
+
+    // The HTML and JSON lists show both.
+    let json = reqwest_like_get(&server.http, "/api/sessions").await;
+    assert!(json.contains(&a.id) && json.contains(&b_info.id), "{json}");
+    let html = reqwest_like_get(&server.http, "/sessions").await;
+    assert!(html.contains(&a.id));
+    let metrics = reqwest_like_get(&server.http, "/metrics").await;
+    assert!(metrics.contains(&format!("cutsim_steps_total{{session=\"{}\"}}", a.id)), "{metrics}");
+
+    // Observers cannot close; controllers can.
+    let denied = client.close_session(authed(pb::CloseSessionRequest { session_id: a.id.clone() }, &a.observe)).await.unwrap_err();
+    assert_eq!(denied.code(), tonic::Code::PermissionDenied);
+    client.close_session(authed(pb::CloseSessionRequest { session_id: a.id.clone() }, &a.control)).await.unwrap();
+    let list = client.list_sessions(pb::ListSessionsRequest {}).await.unwrap().into_inner();
+    assert_eq!(list.sessions.len(), 1);
+    let gone = client.get_session(authed(pb::GetSessionRequest { session_id: a.id.clone(), with_state_hash: false }, &a.observe)).await.unwrap_err();
+    assert_eq!(gone.code(), tonic::Code::NotFound);
+}
+
+/// A plain HTTP/1.1 GET over a TCP socket (no HTTP client dependency needed).
+pub async fn reqwest_like_get(addr: &str, path: &str) -> String {
+    let (status, body) = http_get(addr, path).await;
+    assert_eq!(status, 200, "GET {path}: {body}");
+    body
+}
+
+pub async fn http_get(addr: &str, path: &str) -> (u16, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    stream.write_all(format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").as_bytes()).await.unwrap();
+    let mut buf = Vec::new();
+    stream.read_to_end(&mut buf).await.unwrap();
+    let text = String::from_utf8_lossy(&buf).into_owned();
+    let status = text.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let body = text.split("\r\n\r\n").skip(1).collect::<Vec<_>>().join("\r\n\r\n");
+    (status, body)
+}
+
+#[tokio::test]
+async fn reflection_lists_services_and_health_reports_serving() {
+    let server = Server::start();
+    let mut reflection = ServerReflectionClient::new(server.channel().await);
+    let request = tonic_reflection::pb::v1::ServerReflectionRequest { host: String::new(), message_request: Some(MessageRequest::ListServices(String::new())) };
+    let mut responses = reflection.server_reflection_info(tokio_stream_once(request)).await.unwrap().into_inner();
+    let response = responses.message().await.unwrap().unwrap();
+    let Some(MessageResponse::ListServicesResponse(list)) = response.message_response else { panic!("a service list") };
+    let names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
+    for expected in ["cutsim.v1.Sessions", "cutsim.v1.Haptics", "cutsim.v1.Scripts", "grpc.health.v1.Health"] {
+        assert!(names.iter().any(|n| n == expected), "{expected} in {names:?}");
+    }
+    let mut health = HealthClient::new(server.channel().await);
+    for service in ["", "cutsim.v1.Sessions", "cutsim.v1.Haptics", "cutsim.v1.Scripts"] {
+        let status = health.check(tonic_health::pb::HealthCheckRequest { service: service.into() }).await.unwrap().into_inner().status;
+        assert_eq!(status, ServingStatus::Serving as i32, "{service:?}");
+    }
+}
+
+fn tokio_stream_once<T: Send + 'static>(item: T) -> impl futures_util::Stream<Item = T> + Send {
+    futures_util::stream::iter(std::iter::once(item))
+}
