@@ -43,7 +43,8 @@ pub struct Server {
     pub grpc: String,
     pub http: String,
     pub recordings: TempDir,
-    pub lines: mpsc::Receiver<String>,
+    /// The server's stdout lines (kept so that the reader thread keeps draining the pipe).
+    pub _lines: mpsc::Receiver<String>,
 }
 
 impl Server {
@@ -82,7 +83,7 @@ impl Server {
                 http = Some(a.trim().to_owned());
             }
         }
-        Self { child, grpc: grpc.unwrap(), http: http.unwrap(), recordings, lines }
+        Self { child, grpc: grpc.unwrap(), http: http.unwrap(), recordings, _lines: lines }
     }
 
     pub async fn channel(&self) -> Channel {

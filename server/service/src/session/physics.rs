@@ -33,6 +33,10 @@ use super::{Control, Mode, ScriptEvent, Session, Status};
 const FRAME_RATE_HZ: f64 = 250.0;
 /// Margin kept before a period's end when waiting for a haptic command.
 const START_MARGIN: Duration = Duration::from_micros(150);
+/// The physics thread wakes this long before a device's command may start a step…
+const SPIN_LEAD: Duration = Duration::from_micros(60);
+/// …and watches for it this long after, before parking again.
+const SPIN_WINDOW: Duration = Duration::from_micros(150);
 /// Step-time statistics are recomputed this often (quantiles walk the histogram).
 const STATS_EVERY_STEPS: u64 = 100;
 
@@ -113,8 +117,10 @@ impl Physics {
 
     /// The thread's body: runs until the session closes.
     pub fn run(mut self) {
+        precise_timers();
         let period = Duration::from_secs_f64(self.tissue.time_step_s());
         let mut next = Instant::now();
+        let mut last_start = next;
         self.out.publish_frame(self.tissue.as_ref());
         loop {
             while let Ok(message) = self.control.try_recv() {
@@ -130,26 +136,53 @@ impl Physics {
                 std::thread::park_timeout(Duration::from_millis(20));
                 continue;
             }
-            wait_until(next);
-            if self.out.session.subscribers.count() > 0 {
-                // Start as soon as a fresh command arrives, at the latest when the rest of
-                // the period just holds a step.
-                let latest = next + period.saturating_sub(self.estimated_step + START_MARGIN);
-                while !self.fresh_command() && Instant::now() < latest {
-                    std::thread::park_timeout(latest.saturating_duration_since(Instant::now()));
-                }
+            let haptic = self.out.session.subscribers.count() > 0;
+            if haptic {
+                self.wait_for_device(next, period, last_start);
+            } else {
+                park_until(next);
             }
+            last_start = Instant::now();
             self.read_commands();
             self.step_realtime();
             let end = Instant::now();
-            if end > next + period {
+            // A step that started early for a device's command re-anchors the periods
+            // there (the device's clock leads); otherwise the deadlines stay absolute.
+            next = if last_start < next { last_start + period } else { next + period };
+            if end > next {
                 self.missed += 1;
             }
-            next += period;
             if end > next + 5 * period {
                 // Far behind (a long cut update, a stalled machine): resume from now
                 // rather than run a burst of late steps.
                 next = end;
+            }
+        }
+    }
+
+    /// With a haptic device attached, steps follow its commands, which it sends once per
+    /// period by its own clock: a step starts as soon as a fresh command arrives, but not
+    /// before 90 % of a period after the last step (so a client can never drive the
+    /// physics more than 11 % above the scene's rate); without a fresh command it starts
+    /// at the period's end minus the time a step takes, at the latest. A device's command
+    /// thus never waits for a period boundary, and its round trip is the transport plus
+    /// one step.
+    fn wait_for_device(&self, next: Instant, period: Duration, last_start: Instant) {
+        let earliest = last_start + period * 9 / 10;
+        let latest = (next + period.saturating_sub(self.estimated_step + START_MARGIN)).max(earliest);
+        loop {
+            let now = Instant::now();
+            if now >= latest || (now >= earliest && self.fresh_command()) {
+                return;
+            }
+            if now + SPIN_LEAD < earliest {
+                std::thread::park_timeout(earliest - SPIN_LEAD - now);
+            } else if now < earliest + SPIN_WINDOW {
+                // The device's command is due about now, and a parked thread takes tens of
+                // microseconds to run again: watch the slots for a short while instead.
+                std::hint::spin_loop();
+            } else {
+                std::thread::park_timeout(latest - now);
             }
         }
     }
@@ -361,8 +394,12 @@ impl Outputs {
     }
 }
 
-/// Sleeps until `deadline` (woken early by unpark, which only shortens one wait).
-fn wait_until(deadline: Instant) {
+fn unix_ms() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64() * 1e3)
+}
+
+/// Sleeps until `deadline` (an unpark only shortens one wait).
+fn park_until(deadline: Instant) {
     loop {
         let now = Instant::now();
         if now >= deadline {
@@ -372,6 +409,12 @@ fn wait_until(deadline: Instant) {
     }
 }
 
-fn unix_ms() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64() * 1e3)
+/// Asks Linux to wake this thread when its timers expire rather than up to 50 µs later
+/// (the default timer slack): deadlines of a 1 kHz loop need it.
+fn precise_timers() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: PR_SET_TIMERSLACK takes an integer and affects only the calling thread.
+    unsafe {
+        libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
+    }
 }

@@ -1,0 +1,189 @@
+//! The whole haptic loop through the real server over loopback: a client sends a pose
+//! every millisecond for 10 s and measures the round trip to the force that answers it
+//! (transport, the wait for the step, the physics step itself), with 0, 1 and 20 viewers
+//! attached; then the lockstep script throughput.
+//!
+//! Run: `cargo bench -p cutsim-server --bench roundtrip` (add `-- --quick` for 2 s runs).
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use cutsim_proto::v1 as pb;
+use cutsim_proto::v1::haptics_client::HapticsClient;
+use cutsim_proto::v1::scripts_client::ScriptsClient;
+use cutsim_proto::v1::sessions_client::SessionsClient;
+use cutsim_sim::stats::LatencyHistogram;
+use futures_util::StreamExt;
+use std::io::BufRead;
+
+fn start_server() -> (std::process::Child, String, String) {
+    let recordings = std::env::temp_dir().join(format!("cutsim-bench-{}", std::process::id()));
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cutsim-server"))
+        .args(["serve", "--no-session", "--grpc-addr", "127.0.0.1:0", "--http-addr", "127.0.0.1:0", "--recordings-dir"])
+        .arg(&recordings)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("server starts");
+    let mut lines = std::io::BufReader::new(child.stdout.take().unwrap()).lines();
+    let (mut grpc, mut http) = (String::new(), String::new());
+    while grpc.is_empty() || http.is_empty() {
+        let line = lines.next().unwrap().unwrap();
+        if let Some(a) = line.strip_prefix("grpc listening on ") {
+            grpc = a.to_owned();
+        }
+        if let Some(a) = line.strip_prefix("http listening on ") {
+            http = a.to_owned();
+        }
+    }
+    std::thread::spawn(move || for _ in lines {});
+    (child, grpc, http)
+}
+
+fn authed<T>(m: T, token: &str) -> tonic::Request<T> {
+    let mut r = tonic::Request::new(m);
+    r.metadata_mut().insert("cutsim-token", token.parse().unwrap());
+    r
+}
+
+async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
+    let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}")).unwrap().connect().await.unwrap();
+    let created = SessionsClient::new(channel.clone())
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 1, label: "bench".into() })
+        .await
+        .unwrap()
+        .into_inner();
+    let id = created.session.unwrap().id;
+    let mut viewer_tasks = Vec::new();
+    for _ in 0..viewers {
+        let url = format!("ws://{http}/ws/sessions/{id}?token={}", created.observe_token);
+        let (mut socket, _) = tokio_tungstenite::connect_async(url).await.unwrap();
+        viewer_tasks.push(tokio::spawn(async move {
+            let mut bytes = 0usize;
+            while let Some(Ok(m)) = socket.next().await {
+                bytes += m.len();
+            }
+            bytes
+        }));
+    }
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    let mut request = tonic::Request::new(futures_util::stream::unfold(rx, |mut rx| async move { rx.recv().await.map(|c| (c, rx)) }));
+    request.metadata_mut().insert("cutsim-session", id.parse().unwrap());
+    request.metadata_mut().insert("cutsim-token", created.control_token.parse().unwrap());
+    let mut feedback = HapticsClient::new(channel.clone()).stream(request).await.unwrap().into_inner();
+    let origin = Instant::now();
+    let sender = tokio::spawn(async move {
+        let mut tick = tokio::time::interval(Duration::from_millis(1));
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+        let end = Instant::now() + Duration::from_secs_f64(seconds);
+        let mut i = 0u64;
+        while Instant::now() < end {
+            tick.tick().await;
+            // The probe resting 1.5 mm into the skin, moving a little so every step works.
+            let x = 0.01 + 0.002 * ((i as f64) * 0.01).sin();
+            let pose = pb::Pose { position_m: Some(pb::Vec3 { x, y: 0.01, z: -0.0015 }), orientation: Some(pb::Quaternion { w: 1.0, x: 0.0, y: 0.0, z: 0.0 }) };
+            let sent_ns = origin.elapsed().as_nanos() as u64 + 1;
+            if tx.send(pb::ToolCommand { tool: 1, pose: Some(pose), active: true, cut: false, client_time_ns: sent_ns, feedback_every_steps: 1 }).await.is_err() {
+                break;
+            }
+            i += 1;
+        }
+        i
+    });
+    let mut rtt = LatencyHistogram::new();
+    let mut server_side = LatencyHistogram::new();
+    let mut last_echo = 0;
+    let mut answers = 0u64;
+    loop {
+        let Ok(Ok(Some(f))) = tokio::time::timeout(Duration::from_millis(500), feedback.message()).await else { break };
+        answers += 1;
+        if f.echo_client_time_ns != 0 && f.echo_client_time_ns != last_echo {
+            // First feedback that used this pose: its round trip.
+            last_echo = f.echo_client_time_ns;
+            rtt.record_ns(origin.elapsed().as_nanos() as u64 + 1 - f.echo_client_time_ns);
+            server_side.record_ns((f.server_latency_us * 1e3) as u64);
+        }
+        if sender.is_finished() && answers > 0 && f.echo_client_time_ns == last_echo && rtt.count() > 100 {
+            // Drain a little after the last pose, then stop.
+            if tokio::time::timeout(Duration::from_millis(20), feedback.message()).await.is_err() {
+                break;
+            }
+        }
+    }
+    let sent = sender.await.unwrap();
+    let info = SessionsClient::new(channel.clone())
+        .get_session(authed(pb::GetSessionRequest { session_id: id.clone(), with_state_hash: false }, &created.observe_token))
+        .await
+        .unwrap()
+        .into_inner();
+    let stats = info.stats.unwrap();
+    SessionsClient::new(channel).close_session(authed(pb::CloseSessionRequest { session_id: id }, &created.control_token)).await.unwrap();
+    let mut viewer_bytes = 0;
+    for t in viewer_tasks {
+        viewer_bytes += t.await.unwrap();
+    }
+    let us = |ns: u64| ns as f64 / 1e3;
+    println!(
+        "{viewers:>2} viewers: {sent} poses, {} answered | round trip p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs | server part p50 {:.0} µs, p99 {:.0} µs | step p50 {:.0} µs, p99 {:.0} µs, missed deadlines {} of {} | {:.0} Hz | viewers received {:.1} MB",
+        rtt.count(),
+        us(rtt.quantile_ns(0.5)),
+        us(rtt.quantile_ns(0.99)),
+        us(rtt.max_ns()),
+        us(server_side.quantile_ns(0.5)),
+        us(server_side.quantile_ns(0.99)),
+        stats.p50_us,
+        stats.p99_us,
+        stats.missed_deadlines,
+        stats.steps,
+        stats.achieved_rate_hz,
+        viewer_bytes as f64 / 1e6
+    );
+}
+
+async fn script_throughput(grpc: &str) {
+    let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}")).unwrap().connect().await.unwrap();
+    let created = SessionsClient::new(channel.clone())
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 2, label: "bench".into() })
+        .await
+        .unwrap()
+        .into_inner();
+    let id = created.session.unwrap().id;
+    let script = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../clients/cut-bot/examples/skin-patch-straight.json")).unwrap();
+    let start = Instant::now();
+    let mut events = ScriptsClient::new(channel)
+        .run_script(authed(pb::RunScriptRequest { session_id: id, script_json: script, progress_every_steps: 0 }, &created.control_token))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut report = None;
+    while let Some(e) = events.message().await.unwrap() {
+        if let Some(pb::script_event::Event::Report(r)) = e.event {
+            report = Some(r);
+        }
+    }
+    let r = report.unwrap();
+    println!(
+        "lockstep script (skin-patch straight incision, {} steps): {:.0} steps/s in the physics, {:.0} steps/s end to end over gRPC ({:.2} s), step p50 {:.0} µs, p99 {:.0} µs",
+        r.steps,
+        r.steps_per_second,
+        r.steps as f64 / start.elapsed().as_secs_f64(),
+        start.elapsed().as_secs_f64(),
+        r.step_time_p50_us,
+        r.step_time_p99_us
+    );
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let seconds = if quick { 2.0 } else { 10.0 };
+    let (mut child, grpc, http) = start_server();
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
+    println!("haptic round trip through cutsim-server over loopback, 1 kHz poses for {seconds} s, default scene (release)");
+    runtime.block_on(async {
+        for viewers in [0, 1, 20] {
+            round_trips(&grpc, &http, viewers, seconds).await;
+        }
+        script_throughput(&grpc).await;
+    });
+    let _ = child.kill();
+}
