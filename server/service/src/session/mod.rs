@@ -108,7 +108,6 @@ impl Session {
         self.created.elapsed().as_nanos() as u64
     }
 
-    pub fn instant0(&self) -> Instant { self.created }
     pub fn age_s(&self) -> f64 {
         self.created.elapsed().as_secs_f64()
     }
