@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Runs every test of cutsim. This is the README's test command and what CI runs.
+# Runs every test of cutsim: Rust unit, integration and end-to-end tests (real server,
+# real gRPC and WebSocket clients), then the browser tests of the web viewer (Debian's
+# chromium, headless). This is the README's test command and what CI runs.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -14,3 +16,23 @@ export CUTSIM_DATA_DIR="$data_dir"
 
 echo "==> cargo test (unit, integration and end-to-end tests)"
 cargo test --workspace --locked
+
+echo "==> browser tests (web viewer in headless chromium)"
+if ! command -v npm >/dev/null; then
+    echo "error: npm (Node.js) is needed for the browser tests; install Node.js 18 or newer" >&2
+    exit 2
+fi
+chromium="${CHROMIUM:-/usr/bin/chromium}"
+if [ ! -x "$chromium" ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        echo "==> installing Debian's chromium (apt-get)"
+        apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null
+    else
+        echo "error: chromium not found at $chromium; install it (apt-get install chromium) or set CHROMIUM" >&2
+        exit 2
+    fi
+fi
+(cd web-viewer && npm ci --no-audit --no-fund --loglevel=error)
+(cd tests/browser && npm ci --no-audit --no-fund --loglevel=error && CUTSIM_SERVER_BIN="$(pwd)/../../target/debug/cutsim-server" npm test)
+
+echo "==> all tests passed"

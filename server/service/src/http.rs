@@ -16,6 +16,10 @@ use crate::convert;
 use crate::metrics::{self, Metrics};
 use crate::session::Registry;
 
+/// The protocol's schema, served to the viewer (which parses it with protobufjs): the
+/// very file the server was built from.
+const PROTO: &str = include_str!("../../../proto/cutsim.proto");
+
 #[derive(Clone)]
 pub struct AppState {
     pub registry: Arc<Registry>,
@@ -30,6 +34,7 @@ pub fn router(state: AppState) -> Router {
         .route("/sessions", get(sessions_html))
         .route("/metrics", get(metrics_text))
         .route("/healthz", get(|| async { "ok\n" }))
+        .route("/cutsim.proto", get(|| async { ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], PROTO) }))
         .fallback_service(viewer)
         .with_state(state)
 }

@@ -1,0 +1,160 @@
+// The instructor's viewer in a real browser (Debian chromium, headless) against a real
+// cutsim-server: it loads without console errors, lists the sessions, draws the server's
+// mesh, follows a scripted cut run over gRPC, shows the incision (screenshot), and
+// recovers after the server restarts.
+
+import { test } from 'node:test';
+import assert from 'node:assert/strict';
+import fs from 'node:fs';
+import path from 'node:path';
+import zlib from 'node:zlib';
+import { artifacts, freePort, grpcClients, launchBrowser, repo, startServer, tempDir, waitFor } from './harness.mjs';
+
+/** How long the page may take to show the server's surface after a cut: stated bound. */
+const FOLLOW_MS = 5000;
+
+const pageState = (page, id) =>
+  page.evaluate((id) => {
+    const panel = window.cutsimViewer.panels.get(id);
+    return panel ? { state: panel.state, triangles: panel.surface.triangles.size, hash: panel.surface.version >= 0 ? panel.surface.hash() : null, errors: panel.errors } : null;
+  }, id);
+
+test('the viewer shows sessions, follows a cut and recovers after a restart', async () => {
+  const grpcPort = await freePort();
+  const httpPort = await freePort();
+  const recordings = tempDir('browser');
+  let server = await startServer({ grpcPort, httpPort, recordings });
+  let api = grpcClients(grpcPort);
+  const browser = await launchBrowser();
+  const consoleErrors = [];
+  try {
+    const created = await api.createSession('skin-patch');
+    const id = created.session.id;
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
+    page.on('pageerror', (e) => consoleErrors.push(String(e)));
+    await page.goto(`http://127.0.0.1:${httpPort}/?session=${id}&token=${created.observe_token}`);
+
+    // The session list shows the session; the panel draws a mesh of the server's size.
+    await waitFor('the session in the list', () => page.locator(`#sessions tr[data-session="${id}"]`).count());
+    const before = await api.snapshot(id, created.observe_token);
+    const live = await waitFor('the mesh', async () => {
+      const s = await pageState(page, id);
+      return s && s.state === 'live' && s.triangles === before.triangle_ids.length && s;
+    });
+    assert.equal(live.hash, before.surface_hash, 'the page holds exactly the server surface');
+    assert.deepEqual(consoleErrors, [], 'no console errors while loading');
+
+    // A scripted cut over gRPC while the page is open.
+    const script = fs.readFileSync(path.join(repo, 'clients/cut-bot/examples/skin-patch-straight.json'), 'utf8');
+    const report = await api.runScript(id, created.control_token, script);
+    assert.equal(report.passed, true);
+    const after = await api.snapshot(id, created.observe_token);
+    assert.notEqual(after.triangle_ids.length, before.triangle_ids.length, 'the cut changed the surface');
+    const started = Date.now();
+    const followed = await waitFor(
+      'the page to show the cut surface',
+      async () => {
+        const s = await pageState(page, id);
+        return s && s.triangles === after.triangle_ids.length && s.hash === after.surface_hash && s;
+      },
+      FOLLOW_MS,
+    );
+    console.log(`page followed the cut in ${Date.now() - started} ms: ${followed.triangles} triangles, hash ${followed.hash}`);
+    assert.deepEqual(consoleErrors, [], 'no console errors during the cut');
+
+    // The incision on screen: a screenshot, checked for the red lips.
+    fs.mkdirSync(artifacts, { recursive: true });
+    const shot = path.join(artifacts, 'viewer-incision.png');
+    await page.locator(`.panel[data-session="${id}"] .view canvas`).screenshot({ path: shot });
+    const lipPixels = countLipPixels(fs.readFileSync(shot));
+    console.log(`screenshot ${shot}: ${lipPixels} red wound pixels`);
+    assert.ok(lipPixels > 1000, `the incision is visible (${lipPixels} red pixels)`);
+
+    // Restart: the page says it is reconnecting, then, the old session being gone, lists
+    // the new server's sessions and opens a new one.
+    server.kill('SIGKILL');
+    await waitFor('the reconnecting state', async () => ['reconnecting', 'connecting'].includes((await pageState(page, id))?.state));
+    api.close();
+    server = await startServer({ grpcPort, httpPort, recordings });
+    api = grpcClients(grpcPort);
+    await waitFor('the gone state', async () => (await pageState(page, id))?.state === 'gone', 20_000);
+    const second = await api.createSession('skin-patch', 'SESSION_MODE_REALTIME');
+    const id2 = second.session.id;
+    await waitFor('the new session in the list', () => page.locator(`#sessions tr[data-session="${id2}"]`).count(), 10_000);
+    await page.fill('#token-session', id2);
+    await page.fill('#token-value', second.observe_token);
+    await page.click('#token-form button[type="submit"]');
+    const snapshot2 = await api.snapshot(id2, second.observe_token);
+    await waitFor('the new session drawn', async () => {
+      const s = await pageState(page, id2);
+      return s && s.state === 'live' && s.triangles === snapshot2.triangle_ids.length;
+    });
+    // While the server was down the browser logged failed WebSocket connections; nothing else.
+    const unexpected = consoleErrors.filter((e) => !/WebSocket connection to .* failed|Failed to load resource|ERR_CONNECTION_REFUSED/.test(e));
+    assert.deepEqual(unexpected, []);
+  } finally {
+    await browser.close();
+    api.close();
+    server.kill('SIGKILL');
+    fs.rmSync(recordings, { recursive: true, force: true });
+  }
+});
+
+/** Counts red pixels — the lips (#d01010) and the wound's walls (#a01818, lit) — in a
+ * PNG (8-bit RGB or RGBA); the skin (#e7b49c) and the background are not red. */
+function countLipPixels(png) {
+  const { width, height, channels, data } = decodePng(png);
+  let count = 0;
+  for (let i = 0; i < width * height; i++) {
+    const [r, g, b] = [data[i * channels], data[i * channels + 1], data[i * channels + 2]];
+    if (r > 60 && g < 0.45 * r && b < 0.45 * r) count++;
+  }
+  return count;
+}
+
+/** A minimal PNG decoder for the screenshots chromium writes (8-bit RGB/RGBA). */
+function decodePng(buf) {
+  let offset = 8;
+  let width = 0;
+  let height = 0;
+  let colourType = 0;
+  const idat = [];
+  while (offset < buf.length) {
+    const length = buf.readUInt32BE(offset);
+    const type = buf.toString('ascii', offset + 4, offset + 8);
+    const body = buf.subarray(offset + 8, offset + 8 + length);
+    if (type === 'IHDR') {
+      width = body.readUInt32BE(0);
+      height = body.readUInt32BE(4);
+      colourType = body[9];
+    } else if (type === 'IDAT') idat.push(body);
+    offset += 12 + length;
+  }
+  const channels = colourType === 6 ? 4 : 3;
+  const raw = zlib.inflateSync(Buffer.concat(idat));
+  const stride = width * channels;
+  const data = Buffer.alloc(height * stride);
+  for (let y = 0; y < height; y++) {
+    const filter = raw[y * (stride + 1)];
+    const line = raw.subarray(y * (stride + 1) + 1, (y + 1) * (stride + 1));
+    for (let x = 0; x < stride; x++) {
+      const left = x >= channels ? data[y * stride + x - channels] : 0;
+      const up = y > 0 ? data[(y - 1) * stride + x] : 0;
+      const upLeft = y > 0 && x >= channels ? data[(y - 1) * stride + x - channels] : 0;
+      let value = line[x];
+      if (filter === 1) value += left;
+      else if (filter === 2) value += up;
+      else if (filter === 3) value += (left + up) >> 1;
+      else if (filter === 4) {
+        const p = left + up - upLeft;
+        const pa = Math.abs(p - left);
+        const pb = Math.abs(p - up);
+        const pc = Math.abs(p - upLeft);
+        value += pa <= pb && pa <= pc ? left : pb <= pc ? up : upLeft;
+      }
+      data[y * stride + x] = value & 0xff;
+    }
+  }
+  return { width, height, channels, data };
+}
