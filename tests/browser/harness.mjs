@@ -27,8 +27,9 @@ export async function freePort() {
 }
 
 /** Starts cutsim-server with no session on the given ports; resolves when it listens. */
-export async function startServer({ grpcPort, httpPort, recordings }) {
-  const child = spawn(serverBinary, ['serve', '--no-session', '--grpc-addr', `127.0.0.1:${grpcPort}`, '--http-addr', `127.0.0.1:${httpPort}`, '--recordings-dir', recordings], {
+export async function startServer({ grpcPort, httpPort, recordings, config }) {
+  const extra = config ? ['--config', config] : [];
+  const child = spawn(serverBinary, ['serve', '--no-session', '--grpc-addr', `127.0.0.1:${grpcPort}`, '--http-addr', `127.0.0.1:${httpPort}`, '--recordings-dir', recordings, ...extra], {
     env: { ...process.env, RUST_LOG: 'warn' },
     stdio: ['ignore', 'pipe', 'inherit'],
   });

@@ -101,6 +101,64 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
   }
 });
 
+test('a recorded session replays with play, pause and scrub', async () => {
+  const grpcPort = await freePort();
+  const httpPort = await freePort();
+  const recordings = tempDir('replay');
+  const admin = 'feedfacefeedfacefeedfacefeedface';
+  const config = path.join(recordings, 'config.json');
+  fs.writeFileSync(config, JSON.stringify({ admin_token: admin }));
+  const server = await startServer({ grpcPort, httpPort, recordings, config });
+  const api = grpcClients(grpcPort);
+  const browser = await launchBrowser();
+  const consoleErrors = [];
+  try {
+    const recorded = await api.createSession('skin-patch');
+    const script = fs.readFileSync(path.join(repo, 'clients/cut-bot/examples/skin-patch-straight.json'), 'utf8');
+    await api.runScript(recorded.session.id, recorded.control_token, script);
+
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
+    page.on('pageerror', (e) => consoleErrors.push(String(e)));
+    await page.goto(`http://127.0.0.1:${httpPort}/`);
+    await page.fill('#admin-token', admin);
+    await page.click('#recordings-form button[type="submit"]');
+    await page.click(`#recordings tr[data-recording="${recorded.session.id}"] button.replay`);
+    const replay = await waitFor('the replay panel', () =>
+      page.evaluate(() => {
+        for (const [id, p] of window.cutsimViewer.panels) if (p.playback && p.state === 'live') return { id, total: p.playback.total_steps, observe: p.token };
+        return null;
+      }),
+    );
+    assert.equal(replay.total, 1500);
+    const playback = () => page.evaluate((id) => window.cutsimViewer.panels.get(id).playback, replay.id);
+    const panel = `.panel[data-session="${replay.id}"]`;
+    await page.click(`${panel} [data-role="play"]`);
+    await waitFor('playing', async () => (await playback()).step > 100);
+    await page.click(`${panel} [data-role="play"]`);
+    await waitFor('paused', async () => !(await playback()).playing);
+    // Scrub to the end: the page shows the state the recorded script ended in.
+    await page.$eval(`${panel} [data-role="scrub"]`, (el) => {
+      el.value = el.max;
+      el.dispatchEvent(new Event('change'));
+    });
+    await waitFor('the end of the recording', async () => (await playback()).step === 1500);
+    const end = await api.snapshot(replay.id, replay.observe);
+    const cut = await waitFor('the cut surface', async () => {
+      const s = await pageState(page, replay.id);
+      return s && s.hash === end.surface_hash && s;
+    });
+    const original = await api.snapshot(recorded.session.id, recorded.observe_token);
+    assert.equal(cut.triangles, original.triangle_ids.length, 'the replay ends with the recorded surface');
+    assert.deepEqual(consoleErrors, []);
+  } finally {
+    await browser.close();
+    api.close();
+    server.kill('SIGKILL');
+    fs.rmSync(recordings, { recursive: true, force: true });
+  }
+});
+
 /** Counts red pixels — the lips (#d01010) and the wound's walls (#a01818, lit) — in a
  * PNG (8-bit RGB or RGBA); the skin (#e7b49c) and the background are not red. */
 function countLipPixels(png) {

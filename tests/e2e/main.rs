@@ -6,6 +6,7 @@ mod bad_input;
 mod harness;
 mod haptics;
 mod recording;
+mod replay;
 mod scripts;
 mod sessions;
 mod viewer_client;

@@ -55,7 +55,7 @@ function askToken(id) {
   return token?.trim();
 }
 
-function open(id, token = tokens[id]) {
+function open(id, token = tokens[id], controlToken = undefined) {
   if (panels.has(id)) return panels.get(id);
   token = token || askToken(id);
   if (!token) return null;
@@ -68,6 +68,7 @@ function open(id, token = tokens[id]) {
   const panel = new SessionPanel(document.querySelector('#panels'), {
     id,
     token,
+    controlToken,
     onClose: (p) => {
       panels.delete(p.id);
       refreshSessions();
@@ -80,8 +81,51 @@ function open(id, token = tokens[id]) {
   return panel;
 }
 
+// ───── recordings: listing and replaying need the server's admin token ─────
+
+async function listRecordings() {
+  const admin = document.querySelector('#admin-token').value.trim();
+  sessionStorage.setItem('cutsim-admin', admin);
+  const body = document.querySelector('#recordings tbody');
+  const note = document.querySelector('#recordings-status');
+  const response = await fetch('/api/recordings', { headers: { 'cutsim-token': admin }, cache: 'no-store' });
+  if (!response.ok) {
+    note.textContent = `cannot list recordings: ${await response.text()}`;
+    return;
+  }
+  const list = await response.json();
+  note.textContent = `${list.length} recording${list.length === 1 ? '' : 's'}`;
+  body.replaceChildren(
+    ...list.map((r) => {
+      const row = document.createElement('tr');
+      row.dataset.recording = r.session;
+      const when = new Date(r.modified_unix_s * 1000).toLocaleString();
+      row.innerHTML = `<td><button class="replay">${r.session}</button></td><td>${r.scene}</td><td>${when}</td><td>${r.live ? 'live' : r.ended ? 'ended' : 'cut short'}</td>`;
+      row.querySelector('button.replay').onclick = () => replay(r.session);
+      return row;
+    }),
+  );
+}
+
+async function replay(recorded) {
+  const admin = document.querySelector('#admin-token').value.trim();
+  const response = await fetch(`/api/recordings/${encodeURIComponent(recorded)}/replay`, { method: 'POST', headers: { 'cutsim-token': admin } });
+  if (!response.ok) {
+    document.querySelector('#recordings-status').textContent = `cannot replay ${recorded}: ${await response.text()}`;
+    return null;
+  }
+  const created = await response.json();
+  rememberToken(created.session_id, created.observe_token);
+  return open(created.session_id, created.observe_token, created.control_token);
+}
+
 async function main() {
   await loadProtocol();
+  document.querySelector('#admin-token').value = sessionStorage.getItem('cutsim-admin') || '';
+  document.querySelector('#recordings-form').onsubmit = (e) => {
+    e.preventDefault();
+    listRecordings();
+  };
   document.querySelector('#token-form').onsubmit = (e) => {
     e.preventDefault();
     const id = document.querySelector('#token-session').value.trim();

@@ -22,9 +22,12 @@ export class SessionPanel {
    * @param {HTMLElement} container where the panel goes
    * @param {{id: string, token: string, onClose: Function, onGone: Function}} options
    */
-  constructor(container, { id, token, onClose, onGone }) {
+  constructor(container, { id, token, controlToken, onClose, onGone }) {
     this.id = id;
     this.token = token;
+    // Only replays get one: it drives their playback (never a tool).
+    this.controlToken = controlToken;
+    this.playback = null;
     this.onGone = onGone;
     this.surface = new Surface();
     this.state = 'connecting';
@@ -56,6 +59,14 @@ export class SessionPanel {
         <button data-role="close" title="Close this panel">✕</button>
       </header>
       <div class="view"><canvas></canvas><div class="legend"></div></div>
+      <div class="timeline" hidden>
+        <button data-role="play" title="Play / pause">▶</button>
+        <input type="range" data-role="scrub" min="0" max="0" value="0" step="1">
+        <span data-role="position">–</span>
+        <select data-role="speed" title="Replay speed">
+          <option value="0.25">¼×</option><option value="0.5">½×</option><option value="1" selected>1×</option><option value="2">2×</option><option value="4">4×</option>
+        </select>
+      </div>
       <div class="hud">
         <dl>
           <dt>status</dt><dd data-role="status">–</dd>
@@ -86,6 +97,46 @@ export class SessionPanel {
       this.back.visible = !this.wireframe;
     };
     el.querySelector('.legend').textContent = `force arrow: ${ARROW_M_PER_N * 100} cm = 1 N (force on the tool)`;
+    const scrub = this.field('scrub');
+    scrub.oninput = () => {
+      this.scrubbing = true;
+      this.field('position').textContent = this.positionText(Number(scrub.value));
+    };
+    scrub.onchange = async () => {
+      await this.playbackRequest({ action: 'seek', step: Number(scrub.value) });
+      this.scrubbing = false;
+    };
+    this.field('play').onclick = () => this.playbackRequest({ action: this.playback?.playing ? 'pause' : 'play' });
+    this.field('speed').onchange = (e) => this.playbackRequest({ action: 'speed', speed: Number(e.target.value) });
+  }
+
+  async playbackRequest(body) {
+    const response = await fetch(`/api/sessions/${encodeURIComponent(this.id)}/playback`, {
+      method: 'POST',
+      headers: { 'content-type': 'application/json', 'cutsim-token': this.controlToken || '' },
+      body: JSON.stringify(body),
+    });
+    if (!response.ok) this.errors.push(`playback ${body.action}: HTTP ${response.status} ${await response.text()}`);
+  }
+
+  positionText(step) {
+    const total = this.playback?.total_steps ?? 0;
+    const rate = this.rateHz || 1000;
+    return `${(step / rate).toFixed(2)} / ${(total / rate).toFixed(2)} s`;
+  }
+
+  updateTimeline() {
+    const p = this.playback;
+    const bar = this.el.querySelector('.timeline');
+    bar.hidden = !p;
+    if (!p) return;
+    const scrub = this.field('scrub');
+    scrub.max = String(p.total_steps);
+    if (!this.scrubbing) {
+      scrub.value = String(p.step);
+      this.field('position').textContent = this.positionText(p.step);
+    }
+    this.field('play').textContent = p.playing ? '❚❚' : '▶';
   }
 
   buildScene() {
@@ -221,6 +272,7 @@ export class SessionPanel {
         break;
       case 'stats':
         this.stats = frame.stats;
+        this.playback = frame.stats.playback;
         this.latencyMs = Date.now() - frame.stats.server_unix_ms;
         break;
       default:
@@ -230,7 +282,9 @@ export class SessionPanel {
 
   hello(h) {
     const s = h.session;
-    this.el.querySelector('.scene').textContent = `— ${s.scene} (${s.model}, ${Math.round(s.rate_hz)} Hz)`;
+    this.rateHz = s.rate_hz;
+    this.playback = s.playback;
+    this.el.querySelector('.scene').textContent = `— ${s.scene} (${s.model}, ${Math.round(s.rate_hz)} Hz)${s.playback ? ` — replay of ${s.playback.recorded_session}` : ''}`;
     this.toolInfo = s.tools;
     this.toolGroup.clear();
     this.toolMeshes = s.tools.map((t) => {
@@ -405,6 +459,7 @@ export class SessionPanel {
     this.updateGeometry();
     this.updateTools();
     this.updateHud();
+    this.updateTimeline();
     this.controls.update();
     this.renderer.render(this.scene, this.camera);
   }

@@ -31,6 +31,11 @@ impl Token {
         Self(bytes.iter().map(|b| format!("{b:02x}")).collect())
     }
 
+    /// A token given in the configuration.
+    pub fn from_string(token: String) -> Self {
+        Self(token)
+    }
+
     pub fn as_str(&self) -> &str {
         &self.0
     }

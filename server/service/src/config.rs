@@ -57,6 +57,9 @@ pub struct ServerConfig {
     pub viewer_dir: PathBuf,
     /// Position frames per second sent to a viewer that asks for nothing else.
     pub viewer_rate_hz: f64,
+    /// Lets its holder list recordings and replay them (they hold every trainee's
+    /// actions). When not given, one is made up at start and printed.
+    pub admin_token: Option<String>,
     pub limits: Limits,
 }
 
@@ -69,6 +72,7 @@ impl Default for ServerConfig {
             recordings_dir: PathBuf::from("recordings"),
             viewer_dir: default_viewer_dir(),
             viewer_rate_hz: 60.0,
+            admin_token: None,
             limits: Limits::default(),
         }
     }

@@ -38,7 +38,18 @@ pub fn mode(m: Mode) -> pb::SessionMode {
     match m {
         Mode::Realtime => pb::SessionMode::Realtime,
         Mode::Lockstep => pb::SessionMode::Lockstep,
+        Mode::Replay => pb::SessionMode::Replay,
     }
+}
+
+pub fn playback(p: &Option<crate::session::hub::PlaybackState>, session: &Session) -> Option<pb::Playback> {
+    p.map(|p| pb::Playback {
+        step: p.step,
+        total_steps: p.total_steps,
+        playing: p.playing,
+        speed: p.speed,
+        recorded_session: session.label.strip_prefix("replay of ").unwrap_or_default().to_owned(),
+    })
 }
 
 pub fn stats(s: &StepStats) -> pb::StepStats {
@@ -104,6 +115,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         state_hash_step: 0,
         bounds_min_m: Some(vec3(&s.bounds.0)),
         bounds_max_m: Some(vec3(&s.bounds.1)),
+        playback: playback(&frame.playback, s),
     }
 }
 

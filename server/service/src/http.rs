@@ -8,11 +8,16 @@ use axum::Router;
 use axum::extract::State;
 use axum::http::header;
 use axum::response::{Html, IntoResponse};
-use axum::routing::get;
+use axum::extract::Path;
+use axum::http::{HeaderMap, StatusCode};
+use axum::routing::{get, post};
 use serde::Serialize;
 use tower_http::services::ServeDir;
 
+use crate::auth::{Role, TOKEN_KEY, Token};
 use crate::convert;
+use crate::error::ApiError;
+use crate::session::PlaybackCommand;
 use crate::metrics::{self, Metrics};
 use crate::session::Registry;
 
@@ -30,6 +35,9 @@ pub fn router(state: AppState) -> Router {
     let viewer = ServeDir::new(&state.registry.config.viewer_dir);
     Router::new()
         .route("/ws/sessions/{id}", get(crate::ws::upgrade))
+        .route("/api/recordings", get(recordings))
+        .route("/api/recordings/{session}/replay", post(replay))
+        .route("/api/sessions/{id}/playback", post(playback))
         .route("/api/sessions", get(sessions_json))
         .route("/sessions", get(sessions_html))
         .route("/metrics", get(metrics_text))
@@ -129,4 +137,137 @@ fn escape(s: &str) -> String {
 
 async fn metrics_text(State(app): State<AppState>) -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], metrics::render(&app.registry, &app.metrics))
+}
+
+fn header_token(headers: &HeaderMap) -> Option<&str> {
+    headers.get(TOKEN_KEY).and_then(|v| v.to_str().ok())
+}
+
+/// Recordings and replays need the server's admin token.
+fn check_admin(app: &AppState, headers: &HeaderMap) -> Result<(), ApiError> {
+    let expected = app.registry.config.admin_token.as_deref().unwrap_or_default();
+    match header_token(headers) {
+        Some(given) if !expected.is_empty() && Token::from_string(expected.to_owned()).matches(given) => Ok(()),
+        Some(_) => Err(ApiError::Unauthenticated("the admin token is not valid".into())),
+        None => Err(ApiError::Unauthenticated(format!("recordings need the server's admin token (header `{TOKEN_KEY}`)"))),
+    }
+}
+
+/// One recording in the list.
+#[derive(Serialize)]
+pub struct RecordingSummary {
+    pub session: String,
+    pub scene: String,
+    pub bytes: u64,
+    pub modified_unix_s: f64,
+    /// Whether the session was closed (false: still running, or the server stopped).
+    pub ended: bool,
+    pub live: bool,
+}
+
+async fn recordings(State(app): State<AppState>, headers: HeaderMap) -> Result<impl IntoResponse, ApiError> {
+    check_admin(&app, &headers)?;
+    let dir = app.registry.config.recordings_dir.clone();
+    let live: Vec<String> = app.registry.list().iter().map(|s| s.id.clone()).collect();
+    let list = tokio::task::spawn_blocking(move || list_recordings(&dir, &live)).await.map_err(|e| ApiError::Internal(e.to_string()))?;
+    Ok(axum::Json(list))
+}
+
+fn list_recordings(dir: &std::path::Path, live: &[String]) -> Vec<RecordingSummary> {
+    use std::io::{BufRead, Read, Seek, SeekFrom};
+    let mut out = Vec::new();
+    let Ok(entries) = std::fs::read_dir(dir) else { return out };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let Some(session) = path.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".jsonl")).map(str::to_owned) else { continue };
+        let Ok(mut file) = std::fs::File::open(&path) else { continue };
+        let meta = file.metadata().ok();
+        let mut header = String::new();
+        if std::io::BufReader::new(&file).read_line(&mut header).is_err() {
+            continue;
+        }
+        let scene = serde_json::from_str::<serde_json::Value>(&header)
+            .ok()
+            .and_then(|h| h["scene"]["name"].as_str().map(str::to_owned))
+            .unwrap_or_default();
+        let len = meta.as_ref().map_or(0, |m| m.len());
+        let mut tail = String::new();
+        let _ = file.seek(SeekFrom::Start(len.saturating_sub(256))).and_then(|_| file.read_to_string(&mut tail));
+        out.push(RecordingSummary {
+            live: live.contains(&session),
+            session,
+            scene,
+            bytes: len,
+            modified_unix_s: meta
+                .and_then(|m| m.modified().ok())
+                .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                .map_or(0.0, |d| d.as_secs_f64()),
+            ended: tail.trim_end().lines().last().is_some_and(|l| l.contains("\"t\":\"end\"")),
+        });
+    }
+    out.sort_by(|a, b| b.modified_unix_s.total_cmp(&a.modified_unix_s));
+    out
+}
+
+#[derive(Serialize)]
+struct ReplayCreated {
+    session_id: String,
+    control_token: String,
+    observe_token: String,
+    total_steps: u64,
+}
+
+async fn replay(State(app): State<AppState>, headers: HeaderMap, Path(session): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    check_admin(&app, &headers)?;
+    let replay = app.registry.create_replay(&session).await?;
+    let (control, observe) = replay.tokens();
+    // The frame with the playback state comes from the replay thread; wait for it briefly.
+    let mut total_steps = 0;
+    for _ in 0..100 {
+        if let Some(p) = replay.frame.load().playback {
+            total_steps = p.total_steps;
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+    }
+    Ok((
+        StatusCode::CREATED,
+        axum::Json(ReplayCreated { session_id: replay.id.clone(), control_token: control.to_owned(), observe_token: observe.to_owned(), total_steps }),
+    ))
+}
+
+/// `{"action": "play" | "pause" | "seek" | "speed", "step": 1234, "speed": 2.0}`
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlaybackRequest {
+    action: String,
+    step: Option<u64>,
+    speed: Option<f64>,
+}
+
+async fn playback(
+    State(app): State<AppState>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    body: Result<axum::Json<PlaybackRequest>, axum::extract::rejection::JsonRejection>,
+) -> Result<StatusCode, ApiError> {
+    let session = app.registry.get(&id)?;
+    session.authorize(header_token(&headers), Role::Control)?;
+    if session.mode != crate::session::Mode::Replay {
+        return Err(ApiError::FailedPrecondition(format!("session {id} is not a replay; only replays have a playback")));
+    }
+    let axum::Json(request) = body.map_err(|e| ApiError::InvalidArgument(format!("playback request: {e}")))?;
+    let command = match (request.action.as_str(), request.step, request.speed) {
+        ("play", None, None) => PlaybackCommand::Play,
+        ("pause", None, None) => PlaybackCommand::Pause,
+        ("seek", Some(step), None) => PlaybackCommand::Seek(step),
+        ("speed", None, Some(speed)) if speed.is_finite() && (0.05..=20.0).contains(&speed) => PlaybackCommand::Speed(speed),
+        _ => {
+            return Err(ApiError::InvalidArgument(
+                "playback takes {\"action\": \"play\"}, {\"action\": \"pause\"}, {\"action\": \"seek\", \"step\": N} or {\"action\": \"speed\", \"speed\": 0.05 to 20}".into(),
+            ));
+        }
+    };
+    session.send_control(crate::session::Control::Playback(command))?;
+    Ok(StatusCode::NO_CONTENT)
 }

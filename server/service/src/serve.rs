@@ -15,7 +15,9 @@ use crate::metrics::Metrics;
 use crate::session::{Mode, Registry, SceneSource};
 
 /// Runs the servers until SIGINT or SIGTERM; `first_scene` opens a session at start.
-pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow::Result<()> {
+pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> anyhow::Result<()> {
+    let admin_made_up = config.admin_token.is_none();
+    let admin = config.admin_token.get_or_insert_with(|| crate::auth::Token::generate().as_str().to_owned()).clone();
     let config = Arc::new(config);
     let registry = Registry::new(config.clone());
     let metrics = Arc::new(Metrics::default());
@@ -63,6 +65,9 @@ pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow:
 
     println!("grpc listening on {grpc_addr}");
     println!("http listening on {http_addr}");
+    if admin_made_up {
+        println!("admin token (recordings and replays): {admin}");
+    }
     tracing::info!(%grpc_addr, %http_addr, "cutsim-server listening");
 
     if let Some(scene) = first_scene {
@@ -71,7 +76,9 @@ pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow:
         println!("session {} on scene {}", session.id, session.scene_name);
         println!("  viewer:        http://{http_addr}/?session={}&token={observe}", session.id);
         println!("  control token: {control}");
-        println!("  recording:     {}", session.recording_path().display());
+        if let Some(path) = session.recording_path() {
+            println!("  recording:     {}", path.display());
+        }
     }
     use std::io::Write;
     let _ = std::io::stdout().flush();

@@ -94,7 +94,8 @@ struct Mirror {
     epoch_version: u64,
     /// Position last sent, by vertex id (None: not a vertex now).
     positions: Vec<Option<[f32; 3]>>,
-    last_frame_step: u64,
+    /// Sequence number of the last frame looked at.
+    last_frame: u64,
 }
 
 impl Mirror {
@@ -104,7 +105,7 @@ impl Mirror {
         for v in &s.vertices {
             positions[v.id as usize] = Some(v.position_m);
         }
-        Self { version: s.version, epoch_version, positions, last_frame_step: u64::MAX }
+        Self { version: s.version, epoch_version, positions, last_frame: u64::MAX }
     }
 
     fn apply(&mut self, d: &cutsim_sim::surface::TopologyDelta) {
@@ -195,6 +196,7 @@ where
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / rate_hz));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut ticks: u64 = 0;
+    let mut last_playback = None;
     loop {
         let mut resync = false;
         tokio::select! {
@@ -220,10 +222,10 @@ where
             },
             _ = ticker.tick() => {
                 let frame = session.frame.load();
-                if frame.total_steps == mirror.last_frame_step {
+                if frame.sequence == mirror.last_frame {
                     continue;
                 }
-                mirror.last_frame_step = frame.total_steps;
+                mirror.last_frame = frame.sequence;
                 if let Some(moved) = mirror.moved(&frame) {
                     if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Positions(moved))).await {
                         return ViewerEnd::SendFailed;
@@ -232,7 +234,10 @@ where
                 if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Tools(convert::tool_states(&frame)))).await {
                     return ViewerEnd::SendFailed;
                 }
-                if ticks % 10 == 0 {
+                // Stats ten times less often — and at once when a replay's playback changed.
+                let playback_changed = frame.playback != last_playback;
+                last_playback = frame.playback;
+                if ticks % 10 == 0 || playback_changed {
                     let stats = pb::SessionStats {
                         step: frame.total_steps,
                         stats: Some(convert::stats(&frame.stats)),
@@ -241,6 +246,7 @@ where
                         haptic_clients: session.subscribers.count() as u32,
                         status: convert::status(frame.status) as i32,
                         server_unix_ms: frame.unix_ms,
+                        playback: convert::playback(&frame.playback, &session),
                     };
                     if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Stats(stats))).await {
                         return ViewerEnd::SendFailed;

@@ -82,4 +82,7 @@ pub trait Tissue: Send {
 
     /// Connected pieces of tissue (1 for an intact body).
     fn pieces(&self) -> usize;
+
+    /// A full copy of the state (replays keep a few to scrub backwards quickly).
+    fn clone_box(&self) -> Box<dyn Tissue>;
 }

@@ -40,13 +40,16 @@ pub struct ToolFrame {
 /// The newest state of a session for viewers and the API.
 #[derive(Debug, Clone, Default)]
 pub struct Frame {
+    /// One more for every frame published (a paused replay publishes without stepping).
+    pub sequence: u64,
     /// Steps since the tissue was (re)built.
     pub step: u64,
     /// Steps since the session started (over resets).
     pub total_steps: u64,
     /// Published topology version the positions belong to.
     pub topology_version: u64,
-    /// First published version of the current tissue (after the last reset).
+    /// Published version of the current tissue's version 0 (it changes when the tissue is
+    /// replaced): frames of another tissue do not apply to a viewer's surface.
     pub epoch_version: u64,
     pub session_time_ns: u64,
     pub unix_ms: f64,
@@ -57,17 +60,29 @@ pub struct Frame {
     pub counters: TissueCounters,
     pub pieces: u64,
     pub status: crate::session::Status,
+    /// Replay sessions only.
+    pub playback: Option<PlaybackState>,
+}
+
+/// Where a replay is.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PlaybackState {
+    pub step: u64,
+    pub total_steps: u64,
+    pub playing: bool,
+    pub speed: f64,
 }
 
 /// A few frames the physics thread fills in turn: a frame is reused once no reader
 /// holds it any more, so publishing never allocates (unless a cut grew the surface).
 pub struct FramePool {
     frames: Vec<Arc<Frame>>,
+    published: u64,
 }
 
 impl FramePool {
     pub fn new(count: usize) -> Self {
-        Self { frames: (0..count).map(|_| Arc::new(Frame::default())).collect() }
+        Self { frames: (0..count).map(|_| Arc::new(Frame::default())).collect(), published: 0 }
     }
 
     /// Fills a free frame with `fill` and publishes it; returns false (and publishes
@@ -76,6 +91,8 @@ impl FramePool {
         for frame in &mut self.frames {
             if let Some(f) = Arc::get_mut(frame) {
                 fill(f);
+                self.published += 1;
+                f.sequence = self.published;
                 cell.store(frame.clone());
                 return true;
             }
@@ -88,8 +105,9 @@ impl FramePool {
 pub enum HubEvent {
     /// A cut update, with its published version.
     Delta(TopologyDelta, u64),
-    /// The tissue was rebuilt (a script starts): its whole surface, as `version`.
-    Reset(SurfaceSnapshot),
+    /// The tissue was replaced (a script starts, a replay seeks): its whole surface, and
+    /// the published version of that tissue's version 0.
+    Reset(SurfaceSnapshot, u64),
 }
 
 /// What the hub broadcasts to viewers.
@@ -143,10 +161,10 @@ impl Hub {
                     }
                     let _ = self.messages.send(HubMessage::Delta(Arc::new(delta), bytes));
                 }
-                HubEvent::Reset(snapshot) => {
+                HubEvent::Reset(snapshot, epoch_version) => {
                     let mut state = self.state.lock().expect("hub lock");
                     state.replica = SurfaceReplica::from_snapshot(&snapshot);
-                    state.epoch_version = snapshot.version;
+                    state.epoch_version = epoch_version;
                     let _ = self.messages.send(HubMessage::Reset);
                 }
             }
@@ -174,7 +192,7 @@ impl Hub {
 /// Replaces snapshot positions by the frame's, when the frame belongs to the same
 /// tissue (not from before a reset) and holds the vertex.
 pub fn overlay_positions(snapshot: &mut SurfaceSnapshot, frame: &Frame, epoch_version: u64) {
-    if frame.topology_version < epoch_version || frame.epoch_version != epoch_version {
+    if frame.epoch_version != epoch_version {
         return;
     }
     for v in &mut snapshot.vertices {

@@ -2,6 +2,7 @@
 
 pub mod hub;
 pub mod physics;
+mod playback;
 pub mod records;
 pub mod recording;
 pub mod slots;
@@ -25,7 +26,7 @@ use crate::config::ServerConfig;
 use crate::error::ApiError;
 use hub::{Frame, Hub};
 use records::{COMMAND_WORDS, FEEDBACK_WORDS, StampedCommand};
-use recording::Recorder;
+use recording::{Recorder, Recording};
 use slots::{SeqSlot, Subscribers};
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -42,6 +43,19 @@ pub enum Status {
 pub enum Mode {
     Realtime,
     Lockstep,
+    /// Plays a recording.
+    Replay,
+}
+
+/// What a replay viewer asks of the playback.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PlaybackCommand {
+    Play,
+    Pause,
+    /// Go to this step of the recording (over all its resets).
+    Seek(u64),
+    /// Replay speed relative to the recorded rate.
+    Speed(f64),
 }
 
 /// Requests to the physics thread (answered between two steps).
@@ -49,6 +63,7 @@ pub enum Control {
     Snapshot(oneshot::Sender<(SurfaceSnapshot, u64)>),
     StateHash(oneshot::Sender<(u64, u64)>),
     RunScript { script: CompiledScript, progress_every: u64, events: mpsc::UnboundedSender<ScriptEvent> },
+    Playback(PlaybackCommand),
     Close,
 }
 
@@ -95,7 +110,8 @@ pub struct Session {
     control_tx: Mutex<std::sync::mpsc::Sender<Control>>,
     physics_thread: std::thread::Thread,
     physics_join: Mutex<Option<std::thread::JoinHandle<()>>>,
-    recorder: Mutex<Recorder>,
+    /// Every session records itself, except replays.
+    recorder: Mutex<Option<Recorder>>,
 }
 
 impl Session {
@@ -151,11 +167,11 @@ impl Session {
 
     /// Recording losses so far: (events the ring could not take, write failures).
     pub fn recording_losses(&self) -> (u64, u64) {
-        self.recorder.lock().expect("recorder lock").losses()
+        self.recorder.lock().expect("recorder lock").as_ref().map_or((0, 0), Recorder::losses)
     }
 
-    pub fn recording_path(&self) -> std::path::PathBuf {
-        self.recorder.lock().expect("recorder lock").path.clone()
+    pub fn recording_path(&self) -> Option<std::path::PathBuf> {
+        self.recorder.lock().expect("recorder lock").as_ref().map(|r| r.path.clone())
     }
 
     /// Stops the physics thread, tells viewers, and finishes the recording.
@@ -169,7 +185,9 @@ impl Session {
             let _ = join.join();
         }
         self.hub.close();
-        self.recorder.lock().expect("recorder lock").finish();
+        if let Some(r) = self.recorder.lock().expect("recorder lock").as_mut() {
+            r.finish();
+        }
     }
 
     pub fn tokens(&self) -> (&str, &str) {
@@ -200,12 +218,6 @@ impl Registry {
     /// Creates a session and starts its physics.
     pub async fn create(self: &Arc<Self>, source: SceneSource, mode: Mode, label: String) -> Result<Arc<Session>, ApiError> {
         let limits = &self.config.limits;
-        if self.sessions.lock().expect("registry lock").len() >= limits.max_sessions {
-            return Err(ApiError::ResourceExhausted(format!(
-                "the server holds its maximum of {} sessions; close one first",
-                limits.max_sessions
-            )));
-        }
         if label.len() > 200 {
             return Err(ApiError::InvalidArgument(format!("label is {} bytes; at most 200", label.len())));
         }
@@ -227,6 +239,57 @@ impl Registry {
             }
         };
         let scene = Scene::from_json_str(&scene_json, &origin, base_dir.as_deref()).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+        self.start(scene, Some(scene_json), mode, label, None).await
+    }
+
+    /// Creates a session that replays a recording (from the recordings directory).
+    pub async fn create_replay(self: &Arc<Self>, recorded_session: &str) -> Result<Arc<Session>, ApiError> {
+        let path = self.recording_path(recorded_session)?;
+        if let Ok(live) = self.get(recorded_session) {
+            // A live session: everything it recorded so far goes into the replay.
+            tokio::task::spawn_blocking(move || {
+                if let Some(r) = live.recorder.lock().expect("recorder lock").as_ref() {
+                    r.sync();
+                }
+            })
+            .await
+            .map_err(|e| ApiError::Internal(e.to_string()))?;
+        }
+        let recording = tokio::task::spawn_blocking(move || Recording::read(&path))
+            .await
+            .map_err(|e| ApiError::Internal(e.to_string()))?
+            .map_err(ApiError::FailedPrecondition)?;
+        let scene = recording.scene.clone();
+        self.start(scene, None, Mode::Replay, format!("replay of {recorded_session}"), Some(Arc::new(recording))).await
+    }
+
+    /// The recording file of a session id (only names of the recordings directory).
+    pub fn recording_path(&self, session: &str) -> Result<std::path::PathBuf, ApiError> {
+        if session.is_empty() || !session.chars().all(|c| c.is_ascii_hexdigit()) {
+            return Err(ApiError::InvalidArgument(format!("{session:?} is not a session id (hexadecimal digits)")));
+        }
+        let path = self.config.recordings_dir.join(format!("{session}.jsonl"));
+        if !path.is_file() {
+            return Err(ApiError::UnknownSession(format!("{session} (no recording of it)")));
+        }
+        Ok(path)
+    }
+
+    /// Builds the tissue and starts a session's physics thread.
+    async fn start(
+        self: &Arc<Self>,
+        scene: Scene,
+        scene_json: Option<String>,
+        mode: Mode,
+        label: String,
+        replay: Option<Arc<Recording>>,
+    ) -> Result<Arc<Session>, ApiError> {
+        if self.sessions.lock().expect("registry lock").len() >= self.config.limits.max_sessions {
+            return Err(ApiError::ResourceExhausted(format!(
+                "the server holds its maximum of {} sessions; close one first",
+                self.config.limits.max_sessions
+            )));
+        }
         let building = scene.clone();
         let tissue = tokio::task::spawn_blocking(move || cutsim_sim::build_tissue(&building))
             .await
@@ -237,9 +300,15 @@ impl Registry {
         let initial = tissue.snapshot();
         let bounds = bounding_box(&initial);
         let tools = tissue.tools().to_vec();
-        let (recorder, producer) = Recorder::start(&self.config.recordings_dir, &id, &scene, &scene_json).map_err(|e| {
-            ApiError::FailedPrecondition(format!("cannot record the session in {}: {e}", self.config.recordings_dir.display()))
-        })?;
+        let (recorder, producer) = match &scene_json {
+            Some(json) => {
+                let (recorder, producer) = Recorder::start(&self.config.recordings_dir, &id, &scene, json).map_err(|e| {
+                    ApiError::FailedPrecondition(format!("cannot record the session in {}: {e}", self.config.recordings_dir.display()))
+                })?;
+                (Some(recorder), Some(producer))
+            }
+            None => (None, None),
+        };
         let hub = Hub::new(&id, &initial);
         let (hub_tx, hub_rx) = mpsc::unbounded_channel();
         let (control_tx, control_rx) = std::sync::mpsc::channel();
@@ -253,7 +322,11 @@ impl Registry {
             .name(format!("physics-{}", &id[..8]))
             .spawn(move || {
                 let Ok(session) = start_rx.recv() else { return };
-                physics::Physics::new(session, scene_for_thread, tissue, control_rx, hub_tx, producer).run();
+                let physics = physics::Physics::new(session, scene_for_thread, tissue, control_rx, hub_tx, producer);
+                match replay {
+                    Some(recording) => physics.run_replay(recording),
+                    None => physics.run(),
+                }
             })
             .map_err(|e| ApiError::Internal(format!("cannot start a physics thread: {e}")))?;
         let session = Arc::new(Session {

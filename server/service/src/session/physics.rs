@@ -24,7 +24,7 @@ use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 use tokio::sync::mpsc::UnboundedSender;
 
-use super::hub::{FramePool, HubEvent, StepStats, ToolFrame};
+use super::hub::{FramePool, HubEvent, PlaybackState, StepStats, ToolFrame};
 use super::records::{FeedbackRecord, StampedCommand};
 use super::recording::{RecordEvent, RecordingProducer};
 use super::{Control, Mode, ScriptEvent, Session, Status};
@@ -41,36 +41,40 @@ const SPIN_WINDOW: Duration = Duration::from_micros(150);
 const STATS_EVERY_STEPS: u64 = 100;
 
 pub struct Physics {
-    scene: Scene,
-    tissue: Box<dyn Tissue>,
-    control: Receiver<Control>,
+    pub(super) scene: Scene,
+    pub(super) tissue: Box<dyn Tissue>,
+    pub(super) control: Receiver<Control>,
     stamped: Vec<StampedCommand>,
     seen_versions: Vec<u64>,
-    histogram: LatencyHistogram,
+    pub(super) histogram: LatencyHistogram,
     missed: u64,
     rate_window: (Instant, u64),
     estimated_step: Duration,
-    out: Outputs,
+    pub(super) out: Outputs,
 }
 
 /// Everything a step publishes (kept apart from the tissue so that a script's runner
 /// can hold the tissue while its per-step hook publishes).
-struct Outputs {
-    session: Arc<Session>,
+pub(super) struct Outputs {
+    pub(super) session: Arc<Session>,
     hub: UnboundedSender<HubEvent>,
-    recording: RecordingProducer,
-    commands: Vec<ToolCommand>,
+    /// None for replays (they do not record themselves).
+    recording: Option<RecordingProducer>,
+    pub(super) commands: Vec<ToolCommand>,
     recorded: Vec<ToolCommand>,
-    feedback: Vec<ToolFeedback>,
+    pub(super) feedback: Vec<ToolFeedback>,
     deltas: Vec<TopologyDelta>,
     stats: StepStats,
-    total_steps: u64,
+    pub(super) total_steps: u64,
     /// Published topology version of the current tissue's version 0.
     epoch_version: u64,
+    /// Highest topology version published so far (versions only ever grow).
+    max_published: u64,
     frames: FramePool,
-    publish_every: u64,
-    status: Status,
+    pub(super) publish_every: u64,
+    pub(super) status: Status,
     pieces: u64,
+    pub(super) playback: Option<PlaybackState>,
 }
 
 impl Physics {
@@ -80,11 +84,11 @@ impl Physics {
         tissue: Box<dyn Tissue>,
         control: Receiver<Control>,
         hub: UnboundedSender<HubEvent>,
-        recording: RecordingProducer,
+        recording: Option<RecordingProducer>,
     ) -> Self {
         let tools = tissue.tools().len();
         let rate = 1.0 / tissue.time_step_s();
-        let status = if session.mode == Mode::Lockstep { Status::Idle } else { Status::Running };
+        let status = if session.mode == Mode::Realtime { Status::Running } else { Status::Idle };
         let pieces = tissue.pieces() as u64;
         Self {
             scene,
@@ -107,10 +111,12 @@ impl Physics {
                 stats: StepStats::default(),
                 total_steps: 0,
                 epoch_version: 0,
+                max_published: 0,
                 frames: FramePool::new(4),
                 publish_every: (rate / FRAME_RATE_HZ).round().max(1.0) as u64,
                 status,
                 pieces,
+                playback: None,
             },
         }
     }
@@ -196,15 +202,23 @@ impl Physics {
             }
             Control::StateHash(reply) => {
                 let (step, hash) = (self.tissue.step_index(), self.tissue.state_hash());
-                self.out.recording.push(RecordEvent::Checkpoint { step, hash });
+                self.out.record(RecordEvent::Checkpoint { step, hash });
                 let _ = reply.send((step, hash));
             }
-            Control::RunScript { script, progress_every, events } => self.run_script(&script, progress_every, &events),
+            Control::RunScript { script, progress_every, events } => {
+                if self.out.session.mode == Mode::Replay {
+                    let _ = events.send(ScriptEvent::Failed("a replay session plays its recording; run scripts on another session".into()));
+                } else {
+                    self.run_script(&script, progress_every, &events);
+                }
+            }
+            // Only replays have a playback (see `run_replay`).
+            Control::Playback(_) => {}
         }
         true
     }
 
-    fn snapshot(&self) -> SurfaceSnapshot {
+    pub(super) fn snapshot(&self) -> SurfaceSnapshot {
         let mut s = self.tissue.snapshot();
         s.version += self.out.epoch_version;
         s
@@ -318,7 +332,7 @@ impl Physics {
             },
         );
         let (step, hash) = (self.tissue.step_index(), self.tissue.state_hash());
-        self.out.recording.push(RecordEvent::Checkpoint { step, hash });
+        self.out.record(RecordEvent::Checkpoint { step, hash });
         self.out.status = previous_status;
         self.update_stats();
         self.out.publish_frame(self.tissue.as_ref());
@@ -328,49 +342,78 @@ impl Physics {
     /// Rebuilds the tissue from the scene; viewers get the new surface as a snapshot.
     fn reset(&mut self) -> Result<(), String> {
         let tissue = cutsim_sim::build_tissue(&self.scene).map_err(|e| e.to_string())?;
-        self.out.recording.push(RecordEvent::Reset { step: self.tissue.step_index() });
-        self.out.epoch_version += self.tissue.topology_version() + 1;
-        self.tissue = tissue;
+        self.out.record(RecordEvent::Reset { step: self.tissue.step_index() });
+        self.replace_tissue(tissue);
         self.out.recorded.iter_mut().for_each(|c| *c = ToolCommand::default());
         self.out.commands.iter_mut().for_each(|c| *c = ToolCommand::default());
-        self.out.pieces = self.tissue.pieces() as u64;
-        let _ = self.out.hub.send(HubEvent::Reset(self.snapshot()));
         Ok(())
     }
 
-    fn finish(mut self) {
-        self.out.recording.push(RecordEvent::End { step: self.tissue.step_index() });
+    /// Puts another tissue in place (a script's reset): viewers get its surface as a
+    /// snapshot.
+    pub(super) fn replace_tissue(&mut self, tissue: Box<dyn Tissue>) {
+        self.tissue = tissue;
+        self.republish();
+    }
+
+    /// Sends viewers the current surface as a snapshot under versions they have never
+    /// seen (after the tissue was replaced or fast-forwarded without publishing).
+    pub(super) fn republish(&mut self) {
+        self.out.epoch_version = self.out.max_published + 1;
+        self.out.pieces = self.tissue.pieces() as u64;
+        let snapshot = self.snapshot();
+        self.out.max_published = snapshot.version;
+        let _ = self.out.hub.send(HubEvent::Reset(snapshot, self.out.epoch_version));
+    }
+
+    pub(super) fn finish(mut self) {
+        self.out.record(RecordEvent::End { step: self.tissue.step_index() });
         self.out.status = Status::Closed;
         self.out.publish_frame(self.tissue.as_ref());
     }
 }
 
 impl Outputs {
+    pub(super) fn record(&mut self, event: RecordEvent) {
+        if let Some(r) = self.recording.as_mut() {
+            r.push(event);
+        }
+    }
+
     /// Records the commands of step `step` that differ from the last recorded ones.
     fn record_commands(&mut self, step: u64) {
+        let Some(recording) = self.recording.as_mut() else { return };
         for (tool, (command, recorded)) in self.commands.iter().zip(self.recorded.iter_mut()).enumerate() {
             if command != recorded {
-                self.recording.push(RecordEvent::Command { step, tool: tool as u32, command: *command });
+                recording.push(RecordEvent::Command { step, tool: tool as u32, command: *command });
                 *recorded = *command;
             }
         }
     }
 
     /// Publishes what a step changed: its topology deltas (only after a cut).
-    fn after_step(&mut self, tissue: &mut dyn Tissue) {
+    pub(super) fn after_step(&mut self, tissue: &mut dyn Tissue) {
         self.total_steps += 1;
         tissue.drain_deltas(&mut self.deltas);
         if !self.deltas.is_empty() {
             for mut delta in self.deltas.drain(..) {
                 delta.version += self.epoch_version;
+                self.max_published = delta.version;
                 let _ = self.hub.send(HubEvent::Delta(delta, tissue.step_index()));
             }
             self.pieces = tissue.pieces() as u64;
         }
     }
 
-    fn publish_frame(&mut self, tissue: &dyn Tissue) {
-        let (session, stats, status, pieces) = (&self.session, self.stats, self.status, self.pieces);
+    /// Drops the deltas a step made without publishing them (a replay fast-forwarding to
+    /// a seek target ends with a snapshot instead).
+    pub(super) fn discard_deltas(&mut self, tissue: &mut dyn Tissue) {
+        tissue.drain_deltas(&mut self.deltas);
+        self.deltas.clear();
+    }
+
+    pub(super) fn publish_frame(&mut self, tissue: &dyn Tissue) {
+        let (session, stats, status, pieces, playback) = (&self.session, self.stats, self.status, self.pieces, self.playback);
         let (commands, feedback) = (&self.commands, &self.feedback);
         let (epoch, total) = (self.epoch_version, self.total_steps);
         self.frames.publish(&session.frame, |f| {
@@ -390,6 +433,7 @@ impl Outputs {
             f.counters = tissue.counters();
             f.pieces = pieces;
             f.status = status;
+            f.playback = playback;
         });
     }
 }

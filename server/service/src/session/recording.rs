@@ -28,7 +28,6 @@ use std::time::Duration;
 use cutsim_sim::hash::hash_hex;
 use cutsim_sim::math::{Pose, Vec3, quat_from_wxyz_exact};
 use cutsim_sim::scene::Scene;
-use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 use serde::{Deserialize, Serialize};
 
@@ -65,6 +64,7 @@ pub struct Recorder {
     lost: Arc<AtomicU64>,
     write_errors: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
+    sync_tx: std::sync::mpsc::Sender<std::sync::mpsc::Sender<()>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
@@ -108,12 +108,14 @@ impl Recorder {
         let lost = Arc::new(AtomicU64::new(0));
         let write_errors = Arc::new(AtomicU64::new(0));
         let stop = Arc::new(AtomicBool::new(false));
+        let (sync_tx, sync_rx) = std::sync::mpsc::channel::<std::sync::mpsc::Sender<()>>();
         let thread = {
             let (lost, write_errors, stop) = (lost.clone(), write_errors.clone(), stop.clone());
             let name = format!("record-{}", &session[..session.len().min(8)]);
             std::thread::Builder::new().name(name).spawn(move || {
                 let mut out = std::io::BufWriter::with_capacity(1 << 16, file);
                 let mut reported_lost = 0;
+                let mut waiting: Vec<std::sync::mpsc::Sender<()>> = Vec::new();
                 loop {
                     let stopping = stop.load(Ordering::Acquire);
                     let mut wrote = false;
@@ -140,20 +142,34 @@ impl Recorder {
                     if wrote && out.flush().is_err() {
                         write_errors.fetch_add(1, Ordering::Relaxed);
                     }
+                    for ack in waiting.drain(..) {
+                        let _ = ack.send(());
+                    }
                     if stopping {
                         break;
                     }
-                    std::thread::sleep(Duration::from_millis(5));
+                    // Every 5 ms, or at once when someone needs the file up to date.
+                    if let Ok(ack) = sync_rx.recv_timeout(Duration::from_millis(5)) {
+                        waiting.push(ack);
+                    }
                 }
             })?
         };
-        let recorder = Recorder { path, lost: lost.clone(), write_errors, stop, thread: Some(thread) };
+        let recorder = Recorder { path, lost: lost.clone(), write_errors, stop, sync_tx, thread: Some(thread) };
         Ok((recorder, RecordingProducer { ring: producer, lost }))
     }
 
     /// Events the ring could not take, and write failures (disk full…), so far.
     pub fn losses(&self) -> (u64, u64) {
         (self.lost.load(Ordering::Relaxed), self.write_errors.load(Ordering::Relaxed))
+    }
+
+    /// Waits (up to a second) until everything recorded so far is written to the file.
+    pub fn sync(&self) {
+        let (ack_tx, ack_rx) = std::sync::mpsc::channel();
+        if self.sync_tx.send(ack_tx).is_ok() {
+            let _ = ack_rx.recv_timeout(Duration::from_secs(1));
+        }
     }
 
     /// Writes what is left and stops the thread.
@@ -175,6 +191,93 @@ fn write_line(out: &mut impl Write, line: &Line, errors: &AtomicU64) {
     let ok = serde_json::to_writer(&mut *out, line).is_ok() && out.write_all(b"\n").is_ok();
     if !ok {
         errors.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// A recording read back: its scene and, per tissue lifetime (a reset starts a new one),
+/// the events by step.
+#[derive(Debug, Clone)]
+pub struct Recording {
+    pub session: String,
+    pub scene: Scene,
+    pub epochs: Vec<Epoch>,
+    /// Events the recording says it lost: a replay cannot be exact past them.
+    pub lost_events: u64,
+    /// Whether it ends with an `end` line (false after a crash).
+    pub ended_cleanly: bool,
+}
+
+/// The events of one tissue lifetime, sorted by step.
+#[derive(Debug, Clone, Default)]
+pub struct Epoch {
+    pub events: Vec<(u64, EpochEvent)>,
+    /// Steps this tissue took (the last step recorded for it).
+    pub steps: u64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum EpochEvent {
+    Command { tool: usize, command: ToolCommand },
+    Checkpoint { hash: String },
+}
+
+impl Recording {
+    /// Reads a recording; a last line cut short by a crash ends it, anything else that
+    /// is not a recording event is an error naming the line.
+    pub fn read(path: &Path) -> Result<Recording, String> {
+        let file = std::fs::File::open(path).map_err(|e| format!("cannot open recording {}: {e}", path.display()))?;
+        let mut lines = std::io::BufReader::new(file).lines();
+        let header_line = lines
+            .next()
+            .ok_or_else(|| format!("{}: empty recording", path.display()))?
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        let header: Header = serde_json::from_str(&header_line).map_err(|e| format!("{}: line 1: not a cutsim recording header: {e}", path.display()))?;
+        if header.format != "cutsim-recording" || header.version != 1 {
+            return Err(format!("{}: unsupported recording format {:?} version {}", path.display(), header.format, header.version));
+        }
+        let scene = Scene::from_json_str(&header.scene.to_string(), &header.scene_origin, header.base_dir.as_deref()).map_err(|e| e.to_string())?;
+        let tools = scene.tools.len();
+        let mut recording = Recording { session: header.session, scene, epochs: vec![Epoch::default()], lost_events: 0, ended_cleanly: false };
+        for (index, line) in lines.enumerate() {
+            let number = index + 2;
+            let Ok(text) = line else { break };
+            let Ok(line) = serde_json::from_str::<Line>(&text) else {
+                if text.trim_end().ends_with('}') {
+                    return Err(format!("{}: line {number}: not a recording event: {text:?}", path.display()));
+                }
+                break;
+            };
+            let epoch = recording.epochs.last_mut().expect("there is always an epoch");
+            match line {
+                Line::Cmd { step, tool, p, q, active, cut } => {
+                    if tool as usize >= tools {
+                        return Err(format!("{}: line {number}: tool {tool} does not exist in the scene", path.display()));
+                    }
+                    let pose = Pose::new(Vec3::new(p[0], p[1], p[2]), quat_from_wxyz_exact(q[0], q[1], q[2], q[3]));
+                    epoch.events.push((step, EpochEvent::Command { tool: tool as usize, command: ToolCommand { pose, active, cut } }));
+                    epoch.steps = epoch.steps.max(step);
+                }
+                Line::Check { step, hash } => {
+                    epoch.events.push((step, EpochEvent::Checkpoint { hash }));
+                    epoch.steps = epoch.steps.max(step);
+                }
+                Line::Reset { step } => {
+                    epoch.steps = epoch.steps.max(step);
+                    recording.epochs.push(Epoch::default());
+                }
+                Line::Lost { count } => recording.lost_events += count,
+                Line::End { step } => {
+                    epoch.steps = epoch.steps.max(step);
+                    recording.ended_cleanly = true;
+                }
+            }
+        }
+        Ok(recording)
+    }
+
+    /// Steps over all epochs.
+    pub fn total_steps(&self) -> u64 {
+        self.epochs.iter().map(|e| e.steps).sum()
     }
 }
 
@@ -204,84 +307,54 @@ pub struct ReplayReport {
 /// Replays a recording: rebuilds the scene, applies every command at its step, checks
 /// every checkpoint, and stops at the last recorded step.
 pub fn replay(path: &Path) -> Result<ReplayReport, String> {
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot open recording {}: {e}", path.display()))?;
-    let mut lines = std::io::BufReader::new(file).lines();
-    let header_line = lines
-        .next()
-        .ok_or_else(|| format!("{}: empty recording", path.display()))?
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    let header: Header = serde_json::from_str(&header_line).map_err(|e| format!("{}: line 1: not a cutsim recording header: {e}", path.display()))?;
-    if header.format != "cutsim-recording" || header.version != 1 {
-        return Err(format!("{}: unsupported recording format {:?} version {}", path.display(), header.format, header.version));
-    }
-    let scene_json = header.scene.to_string();
-    let scene = Scene::from_json_str(&scene_json, &header.scene_origin, header.base_dir.as_deref()).map_err(|e| e.to_string())?;
-    let build = || cutsim_sim::build_tissue(&scene).map_err(|e| e.to_string());
+    let recording = Recording::read(path)?;
+    let build = || cutsim_sim::build_tissue(&recording.scene).map_err(|e| e.to_string());
     let mut tissue = build()?;
     let tools = tissue.tools().len();
-    let mut commands = vec![ToolCommand::default(); tools];
     let mut feedback = vec![ToolFeedback::default(); tools];
     let mut report = ReplayReport {
         recording: path.display().to_string(),
-        session: header.session.clone(),
-        scene: scene.name.clone(),
+        session: recording.session.clone(),
+        scene: recording.scene.name.clone(),
         steps: 0,
-        resets: 0,
+        resets: recording.epochs.len() as u64 - 1,
         commands: 0,
         checkpoints_verified: 0,
         checkpoint_mismatches: Vec::new(),
-        lost_events: 0,
-        ended_cleanly: false,
+        lost_events: recording.lost_events,
+        ended_cleanly: recording.ended_cleanly,
         final_step: 0,
         final_state_hash: String::new(),
         passed: false,
     };
-    let mut advance_to = |tissue: &mut Box<dyn Tissue>, commands: &[ToolCommand], step: u64, report: &mut ReplayReport| {
-        while tissue.step_index() < step {
-            tissue.step(commands, &mut feedback);
-            report.steps += 1;
+    for (index, epoch) in recording.epochs.iter().enumerate() {
+        if index > 0 {
+            tissue = build()?;
         }
-    };
-    for (index, line) in lines.enumerate() {
-        let number = index + 2;
-        let Ok(text) = line else { break };
-        let Ok(line) = serde_json::from_str::<Line>(&text) else {
-            // A line cut short by a crash ends the recording; anything else is corruption.
-            if text.trim_end().ends_with('}') {
-                return Err(format!("{}: line {number}: not a recording event: {text:?}", path.display()));
+        let mut commands = vec![ToolCommand::default(); tools];
+        for (step, event) in &epoch.events {
+            while tissue.step_index() < *step {
+                tissue.step(&commands, &mut feedback);
+                report.steps += 1;
             }
-            break;
-        };
-        match line {
-            Line::Cmd { step, tool, p, q, active, cut } => {
-                advance_to(&mut tissue, &commands, step, &mut report);
-                let Some(slot) = commands.get_mut(tool as usize) else {
-                    return Err(format!("{}: line {number}: tool {tool} does not exist in the scene", path.display()));
-                };
-                let pose = Pose::new(Vec3::new(p[0], p[1], p[2]), quat_from_wxyz_exact(q[0], q[1], q[2], q[3]));
-                *slot = ToolCommand { pose, active, cut };
-                report.commands += 1;
-            }
-            Line::Reset { step } => {
-                advance_to(&mut tissue, &commands, step, &mut report);
-                tissue = build()?;
-                commands.iter_mut().for_each(|c| *c = ToolCommand::default());
-                report.resets += 1;
-            }
-            Line::Check { step, hash } => {
-                advance_to(&mut tissue, &commands, step, &mut report);
-                let replayed = hash_hex(tissue.state_hash());
-                if replayed == hash {
-                    report.checkpoints_verified += 1;
-                } else {
-                    report.checkpoint_mismatches.push((step, hash, replayed));
+            match event {
+                EpochEvent::Command { tool, command } => {
+                    commands[*tool] = *command;
+                    report.commands += 1;
+                }
+                EpochEvent::Checkpoint { hash } => {
+                    let replayed = hash_hex(tissue.state_hash());
+                    if &replayed == hash {
+                        report.checkpoints_verified += 1;
+                    } else {
+                        report.checkpoint_mismatches.push((*step, hash.clone(), replayed));
+                    }
                 }
             }
-            Line::Lost { count } => report.lost_events += count,
-            Line::End { step } => {
-                advance_to(&mut tissue, &commands, step, &mut report);
-                report.ended_cleanly = true;
-            }
+        }
+        while tissue.step_index() < epoch.steps {
+            tissue.step(&commands, &mut feedback);
+            report.steps += 1;
         }
     }
     report.final_step = tissue.step_index();

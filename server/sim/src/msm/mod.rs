@@ -521,4 +521,8 @@ impl Tissue for MassSpring {
     fn pieces(&self) -> usize {
         self.piece_count()
     }
+
+    fn clone_box(&self) -> Box<dyn Tissue> {
+        Box::new(self.clone())
+    }
 }

@@ -1,0 +1,177 @@
+//! Replay sessions: the physics thread plays a recording — the recorded commands at their
+//! steps, through every reset — with play, pause, speed and seek. Seeking backwards
+//! restarts from the nearest kept copy of the state (one every 1,000 steps), so
+//! scrubbing costs at most 1,000 steps of physics.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use cutsim_sim::tissue::Tissue;
+use cutsim_sim::tool::ToolCommand;
+
+use super::hub::PlaybackState;
+use super::physics::Physics;
+use super::recording::{EpochEvent, Recording};
+use super::{Control, PlaybackCommand, Status};
+
+const KEYFRAME_EVERY: u64 = 1000;
+const MAX_KEYFRAMES: usize = 256;
+
+/// A copy of the replay's state at a step.
+struct Keyframe {
+    global: u64,
+    epoch: usize,
+    cursor: usize,
+    commands: Vec<ToolCommand>,
+    tissue: Box<dyn Tissue>,
+}
+
+struct Player {
+    recording: Arc<Recording>,
+    /// Tissue lifetime (between resets) being played, and the next event in it.
+    epoch: usize,
+    cursor: usize,
+    /// Steps played over the whole recording.
+    global: u64,
+    total: u64,
+    playing: bool,
+    speed: f64,
+    keyframes: Vec<Keyframe>,
+}
+
+impl Physics {
+    /// The body of a replay session's thread.
+    pub fn run_replay(mut self, recording: Arc<Recording>) {
+        let total = recording.total_steps();
+        let start = Keyframe { global: 0, epoch: 0, cursor: 0, commands: self.out.commands.clone(), tissue: self.tissue.clone_box() };
+        let mut player = Player { recording, epoch: 0, cursor: 0, global: 0, total, playing: false, speed: 1.0, keyframes: vec![start] };
+        let period = self.tissue.time_step_s();
+        self.show(&player);
+        let mut next = Instant::now();
+        loop {
+            while let Ok(message) = self.control.try_recv() {
+                match message {
+                    Control::Close => return self.finish(),
+                    Control::Playback(command) => {
+                        self.command(&mut player, command);
+                        next = Instant::now();
+                    }
+                    Control::Snapshot(reply) => {
+                        let _ = reply.send((self.snapshot(), self.tissue.step_index()));
+                    }
+                    Control::StateHash(reply) => {
+                        let _ = reply.send((self.tissue.step_index(), self.tissue.state_hash()));
+                    }
+                    Control::RunScript { events, .. } => {
+                        let _ = events.send(super::ScriptEvent::Failed("a replay session plays its recording; run scripts on another session".into()));
+                    }
+                }
+            }
+            if self.out.session.is_closed() {
+                return self.finish();
+            }
+            if !player.playing {
+                std::thread::park_timeout(Duration::from_millis(20));
+                continue;
+            }
+            if player.global >= player.total {
+                player.playing = false;
+                self.show(&player);
+                continue;
+            }
+            let now = Instant::now();
+            if next > now {
+                std::thread::park_timeout(next - now);
+                continue;
+            }
+            self.play_step(&mut player, true);
+            next += Duration::from_secs_f64(period / player.speed);
+            if Instant::now() > next + Duration::from_secs_f64(5.0 * period) {
+                next = Instant::now();
+            }
+            if player.global % self.out.publish_every == 0 {
+                self.show(&player);
+            }
+        }
+    }
+
+    fn command(&mut self, player: &mut Player, command: PlaybackCommand) {
+        match command {
+            PlaybackCommand::Play => player.playing = player.global < player.total,
+            PlaybackCommand::Pause => player.playing = false,
+            PlaybackCommand::Speed(speed) => player.speed = speed.clamp(0.05, 20.0),
+            PlaybackCommand::Seek(target) => self.seek(player, target),
+        }
+        self.show(player);
+    }
+
+    /// Publishes a frame with the playback's state.
+    fn show(&mut self, player: &Player) {
+        self.out.status = if player.playing { Status::Running } else { Status::Idle };
+        self.out.playback = Some(PlaybackState { step: player.global, total_steps: player.total, playing: player.playing, speed: player.speed });
+        self.out.publish_frame(self.tissue.as_ref());
+    }
+
+    /// One recorded step: the next tissue lifetime when this one is over, the commands
+    /// recorded for this step, the step. `publish`: send its deltas to viewers (false
+    /// while fast-forwarding: a snapshot follows instead).
+    fn play_step(&mut self, player: &mut Player, publish: bool) {
+        while player.epoch + 1 < player.recording.epochs.len() && self.tissue.step_index() >= player.recording.epochs[player.epoch].steps {
+            player.epoch += 1;
+            player.cursor = 0;
+            self.out.commands.iter_mut().for_each(|c| *c = ToolCommand::default());
+            let fresh = cutsim_sim::build_tissue(&self.scene).expect("the scene built when the replay started");
+            if publish {
+                self.replace_tissue(fresh);
+            } else {
+                self.tissue = fresh;
+            }
+        }
+        let events = &player.recording.epochs[player.epoch].events;
+        let step = self.tissue.step_index();
+        while let Some((at, event)) = events.get(player.cursor) {
+            if *at > step {
+                break;
+            }
+            if let EpochEvent::Command { tool, command } = event {
+                self.out.commands[*tool] = *command;
+            }
+            player.cursor += 1;
+        }
+        self.tissue.step(&self.out.commands, &mut self.out.feedback);
+        player.global += 1;
+        if publish {
+            self.out.after_step(self.tissue.as_mut());
+        } else {
+            self.out.discard_deltas(self.tissue.as_mut());
+        }
+        if player.global % KEYFRAME_EVERY == 0
+            && player.keyframes.len() < MAX_KEYFRAMES
+            && player.keyframes.last().is_none_or(|k| k.global < player.global)
+        {
+            player.keyframes.push(Keyframe {
+                global: player.global,
+                epoch: player.epoch,
+                cursor: player.cursor,
+                commands: self.out.commands.clone(),
+                tissue: self.tissue.clone_box(),
+            });
+        }
+    }
+
+    /// Goes to a step: from the nearest kept state at or before it, then fast-forward;
+    /// viewers get the result as a snapshot.
+    fn seek(&mut self, player: &mut Player, target: u64) {
+        let target = target.min(player.total);
+        let keyframe = player.keyframes.iter().rev().find(|k| k.global <= target).expect("the start is kept");
+        if target < player.global || keyframe.global > player.global {
+            self.tissue = keyframe.tissue.clone_box();
+            self.out.commands.clone_from(&keyframe.commands);
+            (player.epoch, player.cursor, player.global) = (keyframe.epoch, keyframe.cursor, keyframe.global);
+        }
+        while player.global < target {
+            self.play_step(player, false);
+        }
+        self.republish();
+    }
+}
