@@ -268,6 +268,8 @@ async fn playback(
             ));
         }
     };
-    session.send_control(crate::session::Control::Playback(command))?;
+    let (done, applied) = tokio::sync::oneshot::channel();
+    session.send_control(crate::session::Control::Playback(command, done))?;
+    applied.await.map_err(|_| ApiError::FailedPrecondition(format!("session {id} stopped")))?;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -63,7 +63,8 @@ pub enum Control {
     Snapshot(oneshot::Sender<(SurfaceSnapshot, u64)>),
     StateHash(oneshot::Sender<(u64, u64)>),
     RunScript { script: CompiledScript, progress_every: u64, events: mpsc::UnboundedSender<ScriptEvent> },
-    Playback(PlaybackCommand),
+    /// Answered once the command is applied (and the new state published).
+    Playback(PlaybackCommand, oneshot::Sender<()>),
     Close,
 }
 

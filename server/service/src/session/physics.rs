@@ -213,7 +213,7 @@ impl Physics {
                 }
             }
             // Only replays have a playback (see `run_replay`).
-            Control::Playback(_) => {}
+            Control::Playback(..) => {}
         }
         true
     }

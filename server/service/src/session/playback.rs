@@ -52,9 +52,10 @@ impl Physics {
             while let Ok(message) = self.control.try_recv() {
                 match message {
                     Control::Close => return self.finish(),
-                    Control::Playback(command) => {
+                    Control::Playback(command, done) => {
                         self.command(&mut player, command);
                         next = Instant::now();
+                        let _ = done.send(());
                     }
                     Control::Snapshot(reply) => {
                         let _ = reply.send((self.snapshot(), self.tissue.step_index()));
