@@ -9,7 +9,7 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
-use crate::math::{Pose, Vec3, quat_from_wxyz};
+use crate::math::{Pose, Vec3, quat_from_wxyz, quat_from_wxyz_exact};
 use crate::quantity::CoordinateM;
 use crate::scene::SceneError;
 use crate::tool::{ToolCommand, ToolShape};
@@ -203,7 +203,9 @@ impl CutScript {
                 if !norm.is_finite() || (norm - 1.0).abs() > 1e-3 {
                     return Err(err(path(".orientation_wxyz"), format!("must be a unit quaternion (w, x, y, z), got norm {norm}")));
                 }
-                let orientation = quat_from_wxyz(w, x, y, z);
+                // Already unit (as every recorded pose is): taken bit for bit, so a script
+                // made from a recording replays it exactly.
+                let orientation = if (norm - 1.0).abs() <= 1e-12 { quat_from_wxyz_exact(w, x, y, z) } else { quat_from_wxyz(w, x, y, z) };
                 let position = Vec3::new(k.position_m[0].get(), k.position_m[1].get(), k.position_m[2].get());
                 keys.push(CompiledKey { step, pose: Pose::new(position, orientation), cut: k.cut, active: k.active });
             }
@@ -318,6 +320,8 @@ fn command_at(keys: &[CompiledKey], step: u64) -> ToolCommand {
     }
     let k0 = keys[after - 1];
     let pose = match keys.get(after) {
+        // On a keyframe: its pose exactly (no interpolation rounding).
+        _ if step == k0.step => k0.pose,
         Some(k1) => {
             let s = (step - k0.step) as f64 / (k1.step - k0.step) as f64;
             let position = k0.pose.position_m.lerp(&k1.pose.position_m, s);

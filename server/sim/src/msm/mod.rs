@@ -225,10 +225,6 @@ impl MassSpring {
         for tool in 0..self.tools.len() {
             let wants_cut = self.tools[tool].can_cut && commands[tool].cut;
             let cutter = self.cutter.as_mut().expect("cut stage runs only with a cutter");
-            let Some(blade) = self.placed[tool].filter(|_| wants_cut) else {
-                cutter.end_stroke(tool);
-                continue;
-            };
             let view = CutView {
                 x: &self.nodes.x,
                 v: &self.nodes.v,
@@ -238,7 +234,11 @@ impl MassSpring {
                 max_edge_m: self.max_edge_m,
             };
             let next_id = self.nodes.len() as u32;
-            if let Some(plan) = cutter.update(tool, &blade, &view, next_id) {
+            let plan = match self.placed[tool].filter(|_| wants_cut) {
+                Some(blade) => cutter.update(tool, &blade, &view, next_id),
+                None => cutter.end_stroke(tool, &view, next_id),
+            };
+            if let Some(plan) = plan {
                 feedback[tool].cutting = true;
                 self.apply_cut(plan);
             }

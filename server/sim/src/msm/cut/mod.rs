@@ -57,6 +57,9 @@ struct Stroke {
     /// The blade part near the surface at the last update (tip side, top side).
     last_blade: (Vec3, Vec3),
     incision: Option<usize>,
+    /// Where the blade last crossed the skin, with its part near the surface: when the
+    /// stroke ends, the incision is completed up to there.
+    last_crossing: Option<(Vec3, (Vec3, Vec3))>,
 }
 
 /// What a cut update changes; the model applies it.
@@ -121,32 +124,55 @@ impl Cutter {
         Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096), last_fallback_reason: None }
     }
 
-    /// Ends the tool's stroke (blade lifted, button released or tool away).
-    pub fn end_stroke(&mut self, tool: usize) {
+    /// Ends the tool's stroke (blade lifted out, button released or tool away): the
+    /// incision is completed up to where the blade last crossed the skin, so that it ends
+    /// where the blade left (at the patch's edge, a cut goes all the way through).
+    pub fn end_stroke(&mut self, tool: usize, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
+        let stroke = self.strokes[tool].take()?;
+        let (point, near) = stroke.last_crossing?;
+        let anchor_point = anchor_position(&stroke.anchor, view);
+        // A tiny last piece would only make thin triangles.
+        if (point - anchor_point).norm() < 0.25 * self.params.vertex_spacing_m {
+            return None;
+        }
+        let plan = self.grow(tool, &stroke, anchor_point, point, near, view, next_vertex_id);
         self.strokes[tool] = None;
+        plan
     }
 
     /// Follows the blade for one step; returns a topology change when the incision grows.
     pub fn update(&mut self, tool: usize, blade: &PlacedTool, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
         let Some(hit) = self.find_crossing(blade, view) else {
-            self.strokes[tool] = None;
-            return None;
+            return self.end_stroke(tool, view, next_vertex_id);
         };
         let near = self.blade_near_surface(blade, hit.blade_t, view);
         let Some(stroke) = self.strokes[tool].as_mut() else {
-            self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None });
+            self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None, last_crossing: None });
             return None;
         };
-        let anchor_point = match stroke.anchor {
-            Anchor::Start(p) => p,
-            Anchor::Tip(v) => view.x[v as usize],
-        };
+        stroke.last_crossing = Some((hit.point, near));
+        let anchor_point = anchor_position(&stroke.anchor, view);
         if (hit.point - anchor_point).norm() < self.params.min_advance_m {
             return None;
         }
         let stroke = stroke.clone();
+        self.grow(tool, &stroke, anchor_point, hit.point, near, view, next_vertex_id)
+    }
+
+    /// One incision update: the three stages from the stroke's anchor to `point`.
+    #[allow(clippy::too_many_arguments)]
+    fn grow(
+        &mut self,
+        tool: usize,
+        stroke: &Stroke,
+        anchor_point: Vec3,
+        point: Vec3,
+        near: (Vec3, Vec3),
+        view: &CutView,
+        next_vertex_id: u32,
+    ) -> Option<CutPlan> {
         let mut chain = stroke.incision.map(|i| self.incisions[i].curve.clone()).unwrap_or_default();
-        let segment = chain.extend(anchor_point, hit.point);
+        let segment = chain.extend(anchor_point, point);
         let length = segment.length();
         let segments = ((length / self.params.vertex_spacing_m).round() as usize).max(2);
         let mut curve = Vec::with_capacity(segments + 1);
@@ -220,6 +246,7 @@ impl Cutter {
                     anchor: Anchor::Tip(tip),
                     last_blade: near,
                     incision: Some(index),
+                    last_crossing: None,
                 });
             }
             None => {
@@ -280,6 +307,13 @@ impl Cutter {
                 || volume.curve_touches_triangle(&p)
         });
         tris
+    }
+}
+
+fn anchor_position(anchor: &Anchor, view: &CutView) -> Vec3 {
+    match anchor {
+        Anchor::Start(p) => *p,
+        Anchor::Tip(v) => view.x[*v as usize],
     }
 }
 

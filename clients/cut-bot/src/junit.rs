@@ -1,0 +1,55 @@
+//! JUnit XML for CI systems: one test suite per script, one test case per expectation.
+
+use std::fmt::Write;
+use std::time::Duration;
+
+use cutsim_proto::v1 as pb;
+
+pub fn render(script: &str, report: &pb::ScriptReport, elapsed: Duration) -> String {
+    let failures = report.expectations.iter().filter(|e| !e.passed).count();
+    let tests = report.expectations.len();
+    let seconds = elapsed.as_secs_f64();
+    let mut out = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n");
+    let _ = writeln!(out, "<testsuites name=\"cut-bot\" tests=\"{tests}\" failures=\"{failures}\" time=\"{seconds:.3}\">");
+    let _ = writeln!(out, "  <testsuite name=\"{}\" tests=\"{tests}\" failures=\"{failures}\" errors=\"0\" time=\"{seconds:.3}\">", escape(script));
+    let _ = writeln!(out, "    <properties>");
+    for (name, value) in [
+        ("scene", report.scene.clone()),
+        ("model", report.model.clone()),
+        ("steps", report.steps.to_string()),
+        ("state_hash", report.state_hash.clone()),
+        ("cuts", report.cuts.to_string()),
+        ("incision_length_m", report.incision_length_m.to_string()),
+        ("max_tool_force_n", report.max_tool_force_n.to_string()),
+    ] {
+        let _ = writeln!(out, "      <property name=\"{name}\" value=\"{}\"/>", escape(&value));
+    }
+    let _ = writeln!(out, "    </properties>");
+    for e in &report.expectations {
+        let name = escape(&e.name);
+        if e.passed {
+            let _ = writeln!(out, "    <testcase classname=\"cut-bot.{}\" name=\"{name}\" time=\"0\"/>", escape(script));
+        } else {
+            let message = escape(&format!("expected {}, got {}", e.expected, e.actual));
+            let _ = writeln!(out, "    <testcase classname=\"cut-bot.{}\" name=\"{name}\" time=\"0\">", escape(script));
+            let _ = writeln!(out, "      <failure message=\"{message}\" type=\"expectation\">{message}</failure>");
+            let _ = writeln!(out, "    </testcase>");
+        }
+    }
+    let _ = writeln!(out, "  </testsuite>\n</testsuites>");
+    out
+}
+
+fn escape(s: &str) -> String {
+    s.chars()
+        .filter(|c| !c.is_control() || *c == '\n' || *c == '\t')
+        .map(|c| match c {
+            '&' => "&amp;".to_owned(),
+            '<' => "&lt;".to_owned(),
+            '>' => "&gt;".to_owned(),
+            '"' => "&quot;".to_owned(),
+            '\'' => "&apos;".to_owned(),
+            c => c.to_string(),
+        })
+        .collect()
+}
