@@ -1,3 +1,4 @@
+#![allow(dead_code)] // shared by several test binaries; each uses a part
 //! Starting the real `cutsim-server` binary on free loopback ports, and small client
 //! helpers shared by the end-to-end tests.
 
@@ -11,7 +12,18 @@ use cutsim_proto::v1 as pb;
 use cutsim_proto::v1::sessions_client::SessionsClient;
 use tonic::transport::Channel;
 
-pub const SERVER: &str = env!("CARGO_BIN_EXE_cutsim-server");
+/// The cutsim-server binary: cargo's, in the server's own tests; otherwise the one
+/// `cargo test --workspace` built beside this test binary.
+pub fn server_binary() -> PathBuf {
+    if let Some(path) = option_env!("CARGO_BIN_EXE_cutsim-server") {
+        return PathBuf::from(path);
+    }
+    let exe = std::env::current_exe().expect("the test binary's path");
+    let dir = exe.parent().and_then(Path::parent).expect("target/<profile>/deps");
+    let server = dir.join("cutsim-server");
+    assert!(server.is_file(), "{} not found: run the tests with `cargo test --workspace` (or `cargo build -p cutsim-server` first)", server.display());
+    server
+}
 
 pub fn repo(relative: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(relative)
@@ -22,10 +34,10 @@ pub struct TempDir(pub PathBuf);
 
 impl TempDir {
     pub fn new(tag: &str) -> Self {
-        let mut bytes = [0u8; 6];
-        getrandom::fill(&mut bytes).unwrap();
-        let name: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-        let dir = std::env::temp_dir().join(format!("cutsim-{tag}-{name}"));
+        static COUNT: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let n = COUNT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+        let dir = std::env::temp_dir().join(format!("cutsim-{tag}-{}-{n}-{nanos}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         Self(dir)
     }
@@ -55,7 +67,7 @@ impl Server {
 
     pub fn start_with(extra: &[&str]) -> Self {
         let recordings = TempDir::new("recordings");
-        let mut child = Command::new(SERVER)
+        let mut child = Command::new(server_binary())
             .args(["serve", "--grpc-addr", "127.0.0.1:0", "--http-addr", "127.0.0.1:0", "--recordings-dir"])
             .arg(&recordings.0)
             .args(extra)

@@ -39,7 +39,7 @@ async fn recording_replays_to_the_same_hash_after_sigkill() {
     server.kill();
 
     let recording = server.recordings.0.join(format!("{}.jsonl", s.id));
-    let out = std::process::Command::new(SERVER).args(["replay", "--json"]).arg(&recording).output().unwrap();
+    let out = std::process::Command::new(server_binary()).args(["replay", "--json"]).arg(&recording).output().unwrap();
     assert!(out.status.success(), "replay failed: {}\n{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["ended_cleanly"], false, "the server was killed");

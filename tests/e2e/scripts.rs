@@ -24,7 +24,7 @@ async fn script_run_twice_gives_the_same_hash_and_its_expectations() {
     tokio::time::sleep(std::time::Duration::from_millis(200)).await;
     let third = run_script(&server, &realtime, &script).await.unwrap();
     assert_eq!(first.state_hash, third.state_hash);
-    let headless = std::process::Command::new(SERVER)
+    let headless = std::process::Command::new(server_binary())
         .args(["run", "skin-patch", "--json", "--script"])
         .arg(repo("clients/cut-bot/examples/skin-patch-straight.json"))
         .output()
