@@ -17,6 +17,14 @@ export CUTSIM_DATA_DIR="$data_dir"
 echo "==> cargo test (unit, integration and end-to-end tests)"
 cargo test --workspace --locked
 
+echo "==> Python client example (grpcio stubs from proto/cutsim.proto) against a real server"
+if ! command -v python3 >/dev/null; then
+    echo "error: python3 is needed for the Python client example's test" >&2
+    exit 2
+fi
+clients/python/setup.sh >/dev/null
+CUTSIM_SERVER_BIN="$(pwd)/target/debug/cutsim-server" clients/python/.venv/bin/python -m unittest discover -s clients/python -p "test_*.py"
+
 echo "==> browser tests (web viewer in headless chromium)"
 if ! command -v npm >/dev/null; then
     echo "error: npm (Node.js) is needed for the browser tests; install Node.js 18 or newer" >&2

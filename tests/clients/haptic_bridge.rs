@@ -96,3 +96,56 @@ async fn killing_the_server_ramps_the_force_to_zero() {
     assert!(ms <= bound, "zero after {ms:.0} ms (bound {bound:.0} ms)");
     assert!(after[zero..].iter().all(|r| r.1 == 0.0), "and stays zero");
 }
+
+/// A vendor driver's side of the UDP device protocol, played by the test: poses in,
+/// forces back, as docs/haptic-bridge.md describes.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_udp_device_driver_gets_forces_back() {
+    let server = Server::start();
+    let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+    let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = TempDir::new("bridge-udp");
+    let mut command = Command::new(BRIDGE);
+    command
+        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "1"])
+        .args(["--device", &format!("udp:127.0.0.1:{port}"), "--duration-s", "3"])
+        .arg("--report")
+        .arg(dir.0.join("report.json"))
+        .stderr(Stdio::piped());
+    let bridge = command.spawn().unwrap();
+    let driver = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    driver.set_nonblocking(true).unwrap();
+    let start = std::time::Instant::now();
+    let (mut forces, mut strongest, mut fresh) = (0, 0.0f64, 0);
+    let mut sequence = 0u32;
+    while start.elapsed() < Duration::from_millis(2800) {
+        let t = start.elapsed().as_secs_f64();
+        let z = 0.005 - 0.008 * (t / 1.5).min(1.0);
+        sequence += 1;
+        let mut pose = Vec::with_capacity(80);
+        pose.extend_from_slice(b"CSD1");
+        pose.extend_from_slice(&sequence.to_le_bytes());
+        pose.extend_from_slice(&(start.elapsed().as_nanos() as u64).to_le_bytes());
+        for v in [0.01f64, 0.01, z, 1.0, 0.0, 0.0, 0.0] {
+            pose.extend_from_slice(&v.to_le_bytes());
+        }
+        pose.extend_from_slice(&0u32.to_le_bytes());
+        pose.extend_from_slice(&0u32.to_le_bytes());
+        assert_eq!(pose.len(), 80);
+        driver.send_to(&pose, ("127.0.0.1", port)).unwrap();
+        let mut buf = [0u8; 128];
+        while let Ok((n, _)) = driver.recv_from(&mut buf) {
+            assert_eq!((n, &buf[..4]), (64, &b"CSF1"[..]), "force datagrams are 64 bytes with magic CSF1");
+            let f = |k: usize| f64::from_le_bytes(buf[8 + 8 * k..16 + 8 * k].try_into().unwrap());
+            strongest = strongest.max((f(0) * f(0) + f(1) * f(1) + f(2) * f(2)).sqrt());
+            fresh += u32::from_le_bytes(buf[56..60].try_into().unwrap()) & 1;
+            forces += 1;
+        }
+        std::thread::sleep(Duration::from_micros(900));
+    }
+    let out = tokio::task::spawn_blocking(move || bridge.wait_with_output()).await.unwrap().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(forces > 2000, "a force datagram about every millisecond: {forces}");
+    assert!(fresh > 1000, "with the link healthy: {fresh}");
+    assert!(strongest > 0.05, "the driver felt the skin push back: {strongest} N");
+}
