@@ -324,8 +324,14 @@ fn command_at(keys: &[CompiledKey], step: u64) -> ToolCommand {
         _ if step == k0.step => k0.pose,
         Some(k1) => {
             let s = (step - k0.step) as f64 / (k1.step - k0.step) as f64;
-            let position = k0.pose.position_m.lerp(&k1.pose.position_m, s);
-            let orientation = k0.pose.orientation.try_slerp(&k1.pose.orientation, s, 1e-9).unwrap_or(k0.pose.orientation);
+            // p0 + (p1 − p0)·s rather than p0·(1 − s) + p1·s: a held pose (two equal
+            // keyframes, as `cut-bot record` writes them) then stays exact bit for bit.
+            let position = k0.pose.position_m + (k1.pose.position_m - k0.pose.position_m) * s;
+            let orientation = if k0.pose.orientation == k1.pose.orientation {
+                k0.pose.orientation
+            } else {
+                k0.pose.orientation.try_slerp(&k1.pose.orientation, s, 1e-9).unwrap_or(k0.pose.orientation)
+            };
             Pose::new(position, orientation)
         }
         None => k0.pose,
@@ -356,6 +362,27 @@ mod tests {
         assert!((c[0].pose.position_m.x - 0.005).abs() < 1e-15);
         script.commands_at(30, &mut c);
         assert!(!c[0].cut && (c[0].pose.position_m.x - 0.01).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_held_pose_stays_exact_between_equal_keyframes() {
+        // Values whose p·(1 − s) + p·s rounds away from p for some s: a recorded session
+        // holds such poses for many steps while the trainee pauses.
+        let (x, y, z) = (-0.013_374_999_999_999_998_f64, 0.004_912_345_678_901_234_f64, -0.005_f64);
+        let q = [0.923_879_532_511_286_7_f64, 0.0, 0.382_683_432_365_089_8, 0.0];
+        let n = (q.iter().map(|v| v * v).sum::<f64>()).sqrt();
+        let q = q.map(|v| v / n);
+        let key = |step: u64| format!(r#"{{"step":{step},"position_m":[{x:?},{y:?},{z:?}],"orientation_wxyz":[{:?},{:?},{:?},{:?}]}}"#, q[0], q[1], q[2], q[3]);
+        let text = format!(r#"{{"tools":[{{"tool":"scalpel","keyframes":[{},{}]}}]}}"#, key(3), key(1000));
+        let script = CutScript::from_json_str(&text, "t").unwrap().compile(&blade(), 0.001, "t").unwrap();
+        let mut c = [ToolCommand::default()];
+        script.commands_at(3, &mut c);
+        let held = c[0].pose;
+        for step in 4..=1000 {
+            script.commands_at(step, &mut c);
+            assert_eq!(c[0].pose.position_m, held.position_m, "step {step}");
+            assert_eq!(c[0].pose.orientation, held.orientation, "step {step}");
+        }
     }
 
     #[test]
