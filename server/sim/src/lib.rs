@@ -22,6 +22,7 @@ pub mod stats;
 pub mod surface;
 pub mod tissue;
 pub mod tool;
+pub mod volume;
 
 use scene::{ModelSpec, Scene, SceneError};
 use tissue::Tissue;

@@ -3,6 +3,7 @@
 //! triangle, edge- and vertex-manifold, consistently oriented).
 
 pub mod obj;
+pub mod vtk;
 pub mod patch;
 
 use std::collections::HashMap;
