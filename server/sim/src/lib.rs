@@ -11,6 +11,7 @@
 
 pub mod broad_phase;
 pub mod geometry;
+pub mod grid;
 pub mod hash;
 pub mod math;
 pub mod msm;

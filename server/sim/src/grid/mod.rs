@@ -1,0 +1,4 @@
+//! `branched-grid`: the Dynamic Branched Grid (paper 004, ALGORITHMS.md part B).
+
+pub mod condense;
+pub mod hex;
