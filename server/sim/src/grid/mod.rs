@@ -2,3 +2,4 @@
 
 pub mod condense;
 pub mod hex;
+pub mod topology;
