@@ -2,4 +2,5 @@
 
 pub mod condense;
 pub mod hex;
+pub mod solver;
 pub mod topology;
