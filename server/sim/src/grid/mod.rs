@@ -2,5 +2,7 @@
 
 pub mod condense;
 pub mod hex;
+pub mod marching;
 pub mod solver;
+pub mod surface;
 pub mod topology;
