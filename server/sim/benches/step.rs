@@ -26,7 +26,7 @@ fn scene_text(cells_x: u32, cells_y: u32, integrator: &str) -> String {
 fn build(cells_x: u32, cells_y: u32, explicit: bool) -> MassSpring {
     let make = |integrator: &str| {
         let scene = Scene::from_json_str(&scene_text(cells_x, cells_y, integrator), "bench", None).unwrap();
-        let ModelSpec::Msm(spec) = &scene.model;
+        let ModelSpec::Msm(spec) = &scene.model else { unreachable!("an msm scene") };
         build_from_scene(&scene, spec)
     };
     if !explicit {

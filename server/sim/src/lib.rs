@@ -32,5 +32,6 @@ use tissue::Tissue;
 pub fn build_tissue(scene: &Scene) -> Result<Box<dyn Tissue>, SceneError> {
     match &scene.model {
         ModelSpec::Msm(spec) => Ok(Box::new(msm::build_from_scene(scene, spec)?)),
+        ModelSpec::BranchedGrid(spec) => Ok(Box::new(grid::build_from_scene(scene, spec)?)),
     }
 }

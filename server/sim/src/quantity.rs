@@ -114,6 +114,21 @@ bounded!(/// One component of an acceleration (gravity).
 bounded!(/// A force magnitude.
     ForceN: f64, "number", what = "force", unit = "N", range = [0.0, 1e6]);
 
+bounded!(/// The edge of a voxel.
+    VoxelSizeM: f64, "number", what = "voxel size", unit = "m", range = [1e-5, 0.1]);
+bounded!(/// Coarsening level L of the branched grid: a coarse cell is 2^L voxels a side.
+    GridLevel: u32, "integer", what = "level", unit = "", range = [0, 5]);
+bounded!(/// A label value of a label image (0 is empty and cannot be given a material).
+    LabelValue: u16, "integer", what = "label", unit = "", range = [1, 65535]);
+bounded!(/// A voxel count along one side of a procedural shape.
+    VoxelsAlong: u32, "integer", what = "voxel count", unit = "voxels", range = [1, 1000]);
+bounded!(/// A voxel index along one axis of a label image.
+    VoxelIndex: u32, "integer", what = "voxel index", unit = "", range = [0, 100000]);
+bounded!(/// Taubin smoothing passes applied to the surface in rest space.
+    SmoothingIterations: u32, "integer", what = "smoothing iterations", unit = "", range = [0, 20]);
+bounded!(/// Voxels one cutting step may remove.
+    VoxelsPerStep: u32, "integer", what = "voxels per step", unit = "", range = [1, 1000000]);
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -16,6 +16,9 @@ pub struct ToolShape {
     pub can_cut: bool,
     /// The largest force ever reported to the device, N; larger forces are clamped and counted.
     pub max_force_n: f64,
+    /// Branched grid: the inner (cutting) capsule, (radius, length) in m; the tool's own
+    /// shape repels. None: half the radius and the full length for a cutting tool.
+    pub cutting_shape: Option<(f64, f64)>,
 }
 
 /// What the device (or a script) asks of one tool for one step.
@@ -67,6 +70,26 @@ impl PlacedTool {
         let grow = Vec3::repeat(self.radius_m + margin);
         (self.tip.inf(&self.top) - grow, self.tip.sup(&self.top) + grow)
     }
+}
+
+/// The scene's tools as shapes.
+pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
+    scene
+        .tools
+        .iter()
+        .map(|t| {
+            let crate::scene::ToolShapeSpec::Cylinder { radius_m, length_m } = t.shape;
+            ToolShape {
+                name: t.name.clone(),
+                radius_m: radius_m.get(),
+                length_m: length_m.get(),
+                contact_stiffness_n_per_m: t.contact_stiffness_n_per_m.get(),
+                can_cut: t.can_cut,
+                max_force_n: t.max_force_n.get(),
+                cutting_shape: t.cutting_shape.as_ref().map(|crate::scene::ToolShapeSpec::Cylinder { radius_m, length_m }| (radius_m.get(), length_m.get())),
+            }
+        })
+        .collect()
 }
 
 impl ToolFeedback {

@@ -1,8 +1,13 @@
 //! `branched-grid`: the Dynamic Branched Grid (paper 004, ALGORITHMS.md part B).
 
+mod build;
 pub mod condense;
 pub mod hex;
 pub mod marching;
+mod model;
 pub mod solver;
 pub mod surface;
 pub mod topology;
+
+pub use build::{MAX_MATERIAL_VOXELS, build_from_scene, load_volume};
+pub use model::{BranchedGrid, Frame, GridMaterial};

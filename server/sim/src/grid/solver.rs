@@ -21,6 +21,9 @@ use crate::math::{Matrix3, Vec3};
 
 type Vec24 = SVector<f64, 24>;
 
+/// Velocity change below which the solve has nothing left to do, m/s.
+const VELOCITY_FLOOR: f64 = 1e-9;
+
 /// How the mass matrix is used.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MassModel {
@@ -106,10 +109,48 @@ impl Dynamics {
     /// One implicit step with the given contacts. Returns the max |Δv| (not finite on a blow-up).
     pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact]) -> f64 {
         let h = settings.dt_s;
-        self.update_rotations(topo);
-        // Forces at x: elastic, gravity, contacts.
-        self.force.iter_mut().for_each(|f| *f = Vec3::zeros());
-        add_elastic_forces(topo, &self.rotations, &mut self.force);
+        let a_mass = 1.0 + h * settings.alpha_per_s;
+        let a_stiff = h * settings.beta_s + h * h;
+        let a_contact = h * h;
+        // One pass over the elements: rotations, f_el − (β + h) K_R v, and the stiffness
+        // part of the Jacobi preconditioner.
+        for n in 0..topo.nodes.len() {
+            self.force[n] = Vec3::zeros();
+            self.diag[n] = if settings.mass == MassModel::Lumped { Vec3::repeat(a_mass * topo.nodes.mass[n]) } else { Vec3::zeros() };
+        }
+        let damping = settings.beta_s + h;
+        for e in 0..topo.elements.len() {
+            if !topo.elements.alive[e] {
+                continue;
+            }
+            let nodes = &topo.elements.nodes[e];
+            if let Some(r) = averaged_edge_rotation(&|n: usize| topo.nodes.x[nodes[n] as usize]) {
+                self.rotations[e] = r;
+            }
+            let r = self.rotations[e];
+            let rt = r.transpose();
+            let (x0, rest0) = (topo.nodes.x[nodes[0] as usize], topo.nodes.rest[nodes[0] as usize]);
+            let mut u = Vec24::zeros();
+            for c in 0..8 {
+                let node = nodes[c] as usize;
+                // Rest offsets from the nodes' own rest positions: exactly zero strain at rest.
+                let rest = topo.nodes.rest[node] - rest0;
+                let local = rt * (topo.nodes.x[node] - x0) - rest + rt * topo.nodes.v[node] * damping;
+                u.fixed_rows_mut::<3>(3 * c).copy_from(&local);
+            }
+            let k = &topo.elements.stiffness[e];
+            let f = mat_vec(k, &u);
+            for c in 0..8 {
+                let node = nodes[c] as usize;
+                self.force[node] -= r * f.fixed_rows::<3>(3 * c);
+                let block = k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
+                let rotated = r * block * rt;
+                self.diag[node] += Vec3::new(rotated[(0, 0)], rotated[(1, 1)], rotated[(2, 2)]) * a_stiff;
+                if settings.mass == MassModel::Consistent {
+                    self.diag[node] += Vec3::repeat(a_mass * topo.elements.mass[e][(c, c)]);
+                }
+            }
+        }
         if let Some(g) = settings.gravity {
             for n in 0..topo.nodes.len() {
                 self.force[n] += g * topo.nodes.mass[n];
@@ -118,19 +159,16 @@ impl Dynamics {
         for c in contacts {
             let nodes = &topo.elements.nodes[c.element as usize];
             for k in 0..8 {
-                self.force[nodes[k] as usize] += c.force * c.weights[k];
+                let w = c.weights[k];
+                self.force[nodes[k] as usize] += c.force * w;
+                self.diag[nodes[k] as usize] += c.normal.component_mul(&c.normal) * (a_contact * c.stiffness * w * w);
             }
         }
-        // b = h (f − αM v − (β + h) K_R v)
+        // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.
         mass_times(topo, settings.mass, &topo.nodes.v, &mut self.q);
-        stiffness_times(topo, &self.rotations, &topo.nodes.v, &mut self.z);
         for n in 0..topo.nodes.len() {
-            self.b[n] = (self.force[n] - self.q[n] * settings.alpha_per_s - self.z[n] * (settings.beta_s + h)) * h;
+            self.b[n] = (self.force[n] - self.q[n] * settings.alpha_per_s) * h;
         }
-        let a_mass = 1.0 + h * settings.alpha_per_s;
-        let a_stiff = h * settings.beta_s + h * h;
-        let a_contact = h * h;
-        self.jacobi(topo, settings.mass, a_mass, a_stiff, a_contact, contacts);
         let (iterations, residual) = self.conjugate_gradient(topo, settings, a_mass, a_stiff, a_contact, contacts);
         self.last_iterations = iterations;
         self.last_residual = residual;
@@ -149,37 +187,6 @@ impl Dynamics {
             topo.nodes.x[n] += topo.nodes.v[n] * h;
         }
         max_dv
-    }
-
-    fn jacobi(&mut self, topo: &Topology, mass: MassModel, a_mass: f64, a_stiff: f64, a_contact: f64, contacts: &[PointContact]) {
-        for n in 0..topo.nodes.len() {
-            self.diag[n] = Vec3::zeros();
-            if mass == MassModel::Lumped {
-                self.diag[n] = Vec3::repeat(a_mass * topo.nodes.mass[n]);
-            }
-        }
-        for e in 0..topo.elements.len() {
-            if !topo.elements.alive[e] {
-                continue;
-            }
-            let (k, r, nodes) = (&topo.elements.stiffness[e], &self.rotations[e], &topo.elements.nodes[e]);
-            for c in 0..8 {
-                let block = k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
-                let rotated = r * block * r.transpose();
-                let mut d = Vec3::new(rotated[(0, 0)], rotated[(1, 1)], rotated[(2, 2)]) * a_stiff;
-                if mass == MassModel::Consistent {
-                    d += Vec3::repeat(a_mass * topo.elements.mass[e][(c, c)]);
-                }
-                self.diag[nodes[c] as usize] += d;
-            }
-        }
-        for c in contacts {
-            let nodes = &topo.elements.nodes[c.element as usize];
-            for k in 0..8 {
-                let w = c.weights[k];
-                self.diag[nodes[k] as usize] += c.normal.component_mul(&c.normal) * (a_contact * c.stiffness * w * w);
-            }
-        }
     }
 
     /// Solves A Δv = b for the free nodes, starting from the last Δv.
@@ -215,7 +222,11 @@ impl Dynamics {
             }
         };
         let mut scratch = std::mem::take(&mut self.force);
-        apply(&self.dv, &mut self.q, &mut scratch);
+        if self.dv.iter().any(|d| *d != Vec3::zeros()) {
+            apply(&self.dv, &mut self.q, &mut scratch);
+        } else {
+            self.q.iter_mut().for_each(|q| *q = Vec3::zeros());
+        }
         let mut b_norm2 = 0.0;
         for i in 0..n {
             if !free(i) {
@@ -235,7 +246,11 @@ impl Dynamics {
         let target2 = settings.cg_tolerance * settings.cg_tolerance * b_norm2;
         let mut iterations = 0;
         let mut r_norm2: f64 = (0..n).map(|i| self.r[i].norm_squared()).sum();
-        while iterations < settings.cg_max_iterations && r_norm2 > target2 && b_norm2 > 0.0 {
+        // Besides the relative test, stop when what is left would change no velocity by
+        // more than VELOCITY_FLOOR: a body at rest has round-off forces, not work to do.
+        let velocity_error = |z: &[Vec3]| z.iter().map(|v| v.amax()).fold(0.0, f64::max);
+        let mut dv_error = velocity_error(&self.z);
+        while iterations < settings.cg_max_iterations && r_norm2 > target2 && b_norm2 > 0.0 && dv_error > VELOCITY_FLOOR {
             apply(&self.p, &mut self.q, &mut scratch);
             let pq: f64 = (0..n).map(|i| self.p[i].dot(&self.q[i])).sum();
             if !(pq > 0.0) {
@@ -249,6 +264,7 @@ impl Dynamics {
                 r_norm2 += self.r[i].norm_squared();
             }
             precondition(&self.r, &self.diag, &mut self.z);
+            dv_error = velocity_error(&self.z);
             let rz_next: f64 = (0..n).map(|i| self.r[i].dot(&self.z[i])).sum();
             let beta = rz_next / rz;
             rz = rz_next;
@@ -292,13 +308,12 @@ pub fn add_elastic_forces(topo: &Topology, rotations: &[Matrix3<f64>], force: &m
         }
         let nodes = &topo.elements.nodes[e];
         let r = &rotations[e];
-        let x0 = topo.nodes.x[nodes[0] as usize];
-        let size = topo.layout.cell_size_m();
+        let (x0, rest0) = (topo.nodes.x[nodes[0] as usize], topo.nodes.rest[nodes[0] as usize]);
         let mut u = Vec24::zeros();
         for c in 0..8 {
-            let local = r.transpose() * (topo.nodes.x[nodes[c] as usize] - x0);
-            let rest = Vec3::new((c & 1) as f64 * size.x, ((c >> 1) & 1) as f64 * size.y, ((c >> 2) & 1) as f64 * size.z);
-            u.fixed_rows_mut::<3>(3 * c).copy_from(&(local - rest));
+            let node = nodes[c] as usize;
+            let local = r.transpose() * (topo.nodes.x[node] - x0);
+            u.fixed_rows_mut::<3>(3 * c).copy_from(&(local - (topo.nodes.rest[node] - rest0)));
         }
         let f = topo.elements.stiffness[e] * u;
         for c in 0..8 {

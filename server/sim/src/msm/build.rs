@@ -10,7 +10,7 @@ use crate::broad_phase::PointGrid;
 use crate::geometry::patch::{self, PatchParams};
 use crate::geometry::{TriMesh, obj};
 use crate::math::{Vec3, triangle_area};
-use crate::scene::{FixedSpec, IntegratorSpec, MsmSpec, Scene, SceneError, SurfaceGeometry, ToolShapeSpec};
+use crate::scene::{FixedSpec, IntegratorSpec, MsmSpec, Scene, SceneError, SurfaceGeometry};
 use crate::tissue::TissueCounters;
 use crate::tool::{PlacedTool, ToolShape};
 
@@ -325,7 +325,7 @@ pub fn build_from_scene(scene: &Scene, spec: &MsmSpec) -> Result<MassSpring, Sce
         }
     }
 
-    let tools = tool_shapes(scene);
+    let tools = crate::tool::tool_shapes(scene);
     let params = MsmParams {
         time_step_s: scene.time_step_s.get(),
         material: MembraneMaterial {
@@ -353,21 +353,3 @@ pub fn build_from_scene(scene: &Scene, spec: &MsmSpec) -> Result<MassSpring, Sce
     })
 }
 
-/// The scene's tools as shapes.
-pub(crate) fn tool_shapes(scene: &Scene) -> Vec<ToolShape> {
-    scene
-        .tools
-        .iter()
-        .map(|t| {
-            let ToolShapeSpec::Cylinder { radius_m, length_m } = t.shape;
-            ToolShape {
-                name: t.name.clone(),
-                radius_m: radius_m.get(),
-                length_m: length_m.get(),
-                contact_stiffness_n_per_m: t.contact_stiffness_n_per_m.get(),
-                can_cut: t.can_cut,
-                max_force_n: t.max_force_n.get(),
-            }
-        })
-        .collect()
-}

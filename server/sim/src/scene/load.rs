@@ -74,26 +74,97 @@ impl Scene {
                 ));
             }
         }
-        let super::ModelSpec::Msm(msm) = &self.model;
-        for (i, fixed) in msm.fixed.iter().enumerate() {
-            if let super::FixedSpec::Box { min_m, max_m, .. } = fixed {
-                for axis in 0..3 {
-                    if min_m[axis].get() > max_m[axis].get() {
-                        return Err(SceneError::new(
-                            origin,
-                            format!("model.msm.fixed[{i}].box"),
-                            format!(
-                                "min_m[{axis}] = {} m is above max_m[{axis}] = {} m; a box needs min ≤ max on every axis",
-                                min_m[axis].get(),
-                                max_m[axis].get()
-                            ),
-                        ));
+        match &self.model {
+            super::ModelSpec::Msm(msm) => {
+                for (i, fixed) in msm.fixed.iter().enumerate() {
+                    if let super::FixedSpec::Box { min_m, max_m, .. } = fixed {
+                        check_box(origin, &format!("model.msm.fixed[{i}].box"), min_m, max_m)?;
+                    }
+                }
+                if let Some(i) = self.tools.iter().position(|t| t.cutting_shape.is_some()) {
+                    return Err(SceneError::new(
+                        origin,
+                        format!("tools[{i}].cutting_shape"),
+                        "a cutting shape is used by the branched-grid model only; the mass-spring skin cuts along the blade's swept path",
+                    ));
+                }
+            }
+            super::ModelSpec::BranchedGrid(grid) => self.check_branched_grid(origin, grid)?,
+        }
+        Ok(())
+    }
+}
+
+impl Scene {
+    fn check_branched_grid(&self, origin: &str, grid: &super::BranchedGridSpec) -> Result<(), SceneError> {
+        let at = |path: String, message: String| SceneError::new(origin, format!("model.branched-grid.{path}"), message);
+        if grid.materials.is_empty() {
+            return Err(at("materials".into(), "give at least one label with its material".into()));
+        }
+        for (i, m) in grid.materials.iter().enumerate() {
+            if let Some(j) = grid.materials[..i].iter().position(|o| o.label == m.label) {
+                return Err(at(format!("materials[{i}].label"), format!("label {} already has a material in materials[{j}]", m.label.get())));
+            }
+        }
+        for (i, fixed) in grid.fixed.iter().enumerate() {
+            match fixed {
+                super::GridFixedSpec::Box { min_m, max_m } => check_box(origin, &format!("model.branched-grid.fixed[{i}].box"), min_m, max_m)?,
+                super::GridFixedSpec::Side { side } => {
+                    if !["-x", "+x", "-y", "+y", "-z", "+z"].contains(&side.as_str()) {
+                        return Err(at(format!("fixed[{i}].side.side"), format!("a side is one of -x, +x, -y, +y, -z, +z; got {side:?}")));
+                    }
+                }
+                super::GridFixedSpec::Labels { labels } => {
+                    if let Some(l) = labels.iter().find(|l| !grid.materials.iter().any(|m| m.label == **l)) {
+                        return Err(at(format!("fixed[{i}].labels.labels"), format!("label {} has no material, so none of its voxels is built", l.get())));
                     }
                 }
             }
         }
+        if let Some(crop) = &grid.crop_voxels {
+            for a in 0..3 {
+                if crop.min[a].get() > crop.max[a].get() {
+                    return Err(at("crop_voxels".into(), format!("min[{a}] = {} is above max[{a}] = {}", crop.min[a].get(), crop.max[a].get())));
+                }
+            }
+        }
+        for (i, tool) in self.tools.iter().enumerate() {
+            let Some(inner) = &tool.cutting_shape else { continue };
+            let super::ToolShapeSpec::Cylinder { radius_m, length_m } = &tool.shape;
+            let super::ToolShapeSpec::Cylinder { radius_m: r_in, length_m: l_in } = inner;
+            if r_in.get() >= radius_m.get() || l_in.get() > length_m.get() {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].cutting_shape"),
+                    format!(
+                        "the cutting shape (radius {} m, length {} m) must fit inside the tool's shape (radius {} m, length {} m): a smaller radius, no longer",
+                        r_in.get(), l_in.get(), radius_m.get(), length_m.get()
+                    ),
+                ));
+            }
+            if !tool.can_cut {
+                return Err(SceneError::new(origin, format!("tools[{i}].cutting_shape"), "a tool with a cutting shape must have can_cut: true"));
+            }
+        }
         Ok(())
     }
+}
+
+fn check_box(origin: &str, path: &str, min_m: &[crate::quantity::CoordinateM; 3], max_m: &[crate::quantity::CoordinateM; 3]) -> Result<(), SceneError> {
+    for axis in 0..3 {
+        if min_m[axis].get() > max_m[axis].get() {
+            return Err(SceneError::new(
+                origin,
+                path,
+                format!(
+                    "min_m[{axis}] = {} m is above max_m[{axis}] = {} m; a box needs min ≤ max on every axis",
+                    min_m[axis].get(),
+                    max_m[axis].get()
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The directory of shared anatomical data that `data:` paths point into:

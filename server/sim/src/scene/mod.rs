@@ -62,6 +62,9 @@ fn default_time_step() -> TimeStepS {
 pub enum ModelSpec {
     /// Surface mass-spring skin with residual stress and three-stage cutting.
     Msm(MsmSpec),
+    /// Volumetric Dynamic Branched Grid from a label volume: coarse corotational
+    /// hexahedra with condensed stiffness, cutting by voxel removal.
+    BranchedGrid(BranchedGridSpec),
 }
 
 /// Settings of the mass-spring skin model.
@@ -314,6 +317,11 @@ pub struct ToolSpec {
     /// Largest force reported to the device, N.
     #[serde(default = "default_max_force")]
     pub max_force_n: ForceN,
+    /// Branched grid only: the inner shape that removes the voxels whose deformed
+    /// centres it contains (the outer `shape` repels). It must fit inside `shape`.
+    /// Default for a cutting tool: half the radius, the full length.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cutting_shape: Option<ToolShapeSpec>,
 }
 
 fn default_contact_stiffness() -> StiffnessNPerM {
@@ -329,4 +337,239 @@ fn default_max_force() -> ForceN {
 pub enum ToolShapeSpec {
     /// A segment from the tip along the tool's +z axis, with a radius.
     Cylinder { radius_m: RadiusM, length_m: ToolLengthM },
+}
+
+/// Settings of the branched-grid model (see docs/branched-grid.md).
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct BranchedGridSpec {
+    /// Where the voxels come from.
+    pub volume: VolumeSource,
+    /// Keep only these voxels of a label image (indices, inclusive), before anything else.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crop_voxels: Option<CropSpec>,
+    /// Move the body so that the centre of its bounding box is at the origin (images keep
+    /// their scanner coordinates otherwise).
+    #[serde(default)]
+    pub centre: bool,
+    /// A material per label; voxels of labels not listed are not built.
+    pub materials: Vec<LabelMaterialSpec>,
+    /// Coarsening level L: a coarse element is 2^L voxels a side (0: one per voxel).
+    pub level: GridLevel,
+    #[serde(default)]
+    pub mass: MassSpec,
+    #[serde(default)]
+    pub damping: RayleighSpec,
+    #[serde(default)]
+    pub solver: GridSolverSpec,
+    /// Nodes held fixed.
+    #[serde(default)]
+    pub fixed: Vec<GridFixedSpec>,
+    #[serde(default)]
+    pub surface: GridSurfaceSpec,
+    /// Cutting by voxel removal. Absent: the scene cannot be cut.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cutting: Option<GridCuttingSpec>,
+}
+
+/// A label volume source.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum VolumeSource {
+    /// A NIfTI-1 label image (.nii or .nii.gz); lengths from its header.
+    Nifti {
+        /// Relative to the scene file, or `data:<path>` in the shared data directory.
+        path: String,
+    },
+    /// A VTK XML ImageData label image (.vti).
+    Vti {
+        path: String,
+        /// The data array holding the labels. Default: the active scalars, else the first.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        array: Option<String>,
+        /// Metres per file unit. Default 0.001 (medical images are in mm).
+        #[serde(default = "millimetres")]
+        scale_m_per_unit: ScaleMPerUnit,
+    },
+    /// A closed surface mesh (.obj or legacy .vtk polydata), voxelized inside.
+    Mesh {
+        path: String,
+        /// Metres per file unit.
+        #[serde(default = "unit_scale")]
+        scale_m_per_unit: ScaleMPerUnit,
+        voxel_size_m: VoxelSizeM,
+        /// The label its inside voxels get.
+        #[serde(default = "label_one")]
+        label: LabelValue,
+    },
+    /// A solid box centred on the origin.
+    Box {
+        size_m: [LengthM; 3],
+        voxel_size_m: VoxelSizeM,
+        #[serde(default = "label_one")]
+        label: LabelValue,
+    },
+    /// A solid ellipsoid centred on the origin.
+    Ellipsoid {
+        radii_m: [LengthM; 3],
+        voxel_size_m: VoxelSizeM,
+        #[serde(default = "label_one")]
+        label: LabelValue,
+    },
+    /// Two arms rising along z from a common base, a gap between them (paper 004, Fig. 3).
+    UTube {
+        voxel_size_m: VoxelSizeM,
+        /// Width of each arm along x.
+        arm_voxels: VoxelsAlong,
+        /// Gap between the arms along x.
+        gap_voxels: VoxelsAlong,
+        /// Depth along y.
+        depth_voxels: VoxelsAlong,
+        /// Thickness of the base along z.
+        base_voxels: VoxelsAlong,
+        /// Length of the arms above the base.
+        arm_length_voxels: VoxelsAlong,
+        #[serde(default = "label_one")]
+        label: LabelValue,
+    },
+}
+
+fn millimetres() -> ScaleMPerUnit {
+    ScaleMPerUnit(1e-3)
+}
+
+fn label_one() -> LabelValue {
+    LabelValue(1)
+}
+
+/// An inclusive range of voxel indices.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CropSpec {
+    pub min: [VoxelIndex; 3],
+    pub max: [VoxelIndex; 3],
+}
+
+/// The material of one label.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LabelMaterialSpec {
+    pub label: LabelValue,
+    /// Shown in reports and the viewer (e.g. "liver").
+    #[serde(default)]
+    pub name: String,
+    pub young_pa: YoungPa,
+    #[serde(default = "soft_tissue_poisson")]
+    pub poisson: Poisson,
+    pub density_kg_per_m3: DensityKgPerM3,
+}
+
+fn soft_tissue_poisson() -> Poisson {
+    Poisson(0.45)
+}
+
+/// Mass matrix.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum MassSpec {
+    /// Row sums on the diagonal.
+    #[default]
+    Lumped,
+    /// The condensed consistent mass matrix.
+    Consistent,
+}
+
+/// Rayleigh damping C = αM + βK.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RayleighSpec {
+    /// α, 1/s.
+    #[serde(default = "default_rayleigh_mass")]
+    pub mass_per_s: DampingPerS,
+    /// β, s.
+    #[serde(default = "default_rayleigh_stiffness")]
+    pub stiffness_s: SpringDampingS,
+}
+
+impl Default for RayleighSpec {
+    fn default() -> Self {
+        Self { mass_per_s: default_rayleigh_mass(), stiffness_s: default_rayleigh_stiffness() }
+    }
+}
+
+fn default_rayleigh_mass() -> DampingPerS {
+    DampingPerS(5.0)
+}
+
+fn default_rayleigh_stiffness() -> SpringDampingS {
+    SpringDampingS(0.001)
+}
+
+/// The implicit solve.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct GridSolverSpec {
+    #[serde(default = "default_grid_cg_iterations")]
+    pub cg_max_iterations: CgIterations,
+    #[serde(default = "default_grid_cg_tolerance")]
+    pub cg_tolerance: CgTolerance,
+}
+
+impl Default for GridSolverSpec {
+    fn default() -> Self {
+        Self { cg_max_iterations: default_grid_cg_iterations(), cg_tolerance: default_grid_cg_tolerance() }
+    }
+}
+
+fn default_grid_cg_iterations() -> CgIterations {
+    CgIterations(30)
+}
+
+fn default_grid_cg_tolerance() -> CgTolerance {
+    CgTolerance(1e-5)
+}
+
+/// Which grid nodes are held.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum GridFixedSpec {
+    /// Nodes whose rest position is inside a box (scene coordinates, m).
+    Box { min_m: [CoordinateM; 3], max_m: [CoordinateM; 3] },
+    /// The nodes on one side of the body's bounding box: "-x", "+x", "-y", "+y", "-z" or "+z".
+    Side { side: String },
+    /// The nodes of every element holding voxels of these labels (e.g. bone).
+    Labels { labels: Vec<LabelValue> },
+}
+
+/// The visible surface.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct GridSurfaceSpec {
+    /// Taubin smoothing passes in rest space (0: the raw marching-cubes surface).
+    #[serde(default = "default_smoothing")]
+    pub smoothing_iterations: SmoothingIterations,
+}
+
+impl Default for GridSurfaceSpec {
+    fn default() -> Self {
+        Self { smoothing_iterations: default_smoothing() }
+    }
+}
+
+fn default_smoothing() -> SmoothingIterations {
+    SmoothingIterations(3)
+}
+
+/// Cutting by voxel removal.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct GridCuttingSpec {
+    /// At most this many voxels go in one step (the rest in the next ones), which bounds
+    /// the time of a cut update.
+    #[serde(default = "default_voxels_per_step")]
+    pub max_voxels_per_step: VoxelsPerStep,
+}
+
+fn default_voxels_per_step() -> VoxelsPerStep {
+    VoxelsPerStep(400)
 }

@@ -44,7 +44,7 @@ pub fn scene(text: &str) -> Scene {
 }
 
 pub fn build(scene: &Scene) -> MassSpring {
-    let ModelSpec::Msm(spec) = &scene.model;
+    let ModelSpec::Msm(spec) = &scene.model else { panic!("{}: not an msm scene", scene.name) };
     build_from_scene(scene, spec).unwrap_or_else(|e| panic!("{e}"))
 }
 

@@ -1,0 +1,226 @@
+//! Building a [`BranchedGrid`] from a scene: read or make the label volume, crop it,
+//! keep the labels that have a material, build the coarse grid, fix nodes, extract the
+//! surface. Errors name the scene path and say what was found and what is allowed.
+
+use super::condense::VoxelMatrices;
+use super::model::{BranchedGrid, Frame, GridMaterial};
+use super::solver::{MassModel, SolverSettings};
+use super::surface::GridSurface;
+use super::topology::{Layout, Topology};
+use crate::math::Vec3;
+use crate::scene::{BranchedGridSpec, GridFixedSpec, MassSpec, Scene, SceneError, VolumeSource};
+use crate::volume::procedural::{UTube, ellipsoid, solid_box, u_tube};
+use crate::volume::{LabelVolume, nifti, voxelize, vti};
+
+/// Material voxels a scene may build (about 4 times the paper's largest scene).
+pub const MAX_MATERIAL_VOXELS: usize = 2_000_000;
+
+/// Reads or makes the scene's label volume (before cropping and label selection).
+pub fn load_volume(scene: &Scene, spec: &BranchedGridSpec) -> Result<LabelVolume, SceneError> {
+    let err = |path: &str, message: String| SceneError::new(&scene.origin, format!("model.branched-grid.volume.{path}"), message);
+    let volume = match &spec.volume {
+        VolumeSource::Nifti { path } => nifti::read_nifti(&scene.resolve_path(path)).map_err(|e| err("nifti.path", e))?,
+        VolumeSource::Vti { path, array, scale_m_per_unit } => {
+            vti::read_vti(&scene.resolve_path(path), array.as_deref(), scale_m_per_unit.get()).map_err(|e| err("vti.path", e))?
+        }
+        VolumeSource::Mesh { path, scale_m_per_unit, voxel_size_m, label } => {
+            let file = scene.resolve_path(path);
+            let extension = file.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+            let mut mesh = match extension.as_str() {
+                "obj" => crate::geometry::obj::read_obj_file(&file),
+                "vtk" => crate::geometry::vtk::read_vtk_file(&file),
+                other => Err(format!("{}: a mesh must be .obj or .vtk (legacy polydata), not .{other}", file.display())),
+            }
+            .map_err(|e| err("mesh.path", e))?;
+            mesh.scale_and_offset(scale_m_per_unit.get(), Vec3::zeros());
+            let (volume, _report) = voxelize::voxelize(&mesh, voxel_size_m.get(), label.get(), crate::volume::MAX_VOXELS).map_err(|e| err("mesh", e))?;
+            volume
+        }
+        VolumeSource::Box { size_m, voxel_size_m, label } => solid_box(size_m.map(|s| s.get()), voxel_size_m.get(), label.get()),
+        VolumeSource::Ellipsoid { radii_m, voxel_size_m, label } => ellipsoid(radii_m.map(|r| r.get()), voxel_size_m.get(), label.get()),
+        VolumeSource::UTube { voxel_size_m, arm_voxels, gap_voxels, depth_voxels, base_voxels, arm_length_voxels, label } => u_tube(
+            UTube {
+                arm: arm_voxels.get() as usize,
+                gap: gap_voxels.get() as usize,
+                depth: depth_voxels.get() as usize,
+                base: base_voxels.get() as usize,
+                arm_length: arm_length_voxels.get() as usize,
+            },
+            voxel_size_m.get(),
+            label.get(),
+        ),
+    };
+    volume.check().map_err(|e| err("", e))?;
+    Ok(volume)
+}
+
+/// Builds the model a branched-grid scene describes.
+pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
+    let at = |path: &str, message: String| SceneError::new(&scene.origin, format!("model.branched-grid{}{path}", if path.is_empty() { "" } else { "." }), message);
+    let mut volume = load_volume(scene, spec)?;
+    if let Some(crop) = &spec.crop_voxels {
+        volume = volume.crop(crop.min.map(|i| i.get() as usize), crop.max.map(|i| i.get() as usize)).map_err(|e| at("crop_voxels", e))?;
+    }
+    let volume = volume.to_right_handed();
+    let labels: Vec<u16> = spec.materials.iter().map(|m| m.label.get()).collect();
+    let Some(volume) = volume.select(&labels, 0) else {
+        let present: Vec<String> = volume.histogram().iter().take(40).map(|(l, n)| format!("{l} ({n} voxels)")).collect();
+        return Err(at(
+            "materials",
+            format!(
+                "none of the labels {labels:?} occurs in the volume; labels present: {}",
+                if present.is_empty() { "none (the volume is empty)".into() } else { present.join(", ") }
+            ),
+        ));
+    };
+    let material: Vec<u16> = volume.labels.iter().map(|l| labels.iter().position(|m| m == l).map_or(0, |i| i as u16 + 1)).collect();
+    let count = material.iter().filter(|&&m| m != 0).count();
+    if count > MAX_MATERIAL_VOXELS {
+        return Err(at("volume", format!("{count} voxels have a material; at most {MAX_MATERIAL_VOXELS} are allowed (crop, select fewer labels or use larger voxels)")));
+    }
+    let materials: Vec<GridMaterial> = spec
+        .materials
+        .iter()
+        .map(|m| GridMaterial {
+            label: m.label.get(),
+            name: if m.name.is_empty() { format!("label {}", m.label.get()) } else { m.name.clone() },
+            young_pa: m.young_pa.get(),
+            poisson: m.poisson.get(),
+            density_kg_per_m3: m.density_kg_per_m3.get(),
+        })
+        .collect();
+    let constants: Vec<(f64, f64, f64)> = materials.iter().map(|m| (m.young_pa, m.poisson, m.density_kg_per_m3)).collect();
+    let layout = Layout::new(volume.dims, spec.level.get(), volume.spacing_m);
+    let mut topo = Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &constants));
+
+    // The grid's frame: voxel (0, 0, 0) spans [0, spacing] locally, its centre is the
+    // volume's origin in the world.
+    let half = Vec3::from(volume.spacing_m) * 0.5;
+    let mut frame = Frame { rotation: volume.direction, translation: volume.origin_m - volume.direction * half };
+    if spec.centre {
+        let (lo, hi) = rest_bounds(&topo);
+        frame.translation -= frame.to_world(&((lo + hi) * 0.5));
+    }
+    fix_nodes(scene, spec, &mut topo, &frame)?;
+
+    let settings = SolverSettings {
+        dt_s: scene.time_step_s.get(),
+        cg_max_iterations: spec.solver.cg_max_iterations.get(),
+        cg_tolerance: spec.solver.cg_tolerance.get(),
+        alpha_per_s: spec.damping.mass_per_s.get(),
+        beta_s: spec.damping.stiffness_s.get(),
+        mass: match spec.mass {
+            MassSpec::Lumped => MassModel::Lumped,
+            MassSpec::Consistent => MassModel::Consistent,
+        },
+        gravity: scene.gravity_m_per_s2.map(|g| frame.rotation.transpose() * Vec3::new(g[0].get(), g[1].get(), g[2].get())),
+    };
+    let surface = GridSurface::build(&topo, spec.surface.smoothing_iterations.get());
+    let tools = crate::tool::tool_shapes(scene);
+    if spec.cutting.is_some() {
+        check_cutting_radii(scene, &tools, &volume)?;
+    }
+    Ok(BranchedGrid::assemble(
+        scene.time_step_s.get(),
+        frame,
+        topo,
+        settings,
+        surface,
+        materials,
+        tools,
+        spec.cutting.as_ref().map(|c| c.max_voxels_per_step.get() as usize),
+    ))
+}
+
+/// A cutting shape thinner than half a voxel would pass between the voxel centres and
+/// cut nothing (or a dotted line): voxel removal cannot cut finer than its voxels.
+fn check_cutting_radii(scene: &Scene, tools: &[crate::tool::ToolShape], volume: &LabelVolume) -> Result<(), SceneError> {
+    let half_voxel = volume.spacing_m.iter().copied().fold(0.0, f64::max) * 0.5;
+    for (i, tool) in tools.iter().enumerate().filter(|(_, t)| t.can_cut) {
+        let (radius, explicit) = match tool.cutting_shape {
+            Some((radius, _)) => (radius, true),
+            None => (tool.radius_m * 0.5, false),
+        };
+        if radius < half_voxel * (1.0 - 1e-9) {
+            let path = if explicit { format!("tools[{i}].cutting_shape") } else { format!("tools[{i}].shape") };
+            let what = if explicit { "the cutting shape's radius" } else { "the default cutting radius (half the tool's radius)" };
+            return Err(SceneError::new(
+                &scene.origin,
+                path,
+                format!(
+                    "{what} is {:.3} mm, less than half the voxel size ({:.3} mm): the blade would pass between voxel centres and cut nothing; give \"{}\" a cutting_shape of radius at least {:.3} mm, or use smaller voxels",
+                    radius * 1e3,
+                    half_voxel * 1e3,
+                    tool.name,
+                    half_voxel * 1e3
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The box around the live nodes' rest positions (grid frame).
+fn rest_bounds(topo: &Topology) -> (Vec3, Vec3) {
+    let mut lo = Vec3::repeat(f64::INFINITY);
+    let mut hi = Vec3::repeat(f64::NEG_INFINITY);
+    for n in 0..topo.nodes.len() {
+        if topo.nodes.alive[n] {
+            lo = lo.inf(&topo.nodes.rest[n]);
+            hi = hi.sup(&topo.nodes.rest[n]);
+        }
+    }
+    (lo, hi)
+}
+
+fn fix_nodes(scene: &Scene, spec: &BranchedGridSpec, topo: &mut Topology, frame: &Frame) -> Result<(), SceneError> {
+    let (lo, hi) = rest_bounds(topo);
+    for (i, fixed) in spec.fixed.iter().enumerate() {
+        let mut held = 0;
+        match fixed {
+            GridFixedSpec::Box { min_m, max_m } => {
+                let (min, max) = (min_m.map(|c| c.get()), max_m.map(|c| c.get()));
+                for n in 0..topo.nodes.len() {
+                    let w = frame.to_world(&topo.nodes.rest[n]);
+                    if topo.nodes.alive[n] && (0..3).all(|a| w[a] >= min[a] && w[a] <= max[a]) {
+                        topo.nodes.fixed[n] = true;
+                        held += 1;
+                    }
+                }
+            }
+            GridFixedSpec::Side { side } => {
+                let axis = match &side[1..] {
+                    "x" => 0,
+                    "y" => 1,
+                    _ => 2,
+                };
+                let (target, tolerance) = (if side.starts_with('-') { lo[axis] } else { hi[axis] }, 1e-9);
+                for n in 0..topo.nodes.len() {
+                    if topo.nodes.alive[n] && (topo.nodes.rest[n][axis] - target).abs() < tolerance {
+                        topo.nodes.fixed[n] = true;
+                        held += 1;
+                    }
+                }
+            }
+            GridFixedSpec::Labels { labels } => {
+                let indices: Vec<u16> = labels.iter().filter_map(|l| spec.materials.iter().position(|m| m.label == *l).map(|i| i as u16 + 1)).collect();
+                for v in 0..topo.material.len() {
+                    if indices.contains(&topo.material[v]) {
+                        let e = topo.voxel_element[v] as usize;
+                        for k in 0..8 {
+                            let node = topo.elements.nodes[e][k] as usize;
+                            if !topo.nodes.fixed[node] {
+                                topo.nodes.fixed[node] = true;
+                                held += 1;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        if held == 0 {
+            return Err(SceneError::new(&scene.origin, format!("model.branched-grid.fixed[{i}]"), "holds no node: check the region against the body's position (with \"centre\": true the body is centred on the origin)"));
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,568 @@
+//! [`BranchedGrid`]: the branched-grid tissue behind the session's [`Tissue`] interface.
+//!
+//! One step: place the tools in the grid's frame; gather penalty contacts between each
+//! tool's outer capsule and the surface vertices near it (the reaction is the haptic
+//! force); take one implicit step with those contacts; contain a blow-up if one shows;
+//! then let every cutting tool remove the voxels whose deformed centres its inner
+//! capsule contains, updating the grid and the surface locally and recording a
+//! topology delta. Nothing in a step without a cut allocates once the contact list has
+//! grown to its working size.
+
+use super::solver::{Dynamics, PointContact, SolverSettings};
+use super::surface::GridSurface;
+use super::topology::{NONE, Topology, UpdateReport};
+use crate::hash::StateHasher;
+use crate::math::{Matrix3, Vec3, closest_point_on_segment};
+use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
+use crate::tissue::{Tissue, TissueCounters};
+use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
+
+/// The grid's frame in the scene: `world = rotation · local + translation`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Frame {
+    pub rotation: Matrix3<f64>,
+    pub translation: Vec3,
+}
+
+impl Frame {
+    pub fn to_world(&self, local: &Vec3) -> Vec3 {
+        self.rotation * local + self.translation
+    }
+    pub fn to_local(&self, world: &Vec3) -> Vec3 {
+        self.rotation.transpose() * (world - self.translation)
+    }
+}
+
+/// A material of the scene, by label.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GridMaterial {
+    pub label: u16,
+    pub name: String,
+    pub young_pa: f64,
+    pub poisson: f64,
+    pub density_kg_per_m3: f64,
+}
+
+/// Per tool: the current cut stroke (the cut button held).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Stroke {
+    held: bool,
+    removed_any: bool,
+    last_tip: Option<Vec3>,
+}
+
+/// The branched-grid tissue.
+#[derive(Debug, Clone)]
+pub struct BranchedGrid {
+    pub(super) dt_s: f64,
+    pub(super) frame: Frame,
+    pub(super) topo: Topology,
+    pub(super) dynamics: Dynamics,
+    pub(super) settings: SolverSettings,
+    pub(super) surface: GridSurface,
+    pub(super) materials: Vec<GridMaterial>,
+    pub(super) tools: Vec<ToolShape>,
+    /// None: the scene cannot be cut.
+    pub(super) max_voxels_per_step: Option<usize>,
+    contacts: Vec<PointContact>,
+    /// Per tool: its contacts' range in `contacts`.
+    contact_ranges: Vec<(usize, usize)>,
+    backup_x: Vec<Vec3>,
+    backup_v: Vec<Vec3>,
+    strokes: Vec<Stroke>,
+    deltas: Vec<TopologyDelta>,
+    topology_version: u64,
+    step_index: u64,
+    counters: TissueCounters,
+    removed_volume_m3: f64,
+    last_update: Option<(UpdateReport, usize)>,
+}
+
+impl BranchedGrid {
+    pub(super) fn assemble(
+        dt_s: f64,
+        frame: Frame,
+        topo: Topology,
+        settings: SolverSettings,
+        surface: GridSurface,
+        materials: Vec<GridMaterial>,
+        tools: Vec<ToolShape>,
+        max_voxels_per_step: Option<usize>,
+    ) -> Self {
+        let dynamics = Dynamics::new(&topo);
+        let n = topo.nodes.len();
+        let tool_count = tools.len();
+        BranchedGrid {
+            dt_s,
+            frame,
+            dynamics,
+            settings,
+            materials,
+            max_voxels_per_step,
+            contacts: Vec::new(),
+            contact_ranges: vec![(0, 0); tool_count],
+            backup_x: vec![Vec3::zeros(); n],
+            backup_v: vec![Vec3::zeros(); n],
+            strokes: vec![Stroke::default(); tool_count],
+            deltas: Vec::new(),
+            topology_version: 0,
+            step_index: 0,
+            counters: TissueCounters::default(),
+            removed_volume_m3: 0.0,
+            last_update: None,
+            tools,
+            topo,
+            surface,
+        }
+    }
+
+    /// Advances one step; see the module documentation.
+    pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        debug_assert_eq!(commands.len(), self.tools.len());
+        self.contacts.clear();
+        for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
+            *fb = ToolFeedback::default();
+            let start = self.contacts.len();
+            if command.active {
+                if command.pose.is_finite() {
+                    self.add_tool_contacts(i, command, fb);
+                } else {
+                    self.counters.rejected_poses += 1;
+                }
+            }
+            self.contact_ranges[i] = (start, self.contacts.len());
+        }
+        self.backup_x.copy_from_slice(&self.topo.nodes.x);
+        self.backup_v.copy_from_slice(&self.topo.nodes.v);
+        let max_dv = self.dynamics.step(&mut self.topo, &self.settings, &self.contacts);
+        if !max_dv.is_finite() {
+            // Contain: back to the last good state, at rest, and say so.
+            self.topo.nodes.x.copy_from_slice(&self.backup_x);
+            self.topo.nodes.v.iter_mut().for_each(|v| *v = Vec3::zeros());
+            self.dynamics.dv.iter_mut().for_each(|v| *v = Vec3::zeros());
+            self.counters.blowups_contained += 1;
+            for fb in feedback.iter_mut() {
+                fb.force_n = Vec3::zeros();
+                fb.torque_nm = Vec3::zeros();
+            }
+        }
+        if self.max_voxels_per_step.is_some() {
+            self.cut(commands, feedback);
+        }
+        for (fb, tool) in feedback.iter_mut().zip(&self.tools) {
+            fb.clamp_force(tool.max_force_n);
+            if fb.force_clamped {
+                self.counters.force_clamps += 1;
+            }
+        }
+        self.step_index += 1;
+    }
+
+    /// Penalty contacts of tool `i`'s outer capsule with the surface vertices.
+    fn add_tool_contacts(&mut self, i: usize, command: &ToolCommand, fb: &mut ToolFeedback) {
+        let tool = &self.tools[i];
+        let tip = self.frame.to_local(&command.pose.position_m);
+        let axis = self.frame.rotation.transpose() * command.pose.axis();
+        let top = tip + axis * tool.length_m;
+        let (radius, k) = (tool.radius_m, tool.contact_stiffness_n_per_m);
+        let (lo, hi) = (tip.inf(&top) - Vec3::repeat(radius), tip.sup(&top) + Vec3::repeat(radius));
+        let mut force = Vec3::zeros();
+        let mut torque = Vec3::zeros();
+        let mut count = 0u32;
+        for cell in 0..self.surface.cell_vertices.len() {
+            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
+                continue;
+            }
+            for &v in &self.surface.cell_vertices[cell] {
+                let v = v as usize;
+                let p = self.surface.position(&self.topo, v);
+                let (_, closest) = closest_point_on_segment(&p, &tip, &top);
+                let offset = p - closest;
+                let distance = offset.norm();
+                if distance >= radius {
+                    continue;
+                }
+                // Pushed out radially; a vertex exactly on the axis goes out along any normal.
+                let normal = if distance > 1e-12 { offset / distance } else { axis.cross(&Vec3::x()).try_normalize(1e-9).unwrap_or(Vec3::y()) };
+                let on_tissue = normal * (k * (radius - distance));
+                let voxel = self.surface.voxel[v];
+                let element = self.topo.voxel_element[voxel as usize];
+                if element == NONE {
+                    continue;
+                }
+                self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue });
+                force -= on_tissue;
+                torque += (p - tip).cross(&(-on_tissue));
+                count += 1;
+            }
+        }
+        fb.force_n = self.frame.rotation * force;
+        fb.torque_nm = self.frame.rotation * torque;
+        fb.contacts = count;
+    }
+
+    /// Whether the box around cell `cell`'s current nodes overlaps [lo, hi].
+    fn cell_overlaps(&self, cell: usize, lo: &Vec3, hi: &Vec3) -> bool {
+        let mut min = Vec3::repeat(f64::INFINITY);
+        let mut max = Vec3::repeat(f64::NEG_INFINITY);
+        for &e in &self.topo.cell_elements[cell] {
+            for &n in &self.topo.elements.nodes[e as usize] {
+                let x = self.topo.nodes.x[n as usize];
+                min = min.inf(&x);
+                max = max.sup(&x);
+            }
+        }
+        // The smoothed surface may stand slightly outside its cell: half a voxel of slack.
+        let slack = Vec3::from(self.topo.layout.spacing_m) * 0.5;
+        (0..3).all(|a| min[a] - slack[a] <= hi[a] && max[a] + slack[a] >= lo[a])
+    }
+
+    /// The deformed centre of a voxel (grid frame), from its element's nodes.
+    pub fn voxel_position(&self, v: usize) -> Vec3 {
+        let e = self.topo.voxel_element[v];
+        let rest = self.topo.voxel_centre(v);
+        if e == NONE {
+            return rest;
+        }
+        let cell = self.topo.elements.cell[e as usize] as usize;
+        let w = super::hex::trilinear_weights(self.topo.cell_coordinates(cell, rest));
+        let nodes = &self.topo.elements.nodes[e as usize];
+        (0..8).map(|k| self.topo.nodes.x[nodes[k] as usize] * w[k]).sum()
+    }
+
+    /// Removes the voxels inside the inner capsule of every cutting tool.
+    fn cut(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        let limit = self.max_voxels_per_step.unwrap_or(0);
+        let mut removed: Vec<usize> = Vec::new();
+        let mut tips: Vec<(usize, Vec3)> = Vec::new();
+        for (i, command) in commands.iter().enumerate() {
+            let tool = &self.tools[i];
+            let cutting = tool.can_cut && command.active && command.cut && command.pose.is_finite();
+            if !cutting {
+                self.strokes[i] = Stroke::default();
+                continue;
+            }
+            self.strokes[i].held = true;
+            let (radius, length) = tool.cutting_shape.unwrap_or((tool.radius_m * 0.5, tool.length_m));
+            let tip = self.frame.to_local(&command.pose.position_m);
+            let top = tip + self.frame.rotation.transpose() * command.pose.axis() * length;
+            let capsule = Capsule { tip, top, radius, lo: tip.inf(&top) - Vec3::repeat(radius), hi: tip.sup(&top) + Vec3::repeat(radius) };
+            let before = removed.len();
+            for cell in 0..self.topo.cell_elements.len() {
+                if removed.len() >= limit {
+                    break;
+                }
+                if self.topo.cell_elements[cell].is_empty() || !self.cell_overlaps(cell, &capsule.lo, &capsule.hi) {
+                    continue;
+                }
+                for k in 0..self.topo.cell_elements[cell].len() {
+                    let e = self.topo.cell_elements[cell][k] as usize;
+                    let corners: [Vec3; 8] = std::array::from_fn(|n| self.topo.nodes.x[self.topo.elements.nodes[e][n] as usize]);
+                    let search = VoxelSearch { topo: &self.topo, element: e as u32, cell_first_voxel: self.topo.layout.cell_coords(cell).map(|c| c * self.topo.layout.side), corners, capsule: &capsule, limit };
+                    search.descend([0; 3], self.topo.layout.side, &mut removed);
+                }
+            }
+            if removed.len() > before {
+                feedback[i].cutting = true;
+                tips.push((i, tip));
+            }
+        }
+        if removed.is_empty() {
+            return;
+        }
+        removed.sort_unstable();
+        removed.dedup();
+        for (i, tip) in tips {
+            let stroke = &mut self.strokes[i];
+            if !stroke.removed_any {
+                stroke.removed_any = true;
+                self.counters.cuts += 1;
+            }
+            if let Some(last) = stroke.last_tip {
+                self.counters.incision_length_m += (tip - last).norm();
+            }
+            stroke.last_tip = Some(tip);
+        }
+        self.apply_removal(&removed);
+    }
+
+    /// Removes voxels from the grid and the surface and records the topology delta.
+    pub fn apply_removal(&mut self, removed: &[usize]) {
+        let report = self.topo.remove_voxels(removed);
+        if report.voxels_removed == 0 {
+            return;
+        }
+        let change = self.surface.update(&self.topo, removed);
+        self.dynamics.resize(&self.topo);
+        let n = self.topo.nodes.len();
+        self.backup_x.resize(n, Vec3::zeros());
+        self.backup_v.resize(n, Vec3::zeros());
+        let voxel_volume: f64 = self.topo.layout.spacing_m.iter().product();
+        self.removed_volume_m3 += report.voxels_removed as f64 * voxel_volume;
+        self.counters.removed_elements += report.voxels_removed as u64;
+        self.counters.cut_updates += 1;
+        self.counters.removed_triangles += change.removed_triangles.len() as u64;
+        self.counters.added_triangles += change.added_triangles.len() as u64;
+        self.topology_version += 1;
+        let delta = TopologyDelta {
+            version: self.topology_version,
+            removed_triangles: change.removed_triangles.clone(),
+            removed_vertices: change.removed_vertices.clone(),
+            added_vertices: change.added_vertices.iter().map(|&v| self.surface_vertex(v as usize)).collect(),
+            added_triangles: change.added_triangles.iter().map(|&t| SurfaceTriangle { id: t, vertices: self.surface.triangles[t as usize] }).collect(),
+        };
+        self.deltas.push(delta);
+        self.last_update = Some((report, change.moved_vertices));
+    }
+
+    fn surface_vertex(&self, v: usize) -> SurfaceVertex {
+        let p = self.frame.to_world(&self.surface.position(&self.topo, v));
+        let material = self.topo.material[self.surface.voxel[v] as usize].saturating_sub(1);
+        SurfaceVertex { id: v as u32, position_m: [p.x as f32, p.y as f32, p.z as f32], material }
+    }
+
+    // ----- read access (tests, benchmarks, reports) -----
+
+    pub fn topology(&self) -> &Topology {
+        &self.topo
+    }
+
+    pub fn topology_mut(&mut self) -> &mut Topology {
+        &mut self.topo
+    }
+
+    pub fn surface(&self) -> &GridSurface {
+        &self.surface
+    }
+
+    pub fn frame(&self) -> &Frame {
+        &self.frame
+    }
+
+    pub fn materials(&self) -> &[GridMaterial] {
+        &self.materials
+    }
+
+    pub fn settings(&self) -> &SolverSettings {
+        &self.settings
+    }
+
+    /// Volume of the voxels cuts removed, m³ (the paper's method loses it).
+    pub fn removed_volume_m3(&self) -> f64 {
+        self.removed_volume_m3
+    }
+
+    /// What the last cut update did to the grid, and how many surface vertices its
+    /// re-smoothing moved.
+    pub fn last_update(&self) -> Option<&(UpdateReport, usize)> {
+        self.last_update.as_ref()
+    }
+
+    /// CG iterations and relative residual of the last step.
+    pub fn last_solve(&self) -> (u32, f64) {
+        (self.dynamics.last_iterations, self.dynamics.last_residual)
+    }
+
+    /// Fine voxels holding material now.
+    pub fn voxel_count(&self) -> usize {
+        self.topo.material.iter().filter(|&&m| m != 0).count()
+    }
+
+    /// Node positions in the scene's frame, by node id (dead ids included).
+    pub fn node_positions_world(&self) -> Vec<Vec3> {
+        self.topo.nodes.x.iter().map(|x| self.frame.to_world(x)).collect()
+    }
+
+    pub fn kinetic_energy(&self) -> f64 {
+        (0..self.topo.nodes.len()).filter(|&n| self.topo.nodes.alive[n]).map(|n| 0.5 * self.topo.nodes.mass[n] * self.topo.nodes.v[n].norm_squared()).sum()
+    }
+
+    /// Centre of mass of each piece, in the scene's frame (pieces in element order).
+    pub fn piece_centres(&self) -> Vec<Vec3> {
+        let pieces = self.topo.element_pieces();
+        let count = pieces.iter().filter(|&&p| p != NONE).map(|&p| p as usize + 1).max().unwrap_or(0);
+        let mut sums = vec![(Vec3::zeros(), 0.0); count];
+        let mut seen = vec![false; self.topo.nodes.len()];
+        for (e, &p) in pieces.iter().enumerate() {
+            if p == NONE {
+                continue;
+            }
+            for &n in &self.topo.elements.nodes[e] {
+                if !seen[n as usize] {
+                    seen[n as usize] = true;
+                    let m = self.topo.nodes.mass[n as usize];
+                    sums[p as usize].0 += self.topo.nodes.x[n as usize] * m;
+                    sums[p as usize].1 += m;
+                }
+            }
+        }
+        sums.into_iter().map(|(s, m)| self.frame.to_world(&(s / m.max(f64::MIN_POSITIVE)))).collect()
+    }
+}
+
+impl Tissue for BranchedGrid {
+    fn model_name(&self) -> &'static str {
+        "branched-grid"
+    }
+
+    fn time_step_s(&self) -> f64 {
+        self.dt_s
+    }
+
+    fn tools(&self) -> &[ToolShape] {
+        &self.tools
+    }
+
+    fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        BranchedGrid::step(self, commands, feedback);
+    }
+
+    fn step_index(&self) -> u64 {
+        self.step_index
+    }
+
+    fn snapshot(&self) -> SurfaceSnapshot {
+        let vertices = (0..self.surface.vertex_count()).filter(|&v| self.surface.vertex_alive[v]).map(|v| self.surface_vertex(v)).collect();
+        let triangles = self.surface.live_triangles().map(|(id, vertices)| SurfaceTriangle { id, vertices }).collect();
+        SurfaceSnapshot { version: self.topology_version, vertices, triangles }
+    }
+
+    fn topology_version(&self) -> u64 {
+        self.topology_version
+    }
+
+    fn drain_deltas(&mut self, out: &mut Vec<TopologyDelta>) {
+        out.append(&mut self.deltas);
+    }
+
+    fn vertex_capacity(&self) -> usize {
+        self.surface.vertex_count()
+    }
+
+    fn write_positions(&self, out: &mut [[f32; 3]]) {
+        for (v, o) in out.iter_mut().enumerate().take(self.surface.vertex_count()) {
+            if self.surface.vertex_alive[v] {
+                let p = self.frame.to_world(&self.surface.position(&self.topo, v));
+                *o = [p.x as f32, p.y as f32, p.z as f32];
+            }
+        }
+    }
+
+    fn vertex_alive(&self, id: u32) -> bool {
+        self.surface.vertex_alive.get(id as usize).copied().unwrap_or(false)
+    }
+
+    fn state_hash(&self) -> u64 {
+        let mut h = StateHasher::new();
+        h.write_u64(self.step_index);
+        h.write_u64(self.topology_version);
+        let nodes = &self.topo.nodes;
+        for n in 0..nodes.len() {
+            h.write_u8(u8::from(nodes.alive[n]));
+            for c in nodes.x[n].iter().chain(nodes.v[n].iter()) {
+                h.write_f64(*c);
+            }
+        }
+        for e in 0..self.topo.elements.len() {
+            h.write_u8(u8::from(self.topo.elements.alive[e]));
+            for &n in &self.topo.elements.nodes[e] {
+                h.write_u32(n);
+            }
+        }
+        for &m in &self.topo.material {
+            h.write_u32(u32::from(m));
+        }
+        h.finish()
+    }
+
+    fn counters(&self) -> TissueCounters {
+        TissueCounters {
+            nodes: self.topo.nodes.alive_count() as u64,
+            elements: self.topo.elements.alive_count() as u64,
+            surface_vertices: self.surface.alive_vertices as u64,
+            surface_triangles: self.surface.alive_triangles as u64,
+            ..self.counters
+        }
+    }
+
+    fn pieces(&self) -> usize {
+        self.topo.pieces()
+    }
+
+    fn clone_box(&self) -> Box<dyn Tissue> {
+        Box::new(self.clone())
+    }
+}
+
+/// A tool's inner (cutting) capsule in the grid frame, with its bounding box.
+struct Capsule {
+    tip: Vec3,
+    top: Vec3,
+    radius: f64,
+    lo: Vec3,
+    hi: Vec3,
+}
+
+impl Capsule {
+    fn contains(&self, p: &Vec3) -> bool {
+        (p - closest_point_on_segment(p, &self.tip, &self.top).1).norm() < self.radius
+    }
+}
+
+/// The voxels of one element whose deformed centres lie in a capsule, found by
+/// descending the element's cell as an octree: a trilinear map sends a sub-box into the
+/// convex hull of its corners' images, so the box around those images bounds the
+/// deformed sub-box and a sub-box far from the capsule is skipped whole. The cost
+/// follows the voxels near the blade, not the cell's volume.
+struct VoxelSearch<'a> {
+    topo: &'a Topology,
+    element: u32,
+    cell_first_voxel: [usize; 3],
+    /// The element's current node positions (corner n at bits x, y, z of n).
+    corners: [Vec3; 8],
+    capsule: &'a Capsule,
+    limit: usize,
+}
+
+impl VoxelSearch<'_> {
+    /// Deformed position of cell-local voxel coordinates (0..side on each axis).
+    fn map(&self, v: [f64; 3]) -> Vec3 {
+        let side = self.topo.layout.side as f64;
+        let w = super::hex::trilinear_weights(v.map(|c| c / side));
+        (0..8).map(|n| self.corners[n] * w[n]).sum()
+    }
+
+    fn descend(&self, origin: [usize; 3], size: usize, removed: &mut Vec<usize>) {
+        if removed.len() >= self.limit {
+            return;
+        }
+        let g: [usize; 3] = std::array::from_fn(|a| self.cell_first_voxel[a] + origin[a]);
+        if (0..3).any(|a| g[a] >= self.topo.layout.voxels[a]) {
+            return;
+        }
+        if size == 1 {
+            let v = self.topo.layout.voxel_index(g);
+            if self.topo.voxel_element[v] == self.element && self.capsule.contains(&self.map(origin.map(|c| c as f64 + 0.5))) {
+                removed.push(v);
+            }
+            return;
+        }
+        let mut lo = Vec3::repeat(f64::INFINITY);
+        let mut hi = Vec3::repeat(f64::NEG_INFINITY);
+        for n in 0..8 {
+            let p = self.map(std::array::from_fn(|a| (origin[a] + ((n >> a) & 1) * size) as f64));
+            lo = lo.inf(&p);
+            hi = hi.sup(&p);
+        }
+        let overlaps = (0..3).all(|a| lo[a] <= self.capsule.hi[a] && hi[a] >= self.capsule.lo[a]);
+        let centre = (lo + hi) * 0.5;
+        let reach = self.capsule.radius + (hi - lo).norm() * 0.5;
+        if !overlaps || (centre - closest_point_on_segment(&centre, &self.capsule.tip, &self.capsule.top).1).norm() > reach {
+            return;
+        }
+        let half = size / 2;
+        for n in 0..8 {
+            self.descend(std::array::from_fn(|a| origin[a] + ((n >> a) & 1) * half), half, removed);
+        }
+    }
+}
