@@ -221,3 +221,49 @@ fn procedural_scenes_need_no_data_files() {
     assert_eq!(tissue.model_name(), "branched-grid");
     assert!(tissue.counters().elements >= 4);
 }
+
+/// An element holding a single voxel has corners with almost no stiffness or mass; the
+/// ghost material keeps them with the body. A 16 mm cube with one voxel sticking out
+/// into the next level-3 cell, pressed by a probe next to it, must not throw any node
+/// away.
+#[test]
+fn a_single_voxel_element_stays_with_the_body() {
+    use cutsim_sim::volume::{LabelVolume, nifti};
+    let mut volume = LabelVolume::new([24, 16, 16], [0.001; 3], Vec3::zeros());
+    for k in 0..16 {
+        for j in 0..16 {
+            for i in 0..16 {
+                volume.set(i, j, k, 1);
+            }
+        }
+    }
+    volume.set(16, 8, 15, 1);
+    let dir = std::env::temp_dir().join(format!("cutsim-single-voxel-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("cube.nii");
+    nifti::write_nifti(&volume, &path).unwrap();
+    let json = format!(
+        r#"{{ "name": "cube",
+        "model": {{ "branched-grid": {{
+            "volume": {{ "nifti": {{ "path": "{}" }} }},
+            "materials": [ {{ "label": 1, "young_pa": 5000, "density_kg_per_m3": 1000 }} ],
+            "level": 3,
+            "fixed": [ {{ "side": {{ "side": "-x" }} }} ] }} }},
+        "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": 0.004, "length_m": 0.05 }} }}, "contact_stiffness_n_per_m": 300 }} ] }}"#,
+        path.display()
+    );
+    let mut g = grid(&json);
+    std::fs::remove_dir_all(&dir).ok();
+    let single = (0..g.topology().elements.len()).filter(|&e| g.topology().elements.voxel_count[e] == 1).count();
+    assert_eq!(single, 1, "the protruding voxel is an element of its own");
+    let mut feedback = vec![ToolFeedback::default()];
+    for step in 0..1500 {
+        let depth = 0.003 * (f64::from(step) / 300.0).min(1.0);
+        let pose = Pose::new(Vec3::new(0.013, 0.008, 0.016 + 0.0045 - depth), Quat::identity());
+        g.step(&[ToolCommand { pose, active: true, cut: false }], &mut feedback);
+    }
+    let n = &g.topology().nodes;
+    let largest = (0..n.len()).filter(|&i| n.alive[i]).map(|i| (n.x[i] - n.rest[i]).norm()).fold(0.0, f64::max);
+    assert!(largest < 0.01, "a node moved {} mm", largest * 1e3);
+    assert!(feedback[0].contacts > 0, "the probe pressed the body");
+}

@@ -15,6 +15,10 @@ use crate::volume::{LabelVolume, nifti, voxelize, vti};
 /// Material voxels a scene may build (about 4 times the paper's largest scene).
 pub const MAX_MATERIAL_VOXELS: usize = 2_000_000;
 
+/// The void of each cell holds a ghost material this much stiffer than nothing: a
+/// fraction of the softest material's Young's modulus (see `Topology::set_ghost`).
+pub const GHOST_STIFFNESS: f64 = 1e-3;
+
 /// Reads or makes the scene's label volume (before cropping and label selection).
 pub fn load_volume(scene: &Scene, spec: &BranchedGridSpec) -> Result<LabelVolume, SceneError> {
     let err = |path: &str, message: String| SceneError::new(&scene.origin, format!("model.branched-grid.volume.{path}"), message);
@@ -92,6 +96,9 @@ pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<Branch
     let constants: Vec<(f64, f64, f64)> = materials.iter().map(|m| (m.young_pa, m.poisson, m.density_kg_per_m3)).collect();
     let layout = Layout::new(volume.dims, spec.level.get(), volume.spacing_m);
     let mut topo = Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &constants));
+    let softest = materials.iter().min_by(|a, b| a.young_pa.total_cmp(&b.young_pa)).expect("a material");
+    let cell_m = topo.layout.cell_size_m();
+    topo.set_ghost(super::hex::box_stiffness([cell_m.x, cell_m.y, cell_m.z], softest.young_pa * GHOST_STIFFNESS, softest.poisson));
 
     // The grid's frame: voxel (0, 0, 0) spans [0, spacing] locally, its centre is the
     // volume's origin in the world.

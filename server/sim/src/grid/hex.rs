@@ -9,6 +9,8 @@ use nalgebra::SMatrix;
 
 /// 24 × 24: the stiffness of one hexahedron (8 corners × 3 axes).
 pub type Mat24 = SMatrix<f64, 24, 24>;
+/// A single-precision copy of a stiffness, for the solver's matrix-vector products.
+pub type Mat24f = SMatrix<f32, 24, 24>;
 /// 8 × 8: a scalar per pair of corners (mass, interpolation weights).
 pub type Mat8 = SMatrix<f64, 8, 8>;
 

@@ -75,7 +75,21 @@ pub struct BranchedGrid {
     step_index: u64,
     counters: TissueCounters,
     removed_volume_m3: f64,
-    last_update: Option<(UpdateReport, usize)>,
+    last_update: Option<LastUpdate>,
+}
+
+/// What the last voxel removal did and what each part of it cost.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LastUpdate {
+    pub report: UpdateReport,
+    /// Existing surface vertices whose smoothed rest position moved.
+    pub moved_vertices: usize,
+    /// Time in the grid's topology update (elements, condensation, nodes), ns.
+    pub topology_ns: u64,
+    /// Time in the surface update (marching cubes, smoothing), ns.
+    pub surface_ns: u64,
+    /// Time in the rest (solver buffers, the delta), ns.
+    pub other_ns: u64,
 }
 
 impl BranchedGrid {
@@ -288,11 +302,14 @@ impl BranchedGrid {
 
     /// Removes voxels from the grid and the surface and records the topology delta.
     pub fn apply_removal(&mut self, removed: &[usize]) {
+        let start = std::time::Instant::now();
         let report = self.topo.remove_voxels(removed);
         if report.voxels_removed == 0 {
             return;
         }
+        let topology_done = std::time::Instant::now();
         let change = self.surface.update(&self.topo, removed);
+        let surface_done = std::time::Instant::now();
         self.dynamics.resize(&self.topo);
         let n = self.topo.nodes.len();
         self.backup_x.resize(n, Vec3::zeros());
@@ -312,7 +329,14 @@ impl BranchedGrid {
             added_triangles: change.added_triangles.iter().map(|&t| SurfaceTriangle { id: t, vertices: self.surface.triangles[t as usize] }).collect(),
         };
         self.deltas.push(delta);
-        self.last_update = Some((report, change.moved_vertices));
+        let ns = |d: std::time::Duration| d.as_nanos() as u64;
+        self.last_update = Some(LastUpdate {
+            report,
+            moved_vertices: change.moved_vertices,
+            topology_ns: ns(topology_done - start),
+            surface_ns: ns(surface_done - topology_done),
+            other_ns: ns(surface_done.elapsed()),
+        });
     }
 
     fn surface_vertex(&self, v: usize) -> SurfaceVertex {
@@ -354,7 +378,7 @@ impl BranchedGrid {
 
     /// What the last cut update did to the grid, and how many surface vertices its
     /// re-smoothing moved.
-    pub fn last_update(&self) -> Option<&(UpdateReport, usize)> {
+    pub fn last_update(&self) -> Option<&LastUpdate> {
         self.last_update.as_ref()
     }
 

@@ -59,6 +59,11 @@ pub struct GridSurface {
     pub cell_vertices: Vec<Vec<u32>>,
     pub alive_vertices: usize,
     pub alive_triangles: usize,
+    /// The filter's intermediate passes (all but the last, which is `rest`), per vertex.
+    passes: Vec<Vec<Vec3>>,
+    /// Per vertex: the epoch of the last smoothing update that reached it.
+    mark: Vec<u32>,
+    epoch: u32,
 }
 
 impl GridSurface {
@@ -82,6 +87,9 @@ impl GridSurface {
             cell_vertices: vec![Vec::new(); topo.layout.cell_count()],
             alive_vertices: 0,
             alive_triangles: 0,
+            passes: vec![Vec::new(); (2 * smoothing_iterations as usize).saturating_sub(1)],
+            mark: Vec::new(),
+            epoch: 0,
         };
         let mut added = Vec::new();
         // Only cubes with a corner in a material voxel can carry surface.
@@ -98,7 +106,7 @@ impl GridSurface {
             s.make_cube(topo, key, &mut added);
         }
         let all: Vec<u32> = (0..s.raw.len() as u32).collect();
-        s.smooth(topo, &all);
+        s.smooth_from(topo, &all, 0);
         s
     }
 
@@ -190,6 +198,10 @@ impl GridSurface {
         self.voxel.push(voxel as u32);
         self.raw.push(p);
         self.rest.push(p);
+        for pass in &mut self.passes {
+            pass.push(p);
+        }
+        self.mark.push(0);
         self.weights.push(cell_weights(topo, voxel, p));
         self.vertex_alive.push(true);
         self.vertex_triangles.push(Vec::new());
@@ -203,6 +215,7 @@ impl GridSurface {
     /// Redoes the cubes around removed voxels (their material must already be gone).
     pub fn update(&mut self, topo: &Topology, removed_voxels: &[usize]) -> SurfaceChange {
         let mut change = SurfaceChange::default();
+        let first_new = self.raw.len() as u32;
         let mut cubes = BTreeSet::new();
         for &v in removed_voxels {
             let g = topo.layout.voxel_coords(v);
@@ -244,7 +257,7 @@ impl GridSurface {
         change.removed_triangles.sort_unstable();
         // Re-smooth where the change reaches.
         let seeds: Vec<u32> = touched.into_iter().filter(|&v| self.vertex_alive[v as usize]).collect();
-        change.moved_vertices = self.resmooth_around(topo, &seeds);
+        change.moved_vertices = self.smooth_from(topo, &seeds, first_new);
         change
     }
 
@@ -259,79 +272,71 @@ impl GridSurface {
         }
     }
 
-    /// Vertices within `rings` edges of `seeds` (seeds included), sorted.
-    fn within(&self, seeds: &[u32], rings: u32) -> Vec<u32> {
-        let mut set: BTreeSet<u32> = seeds.iter().copied().collect();
-        let mut frontier: Vec<u32> = seeds.to_vec();
+    /// Redoes the smoothing where `seeds` (vertices whose position or neighbours
+    /// changed) reach, pass by pass: pass p can only change the vertices within p rings
+    /// of the seeds, and every other vertex keeps its stored value of that pass, so the
+    /// result equals smoothing the whole surface again at a cost that follows the size
+    /// of the change. Returns how many vertices with an id below `first_new` moved.
+    fn smooth_from(&mut self, topo: &Topology, seeds: &[u32], first_new: u32) -> usize {
+        let passes = 2 * self.iterations as usize;
+        self.epoch = self.epoch.wrapping_add(1).max(1);
+        let mut set: Vec<u32> = Vec::with_capacity(seeds.len() * 8);
+        for &v in seeds {
+            if self.mark[v as usize] != self.epoch {
+                self.mark[v as usize] = self.epoch;
+                set.push(v);
+            }
+        }
+        let mut before: Vec<Vec3> = Vec::new();
         let mut scratch = Vec::new();
-        for _ in 0..rings {
-            let mut next = Vec::new();
-            for &v in &frontier {
-                self.neighbours(v, &mut scratch);
+        let mut values: Vec<Vec3> = Vec::with_capacity(set.len());
+        for pass in 0..passes {
+            // Grow the set by one ring.
+            for i in 0..set.len() {
+                self.neighbours(set[i], &mut scratch);
                 for &w in &scratch {
-                    if set.insert(w) {
-                        next.push(w);
+                    if self.mark[w as usize] != self.epoch {
+                        self.mark[w as usize] = self.epoch;
+                        set.push(w);
                     }
                 }
             }
-            frontier = next;
+            let factor = if pass % 2 == 0 { LAMBDA } else { MU };
+            let input = if pass == 0 { &self.raw } else { &self.passes[pass - 1] };
+            values.clear();
+            for &v in &set {
+                self.neighbours(v, &mut scratch);
+                let here = input[v as usize];
+                values.push(if scratch.is_empty() {
+                    here
+                } else {
+                    let mean = scratch.iter().map(|&w| input[w as usize]).sum::<Vec3>() / scratch.len() as f64;
+                    here + (mean - here) * factor
+                });
+            }
+            let output = if pass + 1 == passes { &mut self.rest } else { &mut self.passes[pass] };
+            if pass + 1 == passes {
+                before = set.iter().map(|&v| output[v as usize]).collect();
+            }
+            for (&v, &value) in set.iter().zip(&values) {
+                output[v as usize] = value;
+            }
         }
-        set.into_iter().collect()
-    }
-
-    fn resmooth_around(&mut self, topo: &Topology, seeds: &[u32]) -> usize {
-        if self.iterations == 0 || seeds.is_empty() {
-            for &v in seeds {
+        if passes == 0 {
+            before = set.iter().map(|&v| self.rest[v as usize]).collect();
+            for &v in &set {
                 self.rest[v as usize] = self.raw[v as usize];
             }
-            return 0;
         }
-        let reach = 2 * self.iterations; // a λ|μ pair looks two rings out
-        let affected = self.within(seeds, reach);
-        let before: Vec<Vec3> = affected.iter().map(|&v| self.rest[v as usize]).collect();
-        self.smooth(topo, &affected);
-        affected.iter().zip(before).filter(|&(&v, b)| self.rest[v as usize] != b).count()
-    }
-
-    /// Recomputes the smoothed rest positions and weights of `targets` exactly: the
-    /// filter runs over the targets and everything within its reach of them, starting
-    /// from the raw positions.
-    fn smooth(&mut self, topo: &Topology, targets: &[u32]) {
-        let reach = 2 * self.iterations;
-        let region = if targets.len() == self.raw.len() { targets.to_vec() } else { self.within(targets, reach) };
-        let index: HashMap<u32, usize> = region.iter().enumerate().map(|(i, &v)| (v, i)).collect();
-        let mut neighbours: Vec<Vec<u32>> = Vec::with_capacity(region.len());
-        let mut scratch = Vec::new();
-        for &v in &region {
-            self.neighbours(v, &mut scratch);
-            neighbours.push(scratch.clone());
-        }
-        let mut current: Vec<Vec3> = region.iter().map(|&v| self.raw[v as usize]).collect();
-        let mut next = current.clone();
-        for _ in 0..self.iterations {
-            for factor in [LAMBDA, MU] {
-                for (i, ns) in neighbours.iter().enumerate() {
-                    if ns.is_empty() {
-                        next[i] = current[i];
-                        continue;
-                    }
-                    let mut mean = Vec3::zeros();
-                    for w in ns {
-                        mean += index.get(w).map_or(self.raw[*w as usize], |&j| current[j]);
-                    }
-                    mean /= ns.len() as f64;
-                    next[i] = current[i] + (mean - current[i]) * factor;
-                }
-                std::mem::swap(&mut current, &mut next);
+        let mut moved = 0;
+        for (&v, old) in set.iter().zip(before) {
+            let v = v as usize;
+            if self.vertex_alive[v] {
+                self.weights[v] = cell_weights(topo, self.voxel[v] as usize, self.rest[v]);
+                moved += usize::from(self.rest[v] != old && (v as u32) < first_new);
             }
         }
-        let wanted: BTreeSet<u32> = targets.iter().copied().collect();
-        for (i, &v) in region.iter().enumerate() {
-            if wanted.contains(&v) && self.vertex_alive[v as usize] {
-                self.rest[v as usize] = current[i];
-                self.weights[v as usize] = cell_weights(topo, self.voxel[v as usize] as usize, current[i]);
-            }
-        }
+        moved
     }
 
     /// The vertex's position from its element's nodes (grid frame), m.

@@ -12,7 +12,7 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use super::condense::{CellVoxel, VoxelMatrices, condense_direct, voxel_contribution};
-use super::hex::{Mat8, Mat24, corner_bits};
+use super::hex::{Mat8, Mat24, Mat24f, corner_bits};
 use crate::math::Vec3;
 
 pub const NONE: u32 = u32::MAX;
@@ -106,6 +106,12 @@ pub struct Elements {
     pub cell: Vec<u32>,
     pub nodes: Vec<[u32; 8]>,
     pub stiffness: Vec<Mat24>,
+    /// What the solver uses: `stiffness` plus the ghost (see [`Topology::set_ghost`]),
+    /// rounded to single precision — half the memory traffic of the double-precision
+    /// matrices, which do not fit in cache on large scenes, at a relative precision
+    /// (6e-8) far below the solve's tolerance. At rest the strain is exactly zero, so
+    /// the rounding makes no force there.
+    pub stiffness_single: Vec<Mat24f>,
     /// Consistent scalar mass (the 3D matrix is this ⊗ I₃).
     pub mass: Vec<Mat8>,
     pub voxel_count: Vec<u32>,
@@ -125,9 +131,10 @@ impl Elements {
         self.alive.iter().filter(|&&a| a).count()
     }
 
-    fn push(&mut self, cell: u32, nodes: [u32; 8], k: Mat24, m: Mat8, voxels: u32) -> u32 {
+    fn push(&mut self, cell: u32, nodes: [u32; 8], k: Mat24, ghost: &Mat24, m: Mat8, voxels: u32) -> u32 {
         self.cell.push(cell);
         self.nodes.push(nodes);
+        self.stiffness_single.push((k + ghost).cast());
         self.stiffness.push(k);
         self.mass.push(m);
         self.voxel_count.push(voxels);
@@ -206,6 +213,8 @@ pub struct Topology {
     pub elements: Elements,
     pub nodes: Nodes,
     voxel_matrices: VoxelMatrices,
+    /// Added to every element's stiffness in the solver (zero unless set).
+    ghost: Mat24,
 }
 
 impl Topology {
@@ -220,6 +229,7 @@ impl Topology {
             elements: Elements::default(),
             nodes: Nodes::default(),
             voxel_matrices,
+            ghost: Mat24::zeros(),
         };
         for cell in 0..t.layout.cell_count() {
             for component in t.components(cell) {
@@ -232,6 +242,18 @@ impl Topology {
             t.assign_point(p, &mut faces, &BTreeMap::new(), None);
         }
         t
+    }
+
+    /// Fills every cell's void with a ghost material of stiffness `ghost` (an element's
+    /// stiffness for a full cell), seen only by the solver. Without it the far corners
+    /// of an element holding a few voxels have almost no stiffness and mass: the solve
+    /// leaves them nearly free, they drift, and through the element's rotation they
+    /// disturb their neighbours. The scene builder uses 1e-3 of the softest material.
+    pub fn set_ghost(&mut self, ghost: Mat24) {
+        self.ghost = ghost;
+        for e in 0..self.elements.len() {
+            self.elements.stiffness_single[e] = (self.elements.stiffness[e] + ghost).cast();
+        }
     }
 
     pub fn voxel_matrices(&self) -> &VoxelMatrices {
@@ -315,7 +337,7 @@ impl Topology {
     fn add_element(&mut self, cell: usize, voxels: &[usize], nodes: Option<[u32; 8]>) -> u32 {
         let cell_voxels: Vec<CellVoxel> = voxels.iter().map(|&v| self.cell_voxel(cell, v)).collect();
         let (k, m) = condense_direct(&cell_voxels, self.layout.levels, &self.voxel_matrices);
-        let e = self.elements.push(cell as u32, nodes.unwrap_or([NONE; 8]), k, m, voxels.len() as u32);
+        let e = self.elements.push(cell as u32, nodes.unwrap_or([NONE; 8]), k, &self.ghost, m, voxels.len() as u32);
         for &v in voxels {
             self.voxel_element[v] = e;
         }
@@ -504,6 +526,7 @@ impl Topology {
                 let e = self.voxel_element[v];
                 let (dk, dm) = voxel_contribution(self.cell_voxel(cell, v), self.layout.side as u32, &self.voxel_matrices);
                 self.elements.stiffness[e as usize] -= dk;
+                self.elements.stiffness_single[e as usize] = (self.elements.stiffness[e as usize] + self.ghost).cast();
                 self.elements.mass[e as usize] -= dm;
                 self.elements.voxel_count[e as usize] -= 1;
                 self.material[v] = 0;
