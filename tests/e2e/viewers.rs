@@ -14,8 +14,19 @@ async fn server_surface_hash(server: &Server, session: &Created) -> (String, usi
 
 #[tokio::test]
 async fn viewers_before_and_after_a_cut_end_with_the_server_surface() {
+    viewers_follow_a_scripted_cut("skin-patch", "skin-patch-straight.json").await;
+}
+
+/// The branched-grid model behind the same server: a scalpel slits the U-tube's base
+/// (voxel removal) through gRPC while a viewer watches over WebSocket.
+#[tokio::test]
+async fn viewers_follow_a_voxel_removal_cut_of_the_branched_grid() {
+    viewers_follow_a_scripted_cut("u-tube", "u-tube-slit-base.json").await;
+}
+
+async fn viewers_follow_a_scripted_cut(scene: &str, script_file: &str) {
     let server = Server::start();
-    let session = create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    let session = create(&server, scene, pb::SessionMode::Lockstep).await;
     let mut before = Viewer::connect(&server.http, &session.id, &session.observe).await.unwrap();
     assert!(before.pump_until(Duration::from_secs(10), |v| v.replica.is_some()).await);
     let hello = before.hello.clone().unwrap();
@@ -23,7 +34,7 @@ async fn viewers_before_and_after_a_cut_end_with_the_server_surface() {
     let triangles_before = before.triangles();
 
     // The cut runs while the first viewer watches.
-    let script = example_script("skin-patch-straight.json");
+    let script = example_script(script_file);
     let run = {
         let (id, control, observe, info) = (session.id.clone(), session.control.clone(), session.observe.clone(), session.info.clone());
         let server_grpc = server.grpc.clone();
@@ -32,7 +43,14 @@ async fn viewers_before_and_after_a_cut_end_with_the_server_surface() {
             let mut client = cutsim_proto::v1::scripts_client::ScriptsClient::new(channel);
             let request = authed(pb::RunScriptRequest { session_id: id.clone(), script_json: script, progress_every_steps: 0 }, &control);
             let mut events = client.run_script(request).await.unwrap().into_inner();
-            while events.message().await.unwrap().is_some() {}
+            let mut report = None;
+            while let Some(event) = events.message().await.unwrap() {
+                if let Some(pb::script_event::Event::Report(r)) = event.event {
+                    report = Some(r);
+                }
+            }
+            let report = report.expect("a report");
+            assert!(report.passed, "the script's expectations hold: {report:?}");
             let _ = (observe, info);
         })
     };
