@@ -288,12 +288,19 @@ impl GridSurface {
             }
         }
         let mut before: Vec<Vec3> = Vec::new();
+        // Neighbour lists of the set's members, computed once each: member i's
+        // neighbours are adjacency[spans[i].0..spans[i].1].
+        let mut adjacency: Vec<u32> = Vec::with_capacity(set.len() * 8);
+        let mut spans: Vec<(usize, usize)> = Vec::with_capacity(set.len());
         let mut scratch = Vec::new();
         let mut values: Vec<Vec3> = Vec::with_capacity(set.len());
         for pass in 0..passes {
-            // Grow the set by one ring.
-            for i in 0..set.len() {
+            // Grow the set by one ring: the neighbours of the members not yet expanded.
+            let frontier = spans.len()..set.len();
+            for i in frontier {
                 self.neighbours(set[i], &mut scratch);
+                spans.push((adjacency.len(), adjacency.len() + scratch.len()));
+                adjacency.extend_from_slice(&scratch);
                 for &w in &scratch {
                     if self.mark[w as usize] != self.epoch {
                         self.mark[w as usize] = self.epoch;
@@ -304,13 +311,19 @@ impl GridSurface {
             let factor = if pass % 2 == 0 { LAMBDA } else { MU };
             let input = if pass == 0 { &self.raw } else { &self.passes[pass - 1] };
             values.clear();
-            for &v in &set {
-                self.neighbours(v, &mut scratch);
+            for (i, &v) in set.iter().enumerate() {
+                let neighbours: &[u32] = match spans.get(i) {
+                    Some(&(a, b)) => &adjacency[a..b],
+                    None => {
+                        self.neighbours(v, &mut scratch);
+                        &scratch
+                    }
+                };
                 let here = input[v as usize];
-                values.push(if scratch.is_empty() {
+                values.push(if neighbours.is_empty() {
                     here
                 } else {
-                    let mean = scratch.iter().map(|&w| input[w as usize]).sum::<Vec3>() / scratch.len() as f64;
+                    let mean = neighbours.iter().map(|&w| input[w as usize]).sum::<Vec3>() / neighbours.len() as f64;
                     here + (mean - here) * factor
                 });
             }
