@@ -329,6 +329,11 @@ pub fn add_elastic_forces(topo: &Topology, rotations: &[Matrix3<f64>], force: &m
 
 /// out = K_R x (out is overwritten).
 pub fn stiffness_times(topo: &Topology, rotations: &[Matrix3<f64>], x: &[Vec3], out: &mut [Vec3]) {
+    rotated_product(topo, rotations, x, out, |e, u| mat_vec(&topo.elements.stiffness[e], u));
+}
+
+/// `out = Σ_e R_e P_e(R_eᵀ x_e)` for a per-element product `P_e` (out is overwritten).
+fn rotated_product(topo: &Topology, rotations: &[Matrix3<f64>], x: &[Vec3], out: &mut [Vec3], product: impl Fn(usize, &Vec24) -> Vec24) {
     out.iter_mut().for_each(|o| *o = Vec3::zeros());
     for e in 0..topo.elements.len() {
         if !topo.elements.alive[e] {
@@ -340,7 +345,7 @@ pub fn stiffness_times(topo: &Topology, rotations: &[Matrix3<f64>], x: &[Vec3], 
         for c in 0..8 {
             u.fixed_rows_mut::<3>(3 * c).copy_from(&(r.transpose() * x[nodes[c] as usize]));
         }
-        let f: Vec24 = mat_vec(&topo.elements.stiffness[e], &u);
+        let f = product(e, &u);
         for c in 0..8 {
             out[nodes[c] as usize] += r * f.fixed_rows::<3>(3 * c);
         }
@@ -365,22 +370,7 @@ fn mat_vec(k: &Mat24, u: &Vec24) -> Vec24 {
 /// needs a relative accuracy of its tolerance (≥ 1e-6 in practice), far above f32's
 /// 6e-8, and reads half the bytes. Sums over elements stay in double precision.
 pub fn stiffness_times_single(topo: &Topology, rotations: &[Matrix3<f64>], x: &[Vec3], out: &mut [Vec3]) {
-    out.iter_mut().for_each(|o| *o = Vec3::zeros());
-    for e in 0..topo.elements.len() {
-        if !topo.elements.alive[e] {
-            continue;
-        }
-        let nodes = &topo.elements.nodes[e];
-        let r = &rotations[e];
-        let mut u = Vec24::zeros();
-        for c in 0..8 {
-            u.fixed_rows_mut::<3>(3 * c).copy_from(&(r.transpose() * x[nodes[c] as usize]));
-        }
-        let f = mat_vec_single(&topo.elements.stiffness_single[e], &u);
-        for c in 0..8 {
-            out[nodes[c] as usize] += r * f.fixed_rows::<3>(3 * c);
-        }
-    }
+    rotated_product(topo, rotations, x, out, |e, u| mat_vec_single(&topo.elements.stiffness_single[e], u));
 }
 
 /// `K u` with K in single precision: the products in single precision (4 lanes), the
