@@ -101,6 +101,52 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
   }
 });
 
+test('the viewer draws a branched-grid session and follows its voxel-removal cut', async () => {
+  const grpcPort = await freePort();
+  const httpPort = await freePort();
+  const recordings = tempDir('grid');
+  const server = await startServer({ grpcPort, httpPort, recordings });
+  const api = grpcClients(grpcPort);
+  const browser = await launchBrowser();
+  const consoleErrors = [];
+  try {
+    const created = await api.createSession('u-tube');
+    const id = created.session.id;
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
+    page.on('pageerror', (e) => consoleErrors.push(String(e)));
+    await page.goto(`http://127.0.0.1:${httpPort}/?session=${id}&token=${created.observe_token}`);
+    const before = await api.snapshot(id, created.observe_token);
+    const live = await waitFor('the volume surface', async () => {
+      const s = await pageState(page, id);
+      return s && s.state === 'live' && s.triangles === before.triangle_ids.length && s;
+    });
+    assert.equal(live.hash, before.surface_hash, 'the page holds exactly the server surface');
+
+    const script = fs.readFileSync(path.join(repo, 'clients/cut-bot/examples/u-tube-slit-base.json'), 'utf8');
+    const report = await api.runScript(id, created.control_token, script);
+    assert.equal(report.passed, true);
+    const after = await api.snapshot(id, created.observe_token);
+    assert.notEqual(after.surface_hash, before.surface_hash, 'the cut changed the surface');
+    await waitFor(
+      'the page to show the cut volume',
+      async () => {
+        const s = await pageState(page, id);
+        return s && s.triangles === after.triangle_ids.length && s.hash === after.surface_hash && s;
+      },
+      FOLLOW_MS,
+    );
+    fs.mkdirSync(artifacts, { recursive: true });
+    await page.locator(`.panel[data-session="${id}"] .view canvas`).screenshot({ path: path.join(artifacts, 'viewer-u-tube-slit.png') });
+    assert.deepEqual(consoleErrors, [], 'no console errors');
+  } finally {
+    await browser.close();
+    api.close();
+    server.kill('SIGKILL');
+    fs.rmSync(recordings, { recursive: true, force: true });
+  }
+});
+
 test('a recorded session replays with play, pause and scrub', async () => {
   const grpcPort = await freePort();
   const httpPort = await freePort();
