@@ -86,11 +86,29 @@ async fn bad_requests_get_the_right_status_and_the_session_survives() {
         .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().contains("model.msm.geometry"), "{}", e.message());
-    let e = sessions
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("../secret".into())), mode: 0, label: String::new() })
-        .await
-        .unwrap_err();
-    assert_eq!(e.code(), Code::InvalidArgument);
+    // No path traversal: a scene name is a name, and a scene sent inline reads only the
+    // shared data directory — not a file of the server's, even one that exists.
+    let existing = repo("server/scenes/skin-patch.json");
+    for name in ["../secret", "../../server/scenes/skin-patch.json", existing.to_str().unwrap(), "skin-patch.json"] {
+        let e = sessions
+            .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName(name.into())), mode: 0, label: String::new() })
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{name}");
+        assert!(e.message().contains("not a path") || e.message().contains("only letters"), "{name}: {}", e.message());
+    }
+    let mesh = repo("tests/e2e/data/does-not-matter.obj");
+    for path in ["/etc/passwd".to_owned(), "data:../../etc/passwd".to_owned(), mesh.display().to_string(), "../server/scenes/x.obj".to_owned()] {
+        let json = format!(
+            r#"{{ "name": "probe", "model": {{ "branched-grid": {{ "volume": {{ "mesh": {{ "path": {path:?}, "voxel_size_m": 0.002 }} }}, "materials": [ {{ "label": 1, "young_pa": 1000, "density_kg_per_m3": 1000 }} ], "level": 1 }} }}, "tools": [] }}"#
+        );
+        let e = sessions
+            .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(json)), mode: 0, label: String::new() })
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{path}");
+        assert!(e.message().contains("may read only the shared data directory"), "{path}: {}", e.message());
+    }
     let bad_script = script.replace("\"tool\": \"scalpel\"", "\"tool\": \"laser\"");
     let e = run_script(&server, &s, &bad_script).await.unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);

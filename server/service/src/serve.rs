@@ -71,7 +71,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     tracing::info!(%grpc_addr, %http_addr, "cutsim-server listening");
 
     if let Some(scene) = first_scene {
-        let session = registry.create(SceneSource::Bundled(scene), Mode::Realtime, "default".into()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let session = registry.create(SceneSource::Operator(scene), Mode::Realtime, "default".into()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         let (control, observe) = session.tokens();
         println!("session {} on scene {}", session.id, session.scene_name);
         println!("  viewer:        http://{http_addr}/?session={}&token={observe}", session.id);

@@ -15,7 +15,7 @@ use std::time::Instant;
 use arc_swap::ArcSwap;
 use cutsim_sim::math::Vec3;
 use cutsim_sim::runner::{Progress, RunReport};
-use cutsim_sim::scene::{Scene, resolve_scene_path};
+use cutsim_sim::scene::{Scene, resolve_bundled_scene, resolve_scene_path};
 use cutsim_sim::script::CompiledScript;
 use cutsim_sim::surface::SurfaceSnapshot;
 use cutsim_sim::tool::ToolShape;
@@ -78,6 +78,8 @@ pub enum ScriptEvent {
 /// Where a session's scene comes from.
 pub enum SceneSource {
     Bundled(String),
+    /// A bundled scene name or a scene file path, from the operator's command line.
+    Operator(String),
     Inline(String),
 }
 
@@ -224,7 +226,12 @@ impl Registry {
         }
         let (scene_json, origin, base_dir) = match source {
             SceneSource::Bundled(name) => {
-                let path = resolve_scene_path(&name, &self.config.scene_dirs).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+                let path = resolve_bundled_scene(&name, &self.config.scene_dirs).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+                let text = std::fs::read_to_string(&path).map_err(|e| ApiError::Internal(format!("cannot read {}: {e}", path.display())))?;
+                (text, path.display().to_string(), path.parent().map(|p| p.to_path_buf()))
+            }
+            SceneSource::Operator(name_or_path) => {
+                let path = resolve_scene_path(&name_or_path, &self.config.scene_dirs).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
                 let text = std::fs::read_to_string(&path).map_err(|e| ApiError::Internal(format!("cannot read {}: {e}", path.display())))?;
                 (text, path.display().to_string(), path.parent().map(|p| p.to_path_buf()))
             }
@@ -239,7 +246,11 @@ impl Registry {
                 (text, "inline scene".to_owned(), None)
             }
         };
+        let inline = base_dir.is_none();
         let scene = Scene::from_json_str(&scene_json, &origin, base_dir.as_deref()).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+        if inline {
+            scene.check_network_file_references(&origin).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+        }
         self.start(scene, Some(scene_json), mode, label, None).await
     }
 

@@ -58,6 +58,40 @@ impl Scene {
         }
     }
 
+    /// The files the scene reads, as written, with their JSON paths.
+    pub fn file_references(&self) -> Vec<(&'static str, &str)> {
+        use super::{ModelSpec, SurfaceGeometry, VolumeSource};
+        match &self.model {
+            ModelSpec::Msm(m) => match &m.geometry {
+                SurfaceGeometry::Obj(obj) => vec![("model.msm.geometry.obj.path", obj.path.as_str())],
+                SurfaceGeometry::Patch(_) => vec![],
+            },
+            ModelSpec::BranchedGrid(g) => match &g.volume {
+                VolumeSource::Nifti { path } => vec![("model.branched-grid.volume.nifti.path", path.as_str())],
+                VolumeSource::Vti { path, .. } => vec![("model.branched-grid.volume.vti.path", path.as_str())],
+                VolumeSource::Mesh { path, .. } => vec![("model.branched-grid.volume.mesh.path", path.as_str())],
+                VolumeSource::Box { .. } | VolumeSource::Ellipsoid { .. } | VolumeSource::UTube { .. } => vec![],
+            },
+        }
+    }
+
+    /// For a scene that came over the network: it may read only the shared data
+    /// directory (`data:<path>`, no `..`), never an arbitrary file of the server.
+    pub fn check_network_file_references(&self, origin: &str) -> Result<(), SceneError> {
+        for (path, written) in self.file_references() {
+            let inside = written.strip_prefix("data:");
+            let safe = inside.is_some_and(|p| !p.starts_with('/') && !p.split(['/', '\\']).any(|part| part == ".."));
+            if !safe {
+                return Err(SceneError::new(
+                    origin,
+                    path,
+                    format!("a scene sent to the server may read only the shared data directory: write \"data:<path inside it>\" without \"..\", not {written:?}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     fn check_cross_fields(&self, origin: &str) -> Result<(), SceneError> {
         if self.name.trim().is_empty() {
             return Err(SceneError::new(origin, "name", "the scene needs a non-empty name"));
@@ -201,6 +235,15 @@ pub fn json_schema() -> serde_json::Value {
 
 /// Finds a scene by bundled name (`skin-patch` → `<dir>/skin-patch.json` in the first
 /// directory that has it) or by path (anything containing a `/` or ending in `.json`).
+/// A bundled scene by name only (what the network may ask for): letters, digits, '-'
+/// and '_', looked up in the scene directories.
+pub fn resolve_bundled_scene(name: &str, scene_dirs: &[PathBuf]) -> Result<PathBuf, SceneError> {
+    if name.contains('/') || name.contains('\\') || name.ends_with(".json") {
+        return Err(SceneError::new(name, "", "give a bundled scene's name (letters, digits, '-' and '_'), not a path; a scene of your own goes in scene_json"));
+    }
+    resolve_scene_path(name, scene_dirs)
+}
+
 pub fn resolve_scene_path(name_or_path: &str, scene_dirs: &[PathBuf]) -> Result<PathBuf, SceneError> {
     let looks_like_path = name_or_path.contains('/') || name_or_path.ends_with(".json");
     if looks_like_path {

@@ -11,7 +11,7 @@
 
 mod load;
 
-pub use load::{SceneError, bundled_scene_names, data_dir, json_schema, resolve_scene_path};
+pub use load::{SceneError, bundled_scene_names, data_dir, json_schema, resolve_bundled_scene, resolve_scene_path};
 
 use std::path::PathBuf;
 
