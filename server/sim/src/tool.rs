@@ -21,6 +21,14 @@ pub struct ToolShape {
     pub cutting_shape: Option<(f64, f64)>,
 }
 
+impl ToolShape {
+    /// The inner (cutting) capsule of a branched-grid tool, (radius, length) in m: the
+    /// scene's `cutting_shape`, else half the tool's radius and its full length.
+    pub fn cutting_capsule(&self) -> (f64, f64) {
+        self.cutting_shape.unwrap_or((self.radius_m * 0.5, self.length_m))
+    }
+}
+
 /// What the device (or a script) asks of one tool for one step.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ToolCommand {

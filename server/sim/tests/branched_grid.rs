@@ -45,22 +45,12 @@ fn assert_closed(g: &BranchedGrid) {
 
 /// Connected components of the surface (triangles joined through shared vertices).
 fn surface_pieces(g: &BranchedGrid) -> usize {
-    let n = g.surface().vertex_count();
-    let mut parent: Vec<usize> = (0..n).collect();
-    fn find(p: &mut [usize], mut i: usize) -> usize {
-        while p[i] != i {
-            p[i] = p[p[i]];
-            i = p[i];
-        }
-        i
-    }
+    let mut sets = cutsim_sim::union_find::UnionFind::new(g.surface().vertex_count());
     for (_, t) in g.surface().live_triangles() {
-        for k in 1..3 {
-            let (a, b) = (find(&mut parent, t[0] as usize), find(&mut parent, t[k] as usize));
-            parent[a] = b;
-        }
+        sets.union(t[0] as usize, t[1] as usize);
+        sets.union(t[0] as usize, t[2] as usize);
     }
-    let roots: BTreeSet<usize> = g.surface().live_triangles().map(|(_, t)| find(&mut parent, t[0] as usize)).collect();
+    let roots: BTreeSet<usize> = g.surface().live_triangles().map(|(_, t)| sets.find(t[0] as usize)).collect();
     roots.len()
 }
 

@@ -181,25 +181,17 @@ impl TriMesh {
 pub(crate) fn fan_components(v: u32, tris: &[u32], triangles: &[[u32; 3]]) -> usize {
     // Union-find over the (few) incident triangles; two are joined when they share an
     // edge that contains v.
-    let mut parent: Vec<usize> = (0..tris.len()).collect();
-    fn find(parent: &mut [usize], mut i: usize) -> usize {
-        while parent[i] != i {
-            parent[i] = parent[parent[i]];
-            i = parent[i];
-        }
-        i
-    }
+    let mut sets = crate::union_find::UnionFind::new(tris.len());
     for i in 0..tris.len() {
         for j in (i + 1)..tris.len() {
             let (ti, tj) = (triangles[tris[i] as usize], triangles[tris[j] as usize]);
             let shares_edge_with_v = ti.iter().any(|&w| w != v && tj.contains(&w));
             if shares_edge_with_v {
-                let (ri, rj) = (find(&mut parent, i), find(&mut parent, j));
-                parent[ri] = rj;
+                sets.union(i, j);
             }
         }
     }
-    (0..tris.len()).filter(|&i| find(&mut parent, i) == i).count()
+    (0..tris.len()).filter(|&i| sets.find(i) == i).count()
 }
 
 #[cfg(test)]

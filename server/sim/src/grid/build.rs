@@ -187,10 +187,7 @@ fn check_solver_converges(scene: &Scene, topo: &Topology, settings: &SolverSetti
 fn check_cutting_radii(scene: &Scene, tools: &[crate::tool::ToolShape], volume: &LabelVolume) -> Result<(), SceneError> {
     let half_voxel = volume.spacing_m.iter().copied().fold(0.0, f64::max) * 0.5;
     for (i, tool) in tools.iter().enumerate().filter(|(_, t)| t.can_cut) {
-        let (radius, explicit) = match tool.cutting_shape {
-            Some((radius, _)) => (radius, true),
-            None => (tool.radius_m * 0.5, false),
-        };
+        let (radius, explicit) = (tool.cutting_capsule().0, tool.cutting_shape.is_some());
         if radius < half_voxel * (1.0 - 1e-9) {
             let path = if explicit { format!("tools[{i}].cutting_shape") } else { format!("tools[{i}].shape") };
             let what = if explicit { "the cutting shape's radius" } else { "the default cutting radius (half the tool's radius)" };

@@ -46,7 +46,6 @@ pub struct GridMaterial {
 /// Per tool: the current cut stroke (the cut button held).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 struct Stroke {
-    held: bool,
     removed_any: bool,
     last_tip: Option<Vec3>,
 }
@@ -256,8 +255,7 @@ impl BranchedGrid {
                 self.strokes[i] = Stroke::default();
                 continue;
             }
-            self.strokes[i].held = true;
-            let (radius, length) = tool.cutting_shape.unwrap_or((tool.radius_m * 0.5, tool.length_m));
+            let (radius, length) = tool.cutting_capsule();
             let tip = self.frame.to_local(&command.pose.position_m);
             let top = tip + self.frame.rotation.transpose() * command.pose.axis() * length;
             let capsule = Capsule { tip, top, radius, lo: tip.inf(&top) - Vec3::repeat(radius), hi: tip.sup(&top) + Vec3::repeat(radius) };
@@ -321,18 +319,21 @@ impl BranchedGrid {
         self.counters.removed_triangles += change.removed_triangles.len() as u64;
         self.counters.added_triangles += change.added_triangles.len() as u64;
         self.topology_version += 1;
+        let added_vertices = change.added_vertices.iter().map(|&v| self.surface_vertex(v as usize)).collect();
+        let added_triangles = change.added_triangles.iter().map(|&t| SurfaceTriangle { id: t, vertices: self.surface.triangles[t as usize] }).collect();
+        let moved_vertices = change.moved_vertices;
         let delta = TopologyDelta {
             version: self.topology_version,
-            removed_triangles: change.removed_triangles.clone(),
-            removed_vertices: change.removed_vertices.clone(),
-            added_vertices: change.added_vertices.iter().map(|&v| self.surface_vertex(v as usize)).collect(),
-            added_triangles: change.added_triangles.iter().map(|&t| SurfaceTriangle { id: t, vertices: self.surface.triangles[t as usize] }).collect(),
+            removed_triangles: change.removed_triangles,
+            removed_vertices: change.removed_vertices,
+            added_vertices,
+            added_triangles,
         };
         self.deltas.push(delta);
         let ns = |d: std::time::Duration| d.as_nanos() as u64;
         self.last_update = Some(LastUpdate {
             report,
-            moved_vertices: change.moved_vertices,
+            moved_vertices,
             topology_ns: ns(topology_done - start),
             surface_ns: ns(surface_done - topology_done),
             other_ns: ns(surface_done.elapsed()),
@@ -390,11 +391,6 @@ impl BranchedGrid {
     /// Fine voxels holding material now.
     pub fn voxel_count(&self) -> usize {
         self.topo.material.iter().filter(|&&m| m != 0).count()
-    }
-
-    /// Node positions in the scene's frame, by node id (dead ids included).
-    pub fn node_positions_world(&self) -> Vec<Vec3> {
-        self.topo.nodes.x.iter().map(|x| self.frame.to_world(x)).collect()
     }
 
     pub fn kinetic_energy(&self) -> f64 {

@@ -132,16 +132,7 @@ impl Dynamics {
                 self.rotations[e] = r;
             }
             let r = self.rotations[e];
-            let rt = r.transpose();
-            let (x0, rest0) = (topo.nodes.x[nodes[0] as usize], topo.nodes.rest[nodes[0] as usize]);
-            let mut u = Vec24::zeros();
-            for c in 0..8 {
-                let node = nodes[c] as usize;
-                // Rest offsets from the nodes' own rest positions: exactly zero strain at rest.
-                let rest = topo.nodes.rest[node] - rest0;
-                let local = rt * (topo.nodes.x[node] - x0) - rest + rt * topo.nodes.v[node] * damping;
-                u.fixed_rows_mut::<3>(3 * c).copy_from(&local);
-            }
+            let u = local_displacement(topo, e, &r, damping);
             let k = &topo.elements.stiffness_single[e];
             let f = mat_vec_single(k, &u);
             for c in 0..8 {
@@ -341,7 +332,25 @@ pub fn averaged_edge_rotation(x: &impl Fn(usize) -> Vec3, cell_m: &Vec3) -> Opti
     r.iter().all(|c| c.is_finite()).then_some(r)
 }
 
-/// Adds −R K (Rᵀ(x − x₀) − (X − X₀)) of every element (corner 0 as the reference).
+/// Element `e`'s displacement in its rotated frame, `Rᵀ(x − x₀) − (X − X₀)` per corner
+/// (corner 0 as the reference), plus `damping · Rᵀv` (the step's (β + h) K_R v term;
+/// 0 for the elastic force alone). Rest offsets come from the nodes' own rest positions,
+/// so a body at rest has exactly zero strain.
+fn local_displacement(topo: &Topology, e: usize, r: &Matrix3<f64>, damping: f64) -> Vec24 {
+    let nodes = &topo.elements.nodes[e];
+    let rt = r.transpose();
+    let (x0, rest0) = (topo.nodes.x[nodes[0] as usize], topo.nodes.rest[nodes[0] as usize]);
+    let mut u = Vec24::zeros();
+    for c in 0..8 {
+        let node = nodes[c] as usize;
+        let local = rt * (topo.nodes.x[node] - x0) - (topo.nodes.rest[node] - rest0) + rt * topo.nodes.v[node] * damping;
+        u.fixed_rows_mut::<3>(3 * c).copy_from(&local);
+    }
+    u
+}
+
+/// Adds −R K (Rᵀ(x − x₀) − (X − X₀)) of every element (corner 0 as the reference), with
+/// the same kernel and rotations as the step.
 pub fn add_elastic_forces(topo: &Topology, rotations: &[Matrix3<f64>], force: &mut [Vec3]) {
     for e in 0..topo.elements.len() {
         if !topo.elements.alive[e] {
@@ -349,14 +358,7 @@ pub fn add_elastic_forces(topo: &Topology, rotations: &[Matrix3<f64>], force: &m
         }
         let nodes = &topo.elements.nodes[e];
         let r = &rotations[e];
-        let (x0, rest0) = (topo.nodes.x[nodes[0] as usize], topo.nodes.rest[nodes[0] as usize]);
-        let mut u = Vec24::zeros();
-        for c in 0..8 {
-            let node = nodes[c] as usize;
-            let local = r.transpose() * (topo.nodes.x[node] - x0);
-            u.fixed_rows_mut::<3>(3 * c).copy_from(&(local - (topo.nodes.rest[node] - rest0)));
-        }
-        let f = topo.elements.stiffness[e] * u;
+        let f = mat_vec(&topo.elements.stiffness[e], &local_displacement(topo, e, r, 0.0));
         for c in 0..8 {
             force[nodes[c] as usize] -= r * f.fixed_rows::<3>(3 * c);
         }

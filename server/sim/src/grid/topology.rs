@@ -13,6 +13,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use super::condense::{CellVoxel, VoxelMatrices, condense_direct, voxel_contribution};
 use super::hex::{Mat8, Mat24, Mat24f, corner_bits};
+use crate::union_find::UnionFind;
 use crate::math::Vec3;
 
 pub const NONE: u32 = u32::MAX;
@@ -397,14 +398,7 @@ impl Topology {
         }
         slots.sort_unstable();
         let index_of = |slots: &[(u32, usize)], e: u32| slots.iter().position(|s| s.0 == e).expect("element around the point");
-        let mut classes: Vec<usize> = (0..slots.len()).collect();
-        fn find(classes: &mut [usize], mut i: usize) -> usize {
-            while classes[i] != i {
-                classes[i] = classes[classes[i]];
-                i = classes[i];
-            }
-            i
-        }
+        let mut classes = UnionFind::new(slots.len());
         // Face-adjacent cell pairs around p: corners differing in one bit.
         for &(c1, n1) in &around {
             for axis in 0..3 {
@@ -419,18 +413,14 @@ impl Topology {
                 }
                 let _ = c2;
                 for &(a, b) in &faces[&key] {
-                    let (i, j) = (index_of(&slots, a), index_of(&slots, b));
-                    let (ri, rj) = (find(&mut classes, i), find(&mut classes, j));
-                    if ri != rj {
-                        classes[ri.max(rj)] = ri.min(rj);
-                    }
+                    classes.union(index_of(&slots, a), index_of(&slots, b));
                 }
             }
         }
         // Classes in order of their first slot.
         let mut members: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
         for i in 0..slots.len() {
-            members.entry(find(&mut classes, i)).or_default().push(i);
+            members.entry(classes.find(i)).or_default().push(i);
         }
         let point_position = self.layout.point_position(pc);
         let mut claimed = BTreeSet::new();
@@ -582,67 +572,31 @@ impl Topology {
 
     /// Connected pieces: elements joined through shared nodes.
     pub fn pieces(&self) -> usize {
-        let mut parent: Vec<u32> = (0..self.nodes.len() as u32).collect();
-        fn find(parent: &mut [u32], mut i: u32) -> u32 {
-            while parent[i as usize] != i {
-                parent[i as usize] = parent[parent[i as usize] as usize];
-                i = parent[i as usize];
-            }
-            i
-        }
-        for (e, nodes) in self.elements.nodes.iter().enumerate() {
-            if !self.elements.alive[e] {
-                continue;
-            }
-            for &n in &nodes[1..] {
-                let (a, b) = (find(&mut parent, nodes[0]), find(&mut parent, n));
-                parent[a as usize] = b;
-            }
-        }
-        let mut roots = BTreeSet::new();
-        for (e, nodes) in self.elements.nodes.iter().enumerate() {
-            if self.elements.alive[e] {
-                roots.insert(find(&mut parent, nodes[0]));
-            }
-        }
-        roots.len()
+        let numbers = self.element_pieces();
+        numbers.iter().filter(|&&p| p != NONE).max().map_or(0, |&p| p as usize + 1)
     }
 
     /// The elements' piece number (0-based, in order of their lowest element id).
     pub fn element_pieces(&self) -> Vec<u32> {
-        let mut parent: Vec<u32> = (0..self.nodes.len() as u32).collect();
-        fn find(parent: &mut [u32], mut i: u32) -> u32 {
-            while parent[i as usize] != i {
-                parent[i as usize] = parent[parent[i as usize] as usize];
-                i = parent[i as usize];
-            }
-            i
-        }
+        let mut sets = UnionFind::new(self.nodes.len());
         for (e, nodes) in self.elements.nodes.iter().enumerate() {
             if self.elements.alive[e] {
                 for &n in &nodes[1..] {
-                    let (a, b) = (find(&mut parent, nodes[0]), find(&mut parent, n));
-                    parent[a as usize] = b;
+                    sets.union(nodes[0] as usize, n as usize);
                 }
             }
         }
-        let mut numbers: BTreeMap<u32, u32> = BTreeMap::new();
+        let mut numbers: BTreeMap<usize, u32> = BTreeMap::new();
         (0..self.elements.len())
             .map(|e| {
                 if !self.elements.alive[e] {
                     return NONE;
                 }
-                let root = find(&mut parent, self.elements.nodes[e][0]);
+                let root = sets.find(self.elements.nodes[e][0] as usize);
                 let next = numbers.len() as u32;
                 *numbers.entry(root).or_insert(next)
             })
             .collect()
-    }
-
-    /// Rest position of corner `n` of element `e`, m.
-    pub fn corner_rest(&self, e: usize, n: usize) -> Vec3 {
-        let c = self.layout.cell_coords(self.elements.cell[e] as usize);
-        self.layout.point_position(self.layout.corner_point(c, n))
     }
 
     /// Rest position of a cell's corner 0, m.

@@ -404,24 +404,12 @@ impl MassSpring {
     /// Connected pieces of the mesh (triangles joined through shared vertices).
     pub fn piece_count(&self) -> usize {
         let n = self.nodes.len();
-        let mut parent: Vec<u32> = (0..n as u32).collect();
-        fn find(parent: &mut [u32], mut i: u32) -> u32 {
-            while parent[i as usize] != i {
-                parent[i as usize] = parent[parent[i as usize] as usize];
-                i = parent[i as usize];
-            }
-            i
-        }
+        let mut sets = crate::union_find::UnionFind::new(n);
         for (_, [a, b, c]) in self.triangles() {
-            for (p, q) in [(a, b), (b, c)] {
-                let (rp, rq) = (find(&mut parent, p), find(&mut parent, q));
-                parent[rp as usize] = rq;
-            }
+            sets.union(a as usize, b as usize);
+            sets.union(b as usize, c as usize);
         }
-        let mut roots: Vec<u32> = (0..n as u32)
-            .filter(|&i| self.nodes.alive[i as usize] && !self.topo.node_tris[i as usize].is_empty())
-            .map(|i| find(&mut parent, i))
-            .collect();
+        let mut roots: Vec<usize> = (0..n).filter(|&i| self.nodes.alive[i] && !self.topo.node_tris[i].is_empty()).map(|i| sets.find(i)).collect();
         roots.sort_unstable();
         roots.dedup();
         roots.len()

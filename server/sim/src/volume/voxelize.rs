@@ -157,23 +157,14 @@ pub fn weld(mesh: &TriMesh) -> TriMesh {
 /// The triangles of the closed parts of the mesh, and what was dropped.
 fn closed_parts(mesh: &TriMesh) -> Result<(Vec<[u32; 3]>, VoxelizeReport), String> {
     let n = mesh.positions.len();
-    let mut parent: Vec<u32> = (0..n as u32).collect();
-    fn find(parent: &mut [u32], mut i: u32) -> u32 {
-        while parent[i as usize] != i {
-            parent[i as usize] = parent[parent[i as usize] as usize];
-            i = parent[i as usize];
-        }
-        i
-    }
+    let mut sets = crate::union_find::UnionFind::new(n);
     for t in &mesh.triangles {
-        for k in 1..3 {
-            let (a, b) = (find(&mut parent, t[0]), find(&mut parent, t[k]));
-            parent[a as usize] = b;
-        }
+        sets.union(t[0] as usize, t[1] as usize);
+        sets.union(t[0] as usize, t[2] as usize);
     }
-    let mut parts: BTreeMap<u32, Vec<[u32; 3]>> = BTreeMap::new();
+    let mut parts: BTreeMap<usize, Vec<[u32; 3]>> = BTreeMap::new();
     for t in &mesh.triangles {
-        parts.entry(find(&mut parent, t[0])).or_default().push(*t);
+        parts.entry(sets.find(t[0] as usize)).or_default().push(*t);
     }
     let mut kept = Vec::new();
     let mut report = VoxelizeReport { parts_kept: 0, parts_dropped: Vec::new(), voxels_inside: 0 };
