@@ -14,14 +14,17 @@ if [ ! -d "$data_dir" ]; then
 fi
 export CUTSIM_DATA_DIR="$data_dir"
 
+if ! command -v python3 >/dev/null; then
+    echo "error: python3 is needed for the scikit-fem reference and the Python client example's test" >&2
+    exit 2
+fi
+echo "==> scikit-fem reference solutions (tools/reference; a virtual environment made on the first run)"
+tools/reference/run.sh
+
 echo "==> cargo test (unit, integration and end-to-end tests)"
 cargo test --workspace --locked
 
 echo "==> Python client example (grpcio stubs from proto/cutsim.proto) against a real server"
-if ! command -v python3 >/dev/null; then
-    echo "error: python3 is needed for the Python client example's test" >&2
-    exit 2
-fi
 clients/python/setup.sh >/dev/null
 CUTSIM_SERVER_BIN="$(pwd)/target/debug/cutsim-server" clients/python/.venv/bin/python -m unittest discover -s clients/python -p "test_*.py"
 

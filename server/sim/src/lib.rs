@@ -9,6 +9,7 @@
 //!
 //! Units are SI everywhere: m, kg, s, Pa, N.
 
+pub mod accuracy;
 pub mod broad_phase;
 pub mod geometry;
 pub mod grid;

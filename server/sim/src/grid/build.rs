@@ -58,8 +58,20 @@ pub fn load_volume(scene: &Scene, spec: &BranchedGridSpec) -> Result<LabelVolume
     Ok(volume)
 }
 
-/// Builds the model a branched-grid scene describes.
-pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
+/// What a scene's grid is made of before the solver check, the surface and the tools:
+/// the topology with its fixed nodes, its frame, materials and solver settings, and
+/// the label volume it was built from (cropped, selected, right-handed).
+#[derive(Debug, Clone)]
+pub struct GridParts {
+    pub topo: Topology,
+    pub frame: Frame,
+    pub materials: Vec<GridMaterial>,
+    pub settings: SolverSettings,
+    pub volume: LabelVolume,
+}
+
+/// Builds the grid's topology, frame and settings from a scene (see [`GridParts`]).
+pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, SceneError> {
     let at = |path: &str, message: String| SceneError::new(&scene.origin, format!("model.branched-grid{}{path}", if path.is_empty() { "" } else { "." }), message);
     let mut volume = load_volume(scene, spec)?;
     if let Some(crop) = &spec.crop_voxels {
@@ -122,6 +134,12 @@ pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<Branch
         },
         gravity: scene.gravity_m_per_s2.map(|g| frame.rotation.transpose() * Vec3::new(g[0].get(), g[1].get(), g[2].get())),
     };
+    Ok(GridParts { topo, frame, materials, settings, volume })
+}
+
+/// Builds the model a branched-grid scene describes.
+pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
+    let GridParts { topo, frame, materials, settings, volume } = build_parts(scene, spec)?;
     check_solver_converges(scene, &topo, &settings)?;
     let surface = GridSurface::build(&topo, spec.surface.smoothing_iterations.get());
     let tools = crate::tool::tool_shapes(scene);

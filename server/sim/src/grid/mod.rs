@@ -9,5 +9,5 @@ pub mod solver;
 pub mod surface;
 pub mod topology;
 
-pub use build::{MAX_MATERIAL_VOXELS, build_from_scene, load_volume};
+pub use build::{GridParts, MAX_MATERIAL_VOXELS, build_from_scene, build_parts, load_volume};
 pub use model::{BranchedGrid, Frame, GridMaterial};

@@ -1,0 +1,9 @@
+//! Accuracy against an independent finite-element reference, the speed each setting
+//! costs, and stability at the extremes (docs/accuracy-speed.md).
+//!
+//! - [`problems`]: the reference problems (voxel meshes, loads, sample points) and their
+//!   export for `tools/reference/solve.py` (scikit-fem).
+//! - [`reference`]: reading its results, field errors, the linear static solve.
+
+pub mod problems;
+pub mod reference;

@@ -1,0 +1,127 @@
+//! The scikit-fem reference solutions (written by `tools/reference/solve.py`) and the
+//! errors of our solutions against them.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use super::problems::{Problem, sample_displacements};
+use crate::grid::GridParts;
+use crate::grid::solver::solve_static;
+use crate::math::Vec3;
+use crate::scene::SceneError;
+
+/// One reference solution at the sample points.
+#[derive(Debug, Clone, Deserialize)]
+pub struct ReferenceSolution {
+    /// Displacement at each sample point (grid frame), m.
+    pub displacement_m: Vec<[f64; 3]>,
+    /// The lowest eigenfrequency (consistent mass), when the problem asks for it.
+    #[serde(default)]
+    pub first_frequency_hz: Option<f64>,
+    pub dofs: usize,
+    pub seconds: f64,
+}
+
+impl ReferenceSolution {
+    pub fn displacements(&self) -> Vec<Vec3> {
+        self.displacement_m.iter().map(|d| Vec3::new(d[0], d[1], d[2])).collect()
+    }
+}
+
+/// A problem's reference: trilinear (Hex1) and, for the small bodies, triquadratic (Hex2)
+/// hexahedra on the same mesh.
+#[derive(Debug, Clone, Deserialize)]
+pub struct Reference {
+    pub problem: String,
+    pub digest: String,
+    pub generator: String,
+    pub samples: Vec<(usize, usize)>,
+    pub hex1: ReferenceSolution,
+    #[serde(default)]
+    pub hex2: Option<ReferenceSolution>,
+}
+
+impl Reference {
+    /// The finest solution there is: Hex2 where it was computed, else Hex1.
+    pub fn finest(&self) -> (&'static str, &ReferenceSolution) {
+        match &self.hex2 {
+            Some(hex2) => ("scikit-fem Hex2", hex2),
+            None => ("scikit-fem Hex1", &self.hex1),
+        }
+    }
+}
+
+/// Where the reference results are read from: `$CUTSIM_REFERENCE_DIR`, else the
+/// committed `tools/reference/results`.
+pub fn results_dir() -> PathBuf {
+    match std::env::var_os("CUTSIM_REFERENCE_DIR") {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tools/reference/results"),
+    }
+}
+
+/// Reads a problem's reference and checks that it was made for this exact problem.
+pub fn load_reference(problem: &Problem) -> Result<Reference, String> {
+    let path = results_dir().join(format!("{}.json", problem.name));
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e} (make it with tools/reference/run.sh)", path.display()))?;
+    let reference: Reference = serde_json::from_str(&text).map_err(|e| format!("{}: not a reference result: {e}", path.display()))?;
+    let export = problem.export().map_err(|e: SceneError| e.to_string())?;
+    let digest = export["digest"].as_str().unwrap_or_default();
+    if reference.digest != digest {
+        return Err(format!(
+            "{}: made for problem digest {}, but the problem now has digest {digest} (the mesh, loads or samples changed); regenerate it with tools/reference/run.sh",
+            path.display(),
+            reference.digest
+        ));
+    }
+    let n = reference.samples.len();
+    if reference.hex1.displacement_m.len() != n || reference.hex2.as_ref().is_some_and(|h| h.displacement_m.len() != n) {
+        return Err(format!("{}: {n} samples but a different number of displacements", path.display()));
+    }
+    Ok(reference)
+}
+
+/// A displacement field's error against a reference field.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FieldError {
+    /// sqrt(Σ|u − u_ref|² / Σ|u_ref|²) over the sample points.
+    pub rms: f64,
+    /// max|u − u_ref| / max|u_ref|.
+    pub max: f64,
+}
+
+pub fn field_error(u: &[Vec3], reference: &[Vec3]) -> FieldError {
+    assert_eq!(u.len(), reference.len());
+    let diff2: f64 = u.iter().zip(reference).map(|(a, b)| (a - b).norm_squared()).sum();
+    let ref2: f64 = reference.iter().map(|r| r.norm_squared()).sum();
+    let diff_max = u.iter().zip(reference).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+    let ref_max = reference.iter().map(|r| r.norm()).fold(0.0, f64::max);
+    FieldError { rms: (diff2 / ref2).sqrt(), max: diff_max / ref_max }
+}
+
+/// How the coarse elements get their stiffness.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Weighting {
+    /// Condensed from the voxels (the branched grid's own).
+    Condensed,
+    /// The full cell's, scaled by its fill fraction.
+    FillRatio,
+}
+
+/// The linear (small-strain) static solution of a problem at a level: K u = f by a
+/// Jacobi-preconditioned conjugate gradient in double precision, to `tolerance`.
+pub fn solve_linear(problem: &Problem, level: u32, weighting: Weighting, tolerance: f64) -> Result<(GridParts, u32, f64), String> {
+    let mut parts = problem.parts(level).map_err(|e| e.to_string())?;
+    if weighting == Weighting::FillRatio {
+        super::problems::apply_fill_ratio_weighting(&mut parts);
+    }
+    let loads = problem.loads(&parts);
+    let (iterations, residual) = solve_static(&mut parts.topo, &loads, tolerance, 200_000);
+    Ok((parts, iterations, residual))
+}
+
+/// The displacement of `parts` at the reference's sample points.
+pub fn displacements_at_samples(parts: &GridParts, reference: &Reference) -> Vec<Vec3> {
+    sample_displacements(parts, &reference.samples)
+}
