@@ -102,3 +102,28 @@ async fn reflection_lists_services_and_health_reports_serving() {
 fn tokio_stream_once<T: Send + 'static>(item: T) -> impl futures_util::Stream<Item = T> + Send {
     futures_util::stream::iter(std::iter::once(item))
 }
+
+/// `"fidelity": "auto"`: the session reports the level its calibration chose, and its
+/// recording pins that level so that a replay builds the same grid.
+#[tokio::test]
+async fn an_auto_fidelity_session_reports_and_records_its_level() {
+    let server = Server::start();
+    let mut client = server.sessions().await;
+    let text = std::fs::read_to_string(repo("server/scenes/u-tube.json")).unwrap();
+    let auto = text.replace("\"level\": 3,", "\"level\": 1, \"fidelity\": \"auto\", \"step_budget_ms\": 1000,");
+    assert_ne!(auto, text, "the u-tube scene changed shape");
+    let created = client
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(auto)), mode: pb::SessionMode::Lockstep as i32, label: String::new() })
+        .await
+        .unwrap()
+        .into_inner();
+    let info = created.session.unwrap();
+    // A 1 s budget fits the finest level allowed.
+    assert!(info.fidelity.starts_with("fidelity auto: level 1 (fits"), "{}", info.fidelity);
+    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", info.id))).unwrap();
+    let first = recording.lines().next().unwrap();
+    assert!(first.contains(r#""fidelity":"fixed""#) && first.contains(r#""level":1"#), "the recording pins the level: {}", &first[..first.len().min(600)]);
+    // A fixed scene reports nothing.
+    let fixed = create(&server, "u-tube", pb::SessionMode::Lockstep).await;
+    assert_eq!(fixed.info.fidelity, "");
+}

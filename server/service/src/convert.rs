@@ -90,6 +90,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         label: s.label.clone(),
         scene: s.scene_name.clone(),
         model: s.model.to_owned(),
+        fidelity: s.fidelity.clone(),
         mode: mode(s.mode) as i32,
         status: status(if s.is_closed() { Status::Closed } else { frame.status }) as i32,
         rate_hz: s.rate_hz,

@@ -7,7 +7,7 @@
 //! e.g. `-- "liver 3 mm L3"` for the cases whose name contains that text).
 //!
 //! Per case: "probe" steps with a broad probe pressed into the top of the organ (where
-//! it is broad: see `broad_top`)
+//! it is broad: see `BranchedGrid::broad_top`)
 //! (contacts every step, no cut); "cutting" steps with the scalpel drawn 4 cm along x
 //! through that point, 8 mm deep, with the cut button held. For the cutting run the
 //! steps that removed voxels (each holds one incremental topology and surface update)
@@ -31,31 +31,6 @@ fn build(scene_file: &str, level: u32) -> (BranchedGrid, f64) {
     let start = Instant::now();
     let grid = build_from_scene(&scene, spec).unwrap_or_else(|e| panic!("{e}"));
     (grid, start.elapsed().as_secs_f64())
-}
-
-/// The top of the organ where it is broad: the highest voxel whose 5 × 5 neighbourhood
-/// in x and y is all material (so the tools meet a flat top, not a ridge) and whose
-/// element is free to move; world, m, at the voxel's upper face.
-fn broad_top(grid: &BranchedGrid) -> Vec3 {
-    let t = grid.topology();
-    let [nx, ny, nz] = t.layout.voxels;
-    let full = |i: usize, j: usize, k: usize| t.material[t.layout.voxel_index([i, j, k])] != 0;
-    for k in (0..nz).rev() {
-        for j in 2..ny.saturating_sub(2) {
-            for i in 2..nx.saturating_sub(2) {
-                if (i - 2..=i + 2).all(|a| (j - 2..=j + 2).all(|b| full(a, b, k))) {
-                    let v = t.layout.voxel_index([i, j, k]);
-                    let element = t.voxel_element[v] as usize;
-                    if t.elements.nodes[element].iter().any(|&n| t.nodes.fixed[n as usize]) {
-                        continue; // pressing on a held region measures nothing
-                    }
-                    let top = t.voxel_centre(v) + Vec3::new(0.0, 0.0, t.layout.spacing_m[2] * 0.5);
-                    return grid.frame().to_world(&top);
-                }
-            }
-        }
-    }
-    panic!("no broad top")
 }
 
 fn command(tool: usize, position: Vec3, cut: bool) -> [ToolCommand; 2] {
@@ -84,7 +59,7 @@ fn main() {
                 continue;
             }
             let (mut grid, build_s) = build(scene, level);
-            let top = broad_top(&grid);
+            let top = grid.broad_top().expect("a broad top");
             let mut feedback = [ToolFeedback::default(); 2];
             let (elements, nodes) = (grid.topology().elements.alive_count(), grid.topology().nodes.alive_count());
             let triangles = grid.surface().live_triangles().count();

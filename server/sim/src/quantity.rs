@@ -116,6 +116,10 @@ bounded!(/// A force magnitude.
 
 bounded!(/// The edge of a voxel.
     VoxelSizeM: f64, "number", what = "voxel size", unit = "m", range = [1e-5, 0.1]);
+bounded!(
+    /// The p99 step time a `"fidelity": "auto"` grid must fit, ms.
+    StepBudgetMs: f64, "number", what = "step time budget", unit = "ms", range = [0.01, 1000.0]);
+
 bounded!(/// Coarsening level L of the branched grid: a coarse cell is 2^L voxels a side.
     GridLevel: u32, "integer", what = "level", unit = "", range = [0, 5]);
 bounded!(/// A label value of a label image (0 is empty and cannot be given a material).

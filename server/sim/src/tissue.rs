@@ -43,6 +43,12 @@ pub trait Tissue: Send {
     /// "msm" or "branched-grid".
     fn model_name(&self) -> &'static str;
 
+    /// A level chosen at load by `"fidelity": "auto"`, and the report of the choice
+    /// (None: the scene's own settings). A recording must pin that level to replay.
+    fn fidelity(&self) -> Option<(u32, String)> {
+        None
+    }
+
     /// The fixed physics step, s.
     fn time_step_s(&self) -> f64;
 

@@ -2,30 +2,10 @@
 //! points facing each other on the two lips rises quickly, overshoots, falls back and
 //! settles; the plateau grows with the residual strain εr and vanishes at εr = 0.
 
-mod common;
-use common::*;
-use cutsim_sim::math::Vec3;
+use cutsim_sim::accuracy::membrane::shrinking_gap_curve;
 
-/// Gap (m) between the middle lip vertices, sampled every step for `steps` steps from
-/// the moment they are made: a 4 cm cut in one stroke update (blade in at one end,
-/// across in one step, then out), so that every lip vertex is born at the same time.
 fn gap_curve(residual_strain: f64, steps: usize) -> Vec<f64> {
-    let mut m = build(&scene(&patch_scene([0.1, 0.08], [40, 37], residual_strain, "")));
-    let (from, to) = (Vec3::new(-0.02, 0.0, 0.0), Vec3::new(0.02, 0.0, 0.0));
-    step_with(&mut m, Some(pose(from - Vec3::z() * 0.005, Vec3::z())), true, 1);
-    step_with(&mut m, Some(pose(to - Vec3::z() * 0.005, Vec3::z())), true, 1);
-    assert_eq!(cutsim_sim::tissue::Tissue::counters(&m).cut_updates, 1, "the whole incision in one update");
-    let incision = m.incisions()[0].clone();
-    // The two lips' vertices at the middle of the incision: copies of one curve point.
-    let mid = incision.lips[0].len() / 2;
-    let (a, b) = (incision.lips[0][mid] as usize, incision.lips[1][mid] as usize);
-    assert_ne!(a, b, "lips are split");
-    let mut curve = vec![(m.positions()[a] - m.positions()[b]).norm()];
-    for _ in 1..steps {
-        step_with(&mut m, None, false, 1);
-        curve.push((m.positions()[a] - m.positions()[b]).norm());
-    }
-    curve
+    shrinking_gap_curve(residual_strain, steps).unwrap()
 }
 
 #[test]

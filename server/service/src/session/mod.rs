@@ -90,6 +90,8 @@ pub struct Session {
     pub label: String,
     pub scene_name: String,
     pub model: &'static str,
+    /// How "fidelity": "auto" chose the grid's level (empty: the scene's own level).
+    pub fidelity: String,
     pub mode: Mode,
     pub rate_hz: f64,
     pub tools: Vec<ToolShape>,
@@ -309,6 +311,20 @@ impl Registry {
             .map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
 
         let id = random_id();
+        // A level chosen by "fidelity": "auto" depends on this machine: the recording
+        // pins it, so that a replay builds the same grid.
+        let fidelity = tissue.fidelity();
+        let scene = match &fidelity {
+            Some((level, _)) => cutsim_sim::grid::fidelity::pin_scene(&scene, *level),
+            None => scene,
+        };
+        let scene_json = match (&fidelity, scene_json) {
+            (Some((level, summary)), json) => {
+                tracing::info!(session = %id, "{summary}");
+                json.map(|j| cutsim_sim::grid::fidelity::pin_level(&j, *level)).transpose().map_err(ApiError::Internal)?
+            }
+            (None, json) => json,
+        };
         let initial = tissue.snapshot();
         let bounds = bounding_box(&initial);
         let tools = tissue.tools().to_vec();
@@ -346,6 +362,7 @@ impl Registry {
             label,
             scene_name: scene.name.clone(),
             model,
+            fidelity: fidelity.map(|(_, summary)| summary).unwrap_or_default(),
             mode,
             rate_hz,
             commands: (0..tools.len()).map(|_| SeqSlot::default()).collect(),

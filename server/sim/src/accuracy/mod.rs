@@ -5,5 +5,9 @@
 //!   export for `tools/reference/solve.py` (scikit-fem).
 //! - [`reference`]: reading its results, field errors, the linear static solve.
 
+pub mod membrane;
 pub mod problems;
 pub mod reference;
+pub mod report;
+pub mod stability;
+pub mod sweep;

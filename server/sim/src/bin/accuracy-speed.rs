@@ -1,28 +1,44 @@
 //! The speed–accuracy study (docs/accuracy-speed.md).
 //!
 //! ```text
-//! accuracy-speed                          sweep the settings, write docs/accuracy-speed.{md,svg,json}
+//! accuracy-speed [--quick] [--out DIR]    sweep the settings on the reference cantilever and
+//!                                         the bundled scenes; write DIR/accuracy-speed.{md,svg,json}
+//!                                         (DIR: docs)
+//! accuracy-speed stability [--reduced] [--out DIR]
+//!                                         the stability sweep (full, or the test's reduced one);
+//!                                         write DIR/stability.md
 //! accuracy-speed export-problems DIR      write the reference problems' meshes for tools/reference
 //! ```
+//! Run it in release: `cargo run --release -p cutsim-sim --bin accuracy-speed`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use cutsim_sim::accuracy::problems::problems;
+use cutsim_sim::accuracy::problems::{Load, Problem, problems, sample_displacements};
+use cutsim_sim::accuracy::reference::{Weighting, displacements_at_samples, field_error, load_reference, solve_linear};
+use cutsim_sim::accuracy::report::{ErrorTable, LoadRow, Measured, MembraneStudy, Row, SceneStudy, markdown, svg};
+use cutsim_sim::accuracy::sweep::{Setting, build_grid, cantilever_frequency, own_reference, static_error, time_probe};
+use cutsim_sim::math::Vec3;
+use cutsim_sim::scene::{MassSpec, ModelSpec, Scene};
+
+const USAGE: &str = "usage: accuracy-speed [--quick] [--out DIR] | accuracy-speed stability [--reduced] [--out DIR] | accuracy-speed export-problems DIR";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result = match args.first().map(String::as_str) {
         Some("export-problems") => match args.get(1) {
-            Some(dir) => export_problems(&PathBuf::from(dir)),
+            Some(dir) => export_problems(Path::new(dir)),
             None => Err("export-problems needs the directory to write into".to_string()),
         },
+        Some("stability") => {
+            let rest: Vec<String> = args[1..].iter().filter(|a| *a != "--reduced").cloned().collect();
+            parse_sweep_args(&rest).and_then(|(_, out)| stability(args.iter().any(|a| a == "--reduced"), &out))
+        }
         Some("-h" | "--help") => {
-            println!("{}", USAGE);
+            println!("{USAGE}");
             Ok(())
         }
-        Some(other) => Err(format!("unknown command {other:?}\n{USAGE}")),
-        None => Err("the sweep is not written yet".into()),
+        _ => parse_sweep_args(&args).and_then(|(quick, out)| sweep(quick, &out)),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -33,9 +49,24 @@ fn main() -> ExitCode {
     }
 }
 
-const USAGE: &str = "usage: accuracy-speed [export-problems DIR]";
+fn parse_sweep_args(args: &[String]) -> Result<(bool, PathBuf), String> {
+    let (mut quick, mut out) = (false, Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs"));
+    let mut i = 0;
+    while i < args.len() {
+        match args[i].as_str() {
+            "--quick" => quick = true,
+            "--out" => {
+                i += 1;
+                out = PathBuf::from(args.get(i).ok_or("--out needs a directory")?);
+            }
+            other => return Err(format!("unknown argument {other:?}\n{USAGE}")),
+        }
+        i += 1;
+    }
+    Ok((quick, out))
+}
 
-fn export_problems(dir: &std::path::Path) -> Result<(), String> {
+fn export_problems(dir: &Path) -> Result<(), String> {
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     for problem in problems().map_err(|e| e.to_string())? {
         let export = problem.export().map_err(|e| e.to_string())?;
@@ -44,4 +75,252 @@ fn export_problems(dir: &std::path::Path) -> Result<(), String> {
         eprintln!("wrote {} ({} nodes, {} hexahedra)", path.display(), export["nodes"].as_array().map_or(0, |a| a.len()), export["hexes"].as_array().map_or(0, |a| a.len()));
     }
     Ok(())
+}
+
+/// A bundled scene as a gravity problem (the scene's own gravity, else 9.81 m/s² down).
+fn bundled_problem(name: &'static str) -> Result<Problem, String> {
+    let mut scene = bundled_scene(name)?;
+    if scene.gravity_m_per_s2.is_none() {
+        scene.gravity_m_per_s2 = Some(serde_json::from_value(serde_json::json!([0.0, 0.0, -9.81])).expect("gravity"));
+    }
+    Ok(Problem { name, summary: "", scene, load: Load::Gravity, frequency: false, quadratic: false, sample_stride: 16 })
+}
+
+fn bundled_scene(name: &str) -> Result<Scene, String> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(format!("{name}.json"));
+    Scene::load(&path).map_err(|e| e.to_string())
+}
+
+struct Progress {
+    done: usize,
+    total: usize,
+    started: std::time::Instant,
+}
+
+impl Progress {
+    fn tick(&mut self, what: &str) {
+        self.done += 1;
+        eprintln!("[{:>3}/{}] {:>6.1} s  {what}", self.done, self.total, self.started.elapsed().as_secs_f64());
+    }
+}
+
+fn sweep(quick: bool, out: &Path) -> Result<(), String> {
+    let (warmup, steps) = if quick { (20, 80) } else { (50, 300) };
+    let all = problems().map_err(|e| e.to_string())?;
+    let cantilever = all.iter().find(|p| p.name == "cantilever-gravity").expect("the cantilever problem").clone();
+    let liver = all.iter().find(|p| p.name == "liver-gravity").expect("the liver problem").clone();
+
+    // Plans: (study name, problem, reference, settings, weighting levels).
+    let dt = 0.001;
+    // (study, problem (its scene under gravity), the scene as users run it (timed), settings,
+    // levels for the weighting comparison).
+    let mut plans: Vec<(String, Problem, Scene, Vec<Setting>, Vec<u32>)> = Vec::new();
+    let mut cantilever_settings = Vec::new();
+    for level in 0..=3 {
+        for mass in [MassSpec::Lumped, MassSpec::Consistent] {
+            for cg in [100, 400] {
+                cantilever_settings.push(Setting { level, mass, cg_max_iterations: cg, dt_s: dt });
+            }
+        }
+        cantilever_settings.push(Setting { level, mass: MassSpec::Consistent, cg_max_iterations: 400, dt_s: 0.00025 });
+    }
+    plans.push(("cantilever".into(), cantilever.clone(), cantilever.scene.clone(), cantilever_settings, vec![]));
+    let scene_settings = |levels: &[u32], cg_default: u32| {
+        let mut v = Vec::new();
+        for &level in levels {
+            for mass in [MassSpec::Lumped, MassSpec::Consistent] {
+                v.push(Setting { level, mass, cg_max_iterations: cg_default, dt_s: dt });
+            }
+            v.push(Setting { level, mass: MassSpec::Lumped, cg_max_iterations: 10, dt_s: dt });
+        }
+        v
+    };
+    plans.push(("liver".into(), liver.clone(), bundled_scene("liver")?, scene_settings(&[0, 1, 2, 3], 30), vec![1, 2, 3]));
+    for name in ["u-tube", "liver-smooth", "abdomen-layers"] {
+        let levels: &[u32] = if name == "u-tube" { &[0, 1, 2] } else { &[1, 2, 3] };
+        let weighting = if name == "u-tube" { vec![1, 2] } else { vec![2, 3] };
+        plans.push((name.into(), bundled_problem(name)?, bundled_scene(name)?, scene_settings(levels, 30), weighting));
+    }
+    let mut progress = Progress { done: 0, total: plans.iter().map(|p| p.3.len() + p.4.len() + 1).sum::<usize>() + 5, started: std::time::Instant::now() };
+
+    // The level-0 model against scikit-fem, as the test checks it.
+    let mut reference_check = Vec::new();
+    for problem in &all {
+        let reference = load_reference(problem)?;
+        let (parts, iterations, _) = solve_linear(problem, 0, Weighting::Condensed, 1e-12)?;
+        let e = field_error(&displacements_at_samples(&parts, &reference), &reference.hex1.displacements());
+        let hex2 = reference.hex2.as_ref().map(|h| field_error(&reference.hex1.displacements(), &h.displacements()).rms);
+        reference_check.push(format!(
+            "{} ({}; {} hexahedra, {} samples): max difference {:.1e}, rms {:.1e} ({iterations} CG iterations){}",
+            problem.name,
+            reference.generator.split(" with ").nth(1).unwrap_or(&reference.generator),
+            parts.topo.elements.alive_count(),
+            reference.samples.len(),
+            e.max,
+            e.rms,
+            hex2.map_or(String::new(), |h| format!("; Hex1 itself is {:.2} % off Hex2 (the trilinear discretization error)", 100.0 * h))
+        ));
+        progress.tick(&format!("{} level 0 vs scikit-fem Hex1: max {:.1e}", problem.name, e.max));
+    }
+
+    let mut studies = Vec::new();
+    for (name, problem, timed_scene, settings, weighting_levels) in &plans {
+        // The reference field at the sample points.
+        let level0 = problem.parts(0).map_err(|e| e.to_string())?;
+        let voxels = level0.topo.material.iter().filter(|&&m| m != 0).count();
+        let (samples, reference_field, reference_label, frequency_ref) = match load_reference(problem) {
+            Ok(reference) => {
+                let (label, finest) = reference.finest();
+                (reference.samples.clone(), Some(finest.displacements()), format!("{label} on the level-0 mesh ({})", reference.generator), finest.first_frequency_hz)
+            }
+            Err(_) => {
+                let level = if voxels <= 60_000 { 0 } else { 1 };
+                let parts = if level == 0 { level0.clone() } else { problem.parts(1).map_err(|e| e.to_string())? };
+                let samples = problem.samples(&parts);
+                match own_reference(problem, level, &samples) {
+                    Ok(field) => {
+                        let label = format!(
+                            "our linear static solution at level {level} ({}), the finest solved here; level 0 equals scikit-fem Hex1 on the reference problems to 1e-11",
+                            if level == 0 { format!("{voxels} voxels") } else { format!("{voxels} voxels are too many for a quick level-0 solve") }
+                        );
+                        (samples, Some(field), label, None)
+                    }
+                    Err(e) => (samples, None, format!("none: the static problem has no solution ({e}); parts of the body are not held, and a free piece has no equilibrium under gravity"), None),
+                }
+            }
+        };
+        progress.tick(&format!("{name}: reference ready ({} samples)", samples.len()));
+        let mut static_by_level = std::collections::BTreeMap::new();
+        let mut rows = Vec::new();
+        for setting in settings {
+            let scene = setting.apply(timed_scene);
+            let outcome = build_grid(&scene).and_then(|mut grid| {
+                let timing = time_probe(&mut grid, warmup, steps, Some(20_000.0));
+                let static_error = match (&reference_field, static_by_level.get(&setting.level)) {
+                    (None, _) => None,
+                    (Some(_), Some(&e)) => Some(e),
+                    (Some(field), None) => {
+                        let e = static_error(problem, setting.level, Weighting::Condensed, &samples, field)?;
+                        static_by_level.insert(setting.level, e);
+                        Some(e)
+                    }
+                };
+                let frequency_error = match frequency_ref {
+                    Some(f_ref) => cantilever_frequency(&scene, if quick { 0.12 } else { 0.25 })?.map(|f| (f / f_ref - 1.0).abs()),
+                    None => None,
+                };
+                Ok(Measured {
+                    timing,
+                    static_error,
+                    frequency_error,
+                    elements: grid.topology().elements.alive_count(),
+                    voxels: grid.voxel_count(),
+                    triangles: grid.surface().live_triangles().count(),
+                })
+            });
+            progress.tick(&match &outcome {
+                Ok(m) => format!("{name} {}: p99 {:.0} µs, error {:.2} %", setting.label(), m.timing.p99_us, 100.0 * m.error().unwrap_or(f64::NAN)),
+                Err(e) => format!("{name} {}: refused ({})", setting.label(), e.chars().take(100).collect::<String>()),
+            });
+            rows.push(Row { setting: *setting, outcome });
+        }
+        let mut weighting = Vec::new();
+        for &level in weighting_levels.iter().filter(|_| reference_field.is_some()) {
+            let field = reference_field.as_ref().expect("filtered");
+            let condensed = static_error(problem, level, Weighting::Condensed, &samples, field)?;
+            let fill = static_error(problem, level, Weighting::FillRatio, &samples, field)?;
+            progress.tick(&format!("{name} level {level}: condensed {:.2} %, fill ratio {:.2} %", 100.0 * condensed, 100.0 * fill));
+            weighting.push((level, condensed, fill));
+        }
+        let description = if problem.summary.is_empty() { problem.scene.description.clone() } else { problem.summary.to_string() };
+        studies.push(SceneStudy { scene: name.clone(), description, reference: reference_label, rows, weighting });
+    }
+
+    let loads = growing_loads(&cantilever, quick)?;
+    progress.tick("cantilever at growing loads");
+    let membrane = membrane_study(quick)?;
+    progress.tick(&format!("mass-spring skin: E measured {:.0} Pa", membrane.stretch.young_measured_pa));
+
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    let command = format!("cargo run --release -p cutsim-sim --bin accuracy-speed{}", if quick { " -- --quick" } else { "" });
+    let machine = format!("{} logical CPUs", std::thread::available_parallelism().map_or(0, |n| n.get()));
+    let files = [
+        ("accuracy-speed.md", markdown(&studies, &loads, Some(&membrane), &reference_check, &command, &machine)),
+        ("accuracy-speed.svg", svg(&studies)),
+        ("accuracy-speed.json", serde_json::to_string_pretty(&ErrorTable::from_studies(&studies)).expect("serialises") + "\n"),
+    ];
+    for (file, text) in files {
+        let path = out.join(file);
+        std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+/// The cantilever at level 1 under growing multiples of gravity, settled, against the
+/// linear Hex2 reference scaled by the multiple.
+fn growing_loads(problem: &Problem, quick: bool) -> Result<Vec<LoadRow>, String> {
+    let reference = load_reference(problem)?;
+    let (_, hex2) = reference.finest();
+    let linear = hex2.displacements();
+    let mut rows = Vec::new();
+    for multiple in [1.0, 10.0, 30.0, 100.0] {
+        let mut scene = Setting { level: 1, mass: MassSpec::Lumped, cg_max_iterations: 200, dt_s: 0.001 }.apply(&problem.scene);
+        scene.gravity_m_per_s2 = Some(serde_json::from_value(serde_json::json!([0.0, 0.0, -9.81 * multiple])).expect("gravity"));
+        if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
+            spec.damping.mass_per_s = serde_json::from_value(serde_json::json!(300.0)).expect("damping");
+        }
+        let mut grid = build_grid(&scene)?;
+        let n = cutsim_sim::tissue::Tissue::tools(&grid).len();
+        let (commands, mut feedback) = (vec![Default::default(); n], vec![Default::default(); n]);
+        for _ in 0..if quick { 600 } else { 1500 } {
+            grid.step(&commands, &mut feedback);
+        }
+        let parts = problem.parts(1).map_err(|e| e.to_string())?;
+        let mut settled = parts.clone();
+        settled.topo.nodes.x.clone_from(&grid.topology().nodes.x);
+        let u = sample_displacements(&settled, &reference.samples);
+        let scaled: Vec<Vec3> = linear.iter().map(|d| d * multiple).collect();
+        let error = field_error(&u, &scaled).rms;
+        let far = settled.topo.nodes.rest.iter().map(|r| r.x).fold(f64::NEG_INFINITY, f64::max);
+        let tip: Vec<f64> = (0..settled.topo.nodes.len()).filter(|&i| (settled.topo.nodes.rest[i].x - far).abs() < 1e-9).map(|i| settled.topo.nodes.rest[i].z - settled.topo.nodes.x[i].z).collect();
+        let deflection = tip.iter().sum::<f64>() / tip.len() as f64;
+        rows.push(LoadRow { gravity_multiple: multiple, tip_deflection_over_length: deflection / far, error });
+    }
+    Ok(rows)
+}
+
+fn stability(reduced: bool, out: &Path) -> Result<(), String> {
+    use cutsim_sim::accuracy::stability::{cases, markdown, run};
+    let cases = cases(!reduced);
+    let started = std::time::Instant::now();
+    let mut results = Vec::new();
+    for (i, case) in cases.iter().enumerate() {
+        let outcome = run(case)?;
+        eprintln!("[{:>3}/{}] {:>6.1} s  {}: {}", i + 1, cases.len(), started.elapsed().as_secs_f64(), case.label(), outcome.describe());
+        results.push((*case, outcome));
+    }
+    let command = format!("cargo run --release -p cutsim-sim --bin accuracy-speed -- stability{}", if reduced { " --reduced" } else { "" });
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    let path = out.join("stability.md");
+    std::fs::write(&path, markdown(&results, &command)).map_err(|e| format!("{}: {e}", path.display()))?;
+    eprintln!("wrote {}", path.display());
+    let failed = results.iter().filter(|(_, o)| !o.acceptable()).count();
+    if failed > 0 {
+        return Err(format!("{failed} cases were unbounded or refused without a reason (see {})", path.display()));
+    }
+    Ok(())
+}
+
+/// The mass-spring skin: the stretch test and the shrinking curve against εr.
+fn membrane_study(quick: bool) -> Result<MembraneStudy, String> {
+    use cutsim_sim::accuracy::membrane::{peak_and_plateau, shrinking_gap_curve, uniaxial_stretch};
+    let stretch = uniaxial_stretch()?;
+    let mut shrinking = Vec::new();
+    for eps in [0.0, 0.05, 0.1, 0.2] {
+        let curve = shrinking_gap_curve(eps, if quick { 600 } else { 1200 })?;
+        let ((at, peak), plateau) = peak_and_plateau(&curve);
+        shrinking.push((eps, peak, at, plateau));
+    }
+    Ok(MembraneStudy { stretch, shrinking })
 }

@@ -8,9 +8,16 @@ use super::solver::{MassModel, SolverSettings};
 use super::surface::GridSurface;
 use super::topology::{Layout, Topology};
 use crate::math::Vec3;
-use crate::scene::{BranchedGridSpec, GridFixedSpec, MassSpec, Scene, SceneError, VolumeSource};
+use crate::scene::{BranchedGridSpec, FidelitySpec, GridFixedSpec, MassSpec, Scene, SceneError, VolumeSource};
 use crate::volume::procedural::{UTube, ellipsoid, solid_box, u_tube};
 use crate::volume::{LabelVolume, nifti, voxelize, vti};
+
+/// The largest Poisson ratio a branched-grid material may have. Nearer 0.5, trilinear
+/// hexahedra lock and the corotated step, whose rotations are frozen over the step,
+/// pumps energy into large deformations: in the stability sweep (docs/stability.md)
+/// ν = 0.499 gained energy in every scenario without damping (and some with), and
+/// ν = 0.49 in one-voxel fragments of soft tissue (100 Pa–1 kPa); ν ≤ 0.45 never did.
+pub const MAX_POISSON: f64 = 0.45;
 
 /// Material voxels a scene may build (about 4 times the paper's largest scene).
 pub const MAX_MATERIAL_VOXELS: usize = 2_000_000;
@@ -94,6 +101,17 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
     if count > MAX_MATERIAL_VOXELS {
         return Err(at("volume", format!("{count} voxels have a material; at most {MAX_MATERIAL_VOXELS} are allowed (crop, select fewer labels or use larger voxels)")));
     }
+    for (i, m) in spec.materials.iter().enumerate() {
+        if m.poisson.get() > MAX_POISSON {
+            return Err(at(
+                &format!("materials[{i}].poisson"),
+                format!(
+                    "a Poisson ratio of {} is too close to 0.5 for the branched grid: its hexahedra lock and large deformations become unstable; use at most {MAX_POISSON} (10 % strain then changes the volume by 1 %)",
+                    m.poisson.get()
+                ),
+            ));
+        }
+    }
     let materials: Vec<GridMaterial> = spec
         .materials
         .iter()
@@ -137,8 +155,17 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
     Ok(GridParts { topo, frame, materials, settings, volume })
 }
 
-/// Builds the model a branched-grid scene describes.
+/// Builds the model a branched-grid scene describes (with `"fidelity": "auto"`, at the
+/// level the calibration chooses: see [`super::fidelity`]).
 pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
+    match spec.fidelity {
+        FidelitySpec::Fixed => build_fixed(scene, spec),
+        FidelitySpec::Auto => Ok(super::fidelity::build_auto(scene, spec)?.0),
+    }
+}
+
+/// Builds the model at the scene's `level`.
+pub fn build_fixed(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
     let GridParts { topo, frame, materials, settings, volume } = build_parts(scene, spec)?;
     check_solver_converges(scene, &topo, &settings)?;
     let surface = GridSurface::build(&topo, spec.surface.smoothing_iterations.get());

@@ -2,6 +2,7 @@
 
 mod build;
 pub mod condense;
+pub mod fidelity;
 pub mod hex;
 pub mod marching;
 mod model;

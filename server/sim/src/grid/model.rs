@@ -75,6 +75,8 @@ pub struct BranchedGrid {
     counters: TissueCounters,
     removed_volume_m3: f64,
     last_update: Option<LastUpdate>,
+    /// How `"fidelity": "auto"` chose the level (None for a fixed level).
+    fidelity: Option<super::fidelity::FidelityChoice>,
 }
 
 /// What the last voxel removal did and what each part of it cost.
@@ -92,6 +94,32 @@ pub struct LastUpdate {
 }
 
 impl BranchedGrid {
+    /// The top of the body where it is broad: the highest voxel whose 5 × 5 neighbourhood
+    /// in x and y is all material (so a tool meets a flat top, not a ridge) and whose
+    /// element holds no fixed node; world, m, at the voxel's upper face. Benchmarks and
+    /// the fidelity calibration press a probe there. None for a body without one.
+    pub fn broad_top(&self) -> Option<Vec3> {
+        let t = &self.topo;
+        let [nx, ny, nz] = t.layout.voxels;
+        let full = |i: usize, j: usize, k: usize| t.material[t.layout.voxel_index([i, j, k])] != 0;
+        for k in (0..nz).rev() {
+            for j in 2..ny.saturating_sub(2) {
+                for i in 2..nx.saturating_sub(2) {
+                    if (i - 2..=i + 2).all(|a| (j - 2..=j + 2).all(|b| full(a, b, k))) {
+                        let v = t.layout.voxel_index([i, j, k]);
+                        let element = t.voxel_element[v] as usize;
+                        if t.elements.nodes[element].iter().any(|&n| t.nodes.fixed[n as usize]) {
+                            continue; // pressing on a held region measures nothing
+                        }
+                        let top = t.voxel_centre(v) + Vec3::new(0.0, 0.0, t.layout.spacing_m[2] * 0.5);
+                        return Some(self.frame.to_world(&top));
+                    }
+                }
+            }
+        }
+        None
+    }
+
     pub(super) fn assemble(
         dt_s: f64,
         frame: Frame,
@@ -123,6 +151,7 @@ impl BranchedGrid {
             counters: TissueCounters::default(),
             removed_volume_m3: 0.0,
             last_update: None,
+            fidelity: None,
             tools,
             topo,
             surface,
@@ -348,6 +377,15 @@ impl BranchedGrid {
 
     // ----- read access (tests, benchmarks, reports) -----
 
+    /// How `"fidelity": "auto"` chose the level (None for a fixed level).
+    pub fn fidelity(&self) -> Option<&super::fidelity::FidelityChoice> {
+        self.fidelity.as_ref()
+    }
+
+    pub(super) fn set_fidelity(&mut self, choice: super::fidelity::FidelityChoice) {
+        self.fidelity = Some(choice);
+    }
+
     pub fn topology(&self) -> &Topology {
         &self.topo
     }
@@ -423,6 +461,10 @@ impl BranchedGrid {
 impl Tissue for BranchedGrid {
     fn model_name(&self) -> &'static str {
         "branched-grid"
+    }
+
+    fn fidelity(&self) -> Option<(u32, String)> {
+        self.fidelity.as_ref().map(|f| (f.level, f.summary()))
     }
 
     fn time_step_s(&self) -> f64 {

@@ -355,7 +355,17 @@ pub struct BranchedGridSpec {
     /// A material per label; voxels of labels not listed are not built.
     pub materials: Vec<LabelMaterialSpec>,
     /// Coarsening level L: a coarse element is 2^L voxels a side (0: one per voxel).
+    /// With `"fidelity": "auto"`, the finest level the calibration may choose.
     pub level: GridLevel,
+    /// "fixed" (default): build at `level`. "auto": at load, time the levels from 4 down
+    /// to `level` on this machine (a probe pressed into the body) and keep the finest
+    /// whose p99 step fits `step_budget_ms` with 30 % to spare; the session reports the
+    /// choice and its error class (docs/accuracy-speed.md).
+    #[serde(default)]
+    pub fidelity: FidelitySpec,
+    /// The p99 step-time budget of `"fidelity": "auto"`, ms.
+    #[serde(default = "default_step_budget")]
+    pub step_budget_ms: StepBudgetMs,
     #[serde(default)]
     pub mass: MassSpec,
     #[serde(default)]
@@ -466,6 +476,21 @@ pub struct LabelMaterialSpec {
 
 fn soft_tissue_poisson() -> Poisson {
     Poisson(0.45)
+}
+
+/// How the grid's level is chosen.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum FidelitySpec {
+    /// The scene's `level`.
+    #[default]
+    Fixed,
+    /// Calibrated at load against the step budget.
+    Auto,
+}
+
+fn default_step_budget() -> StepBudgetMs {
+    StepBudgetMs(1.0)
 }
 
 /// Mass matrix.

@@ -1,0 +1,123 @@
+//! Measuring settings: what a step costs (a probe pressed into the body, the workload of
+//! an instructor-less haptic session) and what the setting gets (its static error
+//! against the reference; on the cantilever also the first frequency as the dynamics
+//! deliver it).
+
+use serde_json::json;
+
+use super::problems::{Problem, sample_displacements};
+use super::reference::{Weighting, field_error, solve_linear};
+use crate::grid::{BranchedGrid, build_from_scene};
+use crate::math::Vec3;
+use crate::scene::{MassSpec, ModelSpec, Scene};
+use crate::tool::{ToolCommand, ToolFeedback};
+
+/// One point of the sweep.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Setting {
+    pub level: u32,
+    pub mass: MassSpec,
+    pub cg_max_iterations: u32,
+    pub dt_s: f64,
+}
+
+impl Setting {
+    pub fn label(&self) -> String {
+        let mass = match self.mass {
+            MassSpec::Lumped => "lumped",
+            MassSpec::Consistent => "consistent",
+        };
+        format!("L{} {mass} CG≤{} dt {} ms", self.level, self.cg_max_iterations, self.dt_s * 1e3)
+    }
+
+    /// The scene with this setting.
+    pub fn apply(&self, scene: &Scene) -> Scene {
+        let mut scene = scene.clone();
+        scene.time_step_s = serde_json::from_value(json!(self.dt_s)).expect("a time step");
+        if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
+            spec.level = serde_json::from_value(json!(self.level)).expect("a level");
+            spec.mass = self.mass;
+            spec.solver.cg_max_iterations = serde_json::from_value(json!(self.cg_max_iterations)).expect("an iteration cap");
+        }
+        scene
+    }
+}
+
+/// Step-time quantiles, µs, and the mean CG iterations per step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepTiming {
+    pub p50_us: f64,
+    pub p99_us: f64,
+    pub mean_cg: f64,
+}
+
+/// Builds a scene's grid (errors as text: a refusal names its reason).
+pub fn build_grid(scene: &Scene) -> Result<BranchedGrid, String> {
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { return Err("not a branched-grid scene".into()) };
+    build_from_scene(scene, spec).map_err(|e| e.to_string())
+}
+
+/// Times the probe workload of [`crate::grid::fidelity::time_probe`].
+pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>) -> StepTiming {
+    let (p50_us, p99_us, mean_cg) = crate::grid::fidelity::time_probe(grid, warmup, steps, stop_above_us);
+    StepTiming { p50_us, p99_us, mean_cg }
+}
+
+/// A reference displacement field for a problem: the given one, or the linear static
+/// solution at `level` of our own solver.
+pub fn own_reference(problem: &Problem, level: u32, samples: &[(usize, usize)]) -> Result<Vec<Vec3>, String> {
+    let (parts, _, residual) = solve_linear(problem, level, Weighting::Condensed, 1e-10)?;
+    if residual > 1e-8 {
+        return Err(format!("{}: the reference solve stopped at residual {residual:e}", problem.name));
+    }
+    Ok(sample_displacements(&parts, samples))
+}
+
+/// The static error (relative rms) of the linear solution at `level` against `reference`.
+pub fn static_error(problem: &Problem, level: u32, weighting: Weighting, samples: &[(usize, usize)], reference: &[Vec3]) -> Result<f64, String> {
+    let (parts, _, _) = solve_linear(problem, level, weighting, 1e-10)?;
+    Ok(field_error(&sample_displacements(&parts, samples), reference).rms)
+}
+
+/// The first frequency of the cantilever as the model's dynamics deliver it: released
+/// from rest under gravity with no damping, the tip's vertical motion is timed between
+/// its first and last turning points. None when fewer than three turning points show
+/// within `duration_s`.
+pub fn cantilever_frequency(scene: &Scene, duration_s: f64) -> Result<Option<f64>, String> {
+    let mut scene = scene.clone();
+    if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
+        spec.damping.mass_per_s = serde_json::from_value(json!(0.0)).expect("damping");
+        spec.damping.stiffness_s = serde_json::from_value(json!(0.0)).expect("damping");
+    }
+    let mut grid = build_grid(&scene)?;
+    let dt = scene.time_step_s.get();
+    let topo = grid.topology();
+    let tip: Vec<usize> = {
+        let far = topo.nodes.rest.iter().map(|r| r.x).fold(f64::NEG_INFINITY, f64::max);
+        (0..topo.nodes.len()).filter(|&n| topo.nodes.alive[n] && (topo.nodes.rest[n].x - far).abs() < 1e-9).collect()
+    };
+    let mut trace = Vec::new();
+    let steps = (duration_s / dt).round() as usize;
+    let mut feedback = vec![ToolFeedback::default(); crate::tissue::Tissue::tools(&grid).len()];
+    let commands = vec![ToolCommand::default(); feedback.len()];
+    for _ in 0..steps {
+        grid.step(&commands, &mut feedback);
+        let t = grid.topology();
+        trace.push(tip.iter().map(|&n| t.nodes.x[n].z - t.nodes.rest[n].z).sum::<f64>() / tip.len() as f64);
+    }
+    let mut turns = Vec::new();
+    for i in 1..trace.len().saturating_sub(1) {
+        if (trace[i] - trace[i - 1]) * (trace[i + 1] - trace[i]) < 0.0 {
+            // The turning point, refined by a parabola through the three samples.
+            let (a, b, c) = (trace[i - 1], trace[i], trace[i + 1]);
+            let denominator = a - 2.0 * b + c;
+            let shift = if denominator != 0.0 { 0.5 * (a - c) / denominator } else { 0.0 };
+            turns.push((i as f64 + shift) * dt);
+        }
+    }
+    if turns.len() < 3 {
+        return Ok(None);
+    }
+    let half_period = (turns[turns.len() - 1] - turns[0]) / (turns.len() - 1) as f64;
+    Ok(Some(1.0 / (2.0 * half_period)))
+}

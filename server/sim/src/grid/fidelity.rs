@@ -1,0 +1,174 @@
+//! `"fidelity": "auto"`: at load, a short calibration on this machine picks the finest
+//! level whose p99 step time fits the scene's budget with a margin, and the grid keeps
+//! a report of the choice and of its error class (measured by the speed–accuracy study,
+//! docs/accuracy-speed.json).
+//!
+//! The choice depends on the machine, so a recording must pin it: [`pin_level`] rewrites
+//! a scene's JSON to the chosen level with `"fidelity": "fixed"`, and replays of that
+//! recording build the same grid.
+
+use std::time::Instant;
+
+use super::build::build_fixed;
+use super::model::BranchedGrid;
+use crate::accuracy::report::{ErrorTable, error_class};
+use crate::math::{Pose, Quat, Vec3};
+use crate::scene::{BranchedGridSpec, Scene, SceneError};
+use crate::stats::LatencyHistogram;
+use crate::tool::{ToolCommand, ToolFeedback};
+
+/// The coarsest level the calibration tries.
+pub const COARSEST_AUTO_LEVEL: u32 = 4;
+/// The share of the budget kept free: the server's own work per step and the machine's
+/// variation between hours (up to 40 % here) need room.
+pub const BUDGET_MARGIN: f64 = 0.3;
+/// Timed steps per level (after a warm-up of 30).
+const CALIBRATION_STEPS: usize = 150;
+
+/// What the calibration measured and chose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FidelityChoice {
+    pub level: u32,
+    pub budget_us: f64,
+    /// Per level tried, coarsest first: its p99 step time, µs, or why it was refused.
+    pub tried: Vec<(u32, Result<f64, String>)>,
+    /// No level fitted: the coarsest buildable one was taken.
+    pub over_budget: bool,
+    /// The study's static error for this scene at this level, and its reference.
+    pub error: Option<(f64, String)>,
+}
+
+impl FidelityChoice {
+    /// One line for logs and session info.
+    pub fn summary(&self) -> String {
+        let tried: Vec<String> = self
+            .tried
+            .iter()
+            .map(|(l, r)| match r {
+                Ok(p99) => format!("L{l} p99 {:.0} µs", p99),
+                Err(_) => format!("L{l} refused"),
+            })
+            .collect();
+        let fit = if self.over_budget { "no level fits" } else { "fits" };
+        let error = match &self.error {
+            Some((e, reference)) => format!("error class {}: {:.1} % static displacement error at this level against {reference}", error_class(*e), 100.0 * e),
+            None => "error class not measured for this scene (docs/accuracy-speed.md measures the bundled scenes)".to_string(),
+        };
+        format!(
+            "fidelity auto: level {} ({fit} a p99 budget of {:.0} µs with {:.0} % margin; tried {}); {error}",
+            self.level,
+            self.budget_us,
+            BUDGET_MARGIN * 100.0,
+            tried.join(", ")
+        )
+    }
+}
+
+/// Times `steps` steps (after `warmup` untimed ones) with the scene's first non-cutting
+/// tool (else its first tool, cut off) pressed 4 mm into the body's broad top over the
+/// first 100 steps and held there; no tool when the body has no broad top. Stops early
+/// once the median of 20 or more steps exceeds `stop_above_us`. Returns the p50 and p99
+/// step times, µs, and the mean CG iterations per step.
+pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>) -> (f64, f64, f64) {
+    let tools = crate::tissue::Tissue::tools(grid).to_vec();
+    let probe = tools.iter().position(|t| !t.can_cut).or(if tools.is_empty() { None } else { Some(0) });
+    let top = grid.broad_top();
+    let mut commands = vec![ToolCommand::default(); tools.len()];
+    let mut feedback = vec![ToolFeedback::default(); tools.len()];
+    let radius = probe.map_or(0.0, |p| tools[p].radius_m);
+    let mut histogram = LatencyHistogram::new();
+    let mut iterations = 0u64;
+    for step in 0..warmup + steps {
+        if let (Some(p), Some(top)) = (probe, top) {
+            let depth = 0.004 * (step as f64 / 100.0).min(1.0);
+            // The capsule's lowest point is its tip less its radius.
+            let tip = Vec3::new(top.x, top.y, top.z + radius - depth);
+            commands[p] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
+        }
+        let started = Instant::now();
+        grid.step(&commands, &mut feedback);
+        let elapsed = started.elapsed();
+        if step >= warmup {
+            histogram.record(elapsed);
+            iterations += u64::from(grid.last_solve().0);
+        }
+        if let Some(limit) = stop_above_us {
+            if step >= warmup + 20 && histogram.quantile_ns(0.5) as f64 / 1e3 > limit {
+                break;
+            }
+        }
+    }
+    let n = histogram.count().max(1) as f64;
+    (histogram.quantile_ns(0.5) as f64 / 1e3, histogram.quantile_ns(0.99) as f64 / 1e3, iterations as f64 / n)
+}
+
+/// The study's error table (docs/accuracy-speed.json, written by `accuracy-speed`).
+pub fn error_table() -> ErrorTable {
+    serde_json::from_str(include_str!("../../../../docs/accuracy-speed.json")).unwrap_or_default()
+}
+
+/// Builds the grid at the finest level from [`COARSEST_AUTO_LEVEL`] down to the scene's
+/// `level` whose p99 step fits the budget less the margin (the coarsest buildable one
+/// when none fits), and reports the choice.
+pub fn build_auto(scene: &Scene, spec: &BranchedGridSpec) -> Result<(BranchedGrid, FidelityChoice), SceneError> {
+    let budget_us = spec.step_budget_ms.get() * 1e3;
+    let finest = spec.level.get();
+    let coarsest = COARSEST_AUTO_LEVEL.max(finest);
+    let mut tried = Vec::new();
+    let mut chosen: Option<(u32, BranchedGrid)> = None;
+    let mut fallback: Option<(u32, BranchedGrid)> = None;
+    let mut last_error = None;
+    for level in (finest..=coarsest).rev() {
+        let mut candidate = spec.clone();
+        candidate.level = crate::quantity::GridLevel::new(level).map_err(|e| SceneError::new(&scene.origin, "model.branched-grid.level", e))?;
+        let grid = match build_fixed(scene, &candidate) {
+            Ok(grid) => grid,
+            Err(e) => {
+                tried.push((level, Err(e.to_string())));
+                last_error = Some(e);
+                continue;
+            }
+        };
+        let mut timed = grid.clone();
+        let (_, p99, _) = time_probe(&mut timed, 30, CALIBRATION_STEPS, Some(budget_us));
+        tried.push((level, Ok(p99)));
+        if p99 <= budget_us * (1.0 - BUDGET_MARGIN) {
+            chosen = Some((level, grid));
+        } else {
+            if fallback.is_none() && chosen.is_none() {
+                fallback = Some((level, grid));
+            }
+            // Finer levels are slower still.
+            break;
+        }
+    }
+    let over_budget = chosen.is_none();
+    let Some((level, mut grid)) = chosen.or(fallback) else {
+        return Err(last_error.unwrap_or_else(|| SceneError::new(&scene.origin, "model.branched-grid.fidelity", "no level could be built")));
+    };
+    let error = error_table().lookup(&scene.name, level).map(|(e, reference)| (e, reference.to_string()));
+    let choice = FidelityChoice { level, budget_us, tried, over_budget, error };
+    grid.set_fidelity(choice.clone());
+    Ok((grid, choice))
+}
+
+/// A scene's JSON with the branched grid's level pinned to `level` and its fidelity
+/// "fixed" (what a recording of an auto session must hold to replay the same grid).
+pub fn pin_level(scene_json: &str, level: u32) -> Result<String, String> {
+    let mut value: serde_json::Value = serde_json::from_str(scene_json).map_err(|e| format!("the scene is not JSON: {e}"))?;
+    let grid = value.pointer_mut("/model/branched-grid").and_then(|g| g.as_object_mut()).ok_or("not a branched-grid scene")?;
+    grid.insert("level".into(), level.into());
+    grid.insert("fidelity".into(), "fixed".into());
+    Ok(value.to_string())
+}
+
+/// The scene with its branched grid pinned to `level`, fidelity "fixed" (what a reset of
+/// an auto session rebuilds, so that it does not calibrate again).
+pub fn pin_scene(scene: &Scene, level: u32) -> Scene {
+    let mut scene = scene.clone();
+    if let crate::scene::ModelSpec::BranchedGrid(spec) = &mut scene.model {
+        spec.level = crate::quantity::GridLevel::new(level).expect("a level the calibration built");
+        spec.fidelity = crate::scene::FidelitySpec::Fixed;
+    }
+    scene
+}
