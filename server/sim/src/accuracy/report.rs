@@ -26,6 +26,8 @@ pub struct Measured {
     pub elements: usize,
     pub voxels: usize,
     pub triangles: usize,
+    /// Fixed nodes: the support a level resolves changes with it.
+    pub held_nodes: usize,
 }
 
 impl Measured {
@@ -117,8 +119,22 @@ pub fn error_class(error: f64) -> &'static str {
     }
 }
 
+/// A load refusal, short: the iterations it needs, or the message without its origin.
+fn short_refusal(message: &str) -> String {
+    let needs = message.split("needs ").nth(1).and_then(|t| t.split(' ').next()).and_then(|n| n.parse::<u32>().ok());
+    let cap = message.split("more than the ").nth(1).and_then(|t| t.split(' ').next()).and_then(|n| n.parse::<u32>().ok());
+    match (needs, cap) {
+        (Some(n), Some(c)) => format!("refused at load: the solve needs {n} CG iterations, {c} allowed"),
+        _ => format!("refused at load: {}", message.rsplit(": ").next().unwrap_or(message)),
+    }
+}
+
 fn percent(e: Option<f64>) -> String {
-    e.map_or("–".into(), |e| format!("{:.2} %", 100.0 * e))
+    match e {
+        None => "–".into(),
+        Some(e) if e == 0.0 => "0 (the reference)".into(),
+        Some(e) => format!("{:.2} %", 100.0 * e),
+    }
 }
 
 /// Indices of the rows on the Pareto front (no other row is both faster at p99 and
@@ -145,7 +161,7 @@ pub fn markdown(studies: &[SceneStudy], loads: &[LoadRow], membrane: Option<&Mem
     let _ = writeln!(md, "![Error against p99 step time](accuracy-speed.svg)\n");
     let _ = writeln!(
         md,
-        "**Error** is the static displacement error under gravity (relative rms over the sample points: every node of the level-0 mesh, or every 16th on large bodies) against the finest reference there is for the scene; on the cantilever it is the worse of that and the error of the first frequency that the dynamics deliver (released from rest without damping, the period between the tip's turning points) against scikit-fem's eigenvalue. **Step time** is one physics step with a probe pressed 4 mm into the body's top (contacts every step), after a warm-up. Mass model and CG cap do not change the static equilibrium, so their rows share the level's static error; they change the dynamics (the cantilever's frequency column) and the step time.\n"
+        "**Error** is the static displacement error under gravity (relative rms over the sample points: every node of the level-0 mesh, or every 16th on large bodies) against the finest reference there is for the scene; on the cantilever it is the worse of that and the error of the first frequency that the dynamics deliver (released from rest without damping, the period between the tip's turning points) against scikit-fem's eigenvalue. **Step time** is one physics step with a probe pressed 4 mm into the body's top (contacts every step), after a warm-up. Mass model and CG cap do not change the static equilibrium, so their rows share the level's static error; they change the dynamics (the cantilever's frequency column) and the step time. A body held by a box (the livers) is held by the nodes a level has inside it: coarser levels hold fewer, farther apart (the held-nodes column), and part of their error is that changed support.\n"
     );
     let _ = writeln!(md, "## The level-0 model against scikit-fem\n");
     let _ = writeln!(md, "Same mesh, same trilinear elements (linear, small-strain mode), so only round-off and solver tolerance may differ (`cargo test -p cutsim-sim --test reference` asserts < 1e-6):\n");
@@ -154,14 +170,14 @@ pub fn markdown(studies: &[SceneStudy], loads: &[LoadRow], membrane: Option<&Mem
     }
     for study in studies {
         let _ = writeln!(md, "\n## {}\n\n{}\n\nReference: {}.\n", study.scene, study.description, study.reference);
-        let _ = writeln!(md, "| setting | step p50 | step p99 | static error | frequency error | elements | voxels | triangles | CG/step |");
-        let _ = writeln!(md, "|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+        let _ = writeln!(md, "| setting | step p50 | step p99 | static error | frequency error | elements | voxels | triangles | held nodes | CG/step |");
+        let _ = writeln!(md, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
         for row in &study.rows {
             match &row.outcome {
                 Ok(m) => {
                     let _ = writeln!(
                         md,
-                        "| {} | {:.0} µs | {:.0} µs | {} | {} | {} | {} | {} | {:.1} |",
+                        "| {} | {:.0} µs | {:.0} µs | {} | {} | {} | {} | {} | {} | {:.1} |",
                         row.setting.label(),
                         m.timing.p50_us,
                         m.timing.p99_us,
@@ -170,11 +186,12 @@ pub fn markdown(studies: &[SceneStudy], loads: &[LoadRow], membrane: Option<&Mem
                         m.elements,
                         m.voxels,
                         m.triangles,
+                        m.held_nodes,
                         m.timing.mean_cg
                     );
                 }
                 Err(reason) => {
-                    let _ = writeln!(md, "| {} | refused at load: {} |||||||| ", row.setting.label(), reason.replace('|', "/"));
+                    let _ = writeln!(md, "| {} | {} ||||||||| ", row.setting.label(), short_refusal(reason).replace('|', "/"));
                 }
             }
         }
@@ -205,7 +222,7 @@ pub fn markdown(studies: &[SceneStudy], loads: &[LoadRow], membrane: Option<&Mem
         let _ = writeln!(md, "\n## The mass-spring skin\n");
         let _ = writeln!(
             md,
-            "Uniaxial stretch of the calibrated patch (10 × 10 cm, 5 mm equilateral mesh, E = {:.0} kPa, 2 mm thick; pulled 1 % on rollers, relaxed): the springs reproduce **E = {:.0} Pa ({:+.2} % of the membrane's)** and a Poisson ratio of {:.3} (an equilateral spring lattice has 1/3 whatever ν the membrane has: the model's one structural limit here).\n",
+            "Uniaxial stretch of the calibrated patch (10 × 10 cm, 5 mm equilateral mesh, E = {:.0} kPa, 2 mm thick; pulled 1 % on rollers, relaxed): the springs reproduce **E = {:.0} Pa ({:+.2} % of the membrane's)** and an effective Poisson ratio of {:.3} (an equilateral spring lattice tends to 1/3 whatever the membrane's ν: the model's structural limit here).\n",
             s.young_target_pa / 1e3,
             s.young_measured_pa,
             100.0 * (s.young_measured_pa / s.young_target_pa - 1.0),
@@ -215,7 +232,8 @@ pub fn markdown(studies: &[SceneStudy], loads: &[LoadRow], membrane: Option<&Mem
         let _ = writeln!(md, "| εr | peak gap | at | plateau (last 100 ms) |");
         let _ = writeln!(md, "|---:|---:|---:|---:|");
         for &(eps, peak, at, plateau) in &m.shrinking {
-            let _ = writeln!(md, "| {eps} | {:.3} mm | {at} ms | {:.3} mm |", peak * 1e3, plateau * 1e3);
+            let at = if peak > 1e-9 { format!("{at} ms") } else { "–".into() };
+            let _ = writeln!(md, "| {eps} | {:.3} mm | {at} | {:.3} mm |", peak * 1e3, plateau * 1e3);
         }
     }
     md
@@ -224,16 +242,17 @@ pub fn markdown(studies: &[SceneStudy], loads: &[LoadRow], membrane: Option<&Mem
 /// The plot: error (log) against p99 step time (log), one colour per scene, its Pareto
 /// front joined, the 1 ms budget as a vertical line.
 pub fn svg(studies: &[SceneStudy]) -> String {
-    const W: f64 = 760.0;
+    const W: f64 = 800.0;
     const H: f64 = 480.0;
     const LEFT: f64 = 70.0;
-    const RIGHT: f64 = 190.0;
+    const RIGHT: f64 = 230.0;
     const TOP: f64 = 30.0;
     const BOTTOM: f64 = 50.0;
     let colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"];
     let points: Vec<Vec<(f64, f64)>> = studies
         .iter()
-        .map(|s| s.rows.iter().filter_map(|r| r.outcome.as_ref().ok()).filter_map(|m| m.error().map(|e| (m.timing.p99_us / 1e3, e.max(1e-5)))).collect())
+        // The reference setting itself (error 0 by construction) has no place on a log axis.
+        .map(|s| s.rows.iter().filter_map(|r| r.outcome.as_ref().ok()).filter_map(|m| m.error().filter(|&e| e > 1e-9).map(|e| (m.timing.p99_us / 1e3, e))).collect())
         .collect();
     let all: Vec<(f64, f64)> = points.iter().flatten().copied().collect();
     let (mut t_lo, mut t_hi) = (0.01f64, 1000.0f64);
@@ -286,7 +305,8 @@ pub fn svg(studies: &[SceneStudy]) -> String {
             );
         }
         let ly = TOP + 10.0 + 20.0 * i as f64;
-        let _ = writeln!(s, r#"<circle cx="{:.1}" cy="{ly:.1}" r="4.5" fill="{colour}"/><text x="{:.1}" y="{:.1}">{}</text>"#, x1 + 16.0, x1 + 26.0, ly + 4.0, study.scene);
+        let name = if pts.is_empty() { format!("{} (no reference)", study.scene) } else { study.scene.clone() };
+        let _ = writeln!(s, r#"<circle cx="{:.1}" cy="{ly:.1}" r="4.5" fill="{colour}"/><text x="{:.1}" y="{:.1}">{name}</text>"#, x1 + 16.0, x1 + 26.0, ly + 4.0);
     }
     let ly = TOP + 10.0 + 20.0 * studies.len() as f64;
     let _ = writeln!(s, r##"<text x="{:.1}" y="{:.1}" fill="#444">filled, joined: Pareto front</text>"##, x1 + 10.0, ly + 4.0);

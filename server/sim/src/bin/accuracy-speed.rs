@@ -141,7 +141,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
         let weighting = if name == "u-tube" { vec![1, 2] } else { vec![2, 3] };
         plans.push((name.into(), bundled_problem(name)?, bundled_scene(name)?, scene_settings(levels, 30), weighting));
     }
-    let mut progress = Progress { done: 0, total: plans.iter().map(|p| p.3.len() + p.4.len() + 1).sum::<usize>() + 5, started: std::time::Instant::now() };
+    let mut progress = Progress { done: 0, total: plans.iter().map(|p| p.3.len() + p.4.len() + 1).sum::<usize>() + all.len() + 2, started: std::time::Instant::now() };
 
     // The level-0 model against scikit-fem, as the test checks it.
     let mut reference_check = Vec::new();
@@ -216,6 +216,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
                     elements: grid.topology().elements.alive_count(),
                     voxels: grid.voxel_count(),
                     triangles: grid.surface().live_triangles().count(),
+                    held_nodes: (0..grid.topology().nodes.len()).filter(|&n| grid.topology().nodes.alive[n] && grid.topology().nodes.fixed[n]).count(),
                 })
             });
             progress.tick(&match &outcome {
