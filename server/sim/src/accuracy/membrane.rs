@@ -8,7 +8,6 @@ use crate::math::{Pose, Quat, Vec3};
 use crate::msm::{MassSpring, build_from_scene};
 use crate::scene::{ModelSpec, Scene};
 use crate::tissue::Tissue;
-use crate::tool::{ToolCommand, ToolFeedback};
 
 fn build(json: &str) -> Result<MassSpring, String> {
     let scene = Scene::from_json_str(json, "membrane study", None).map_err(|e| e.to_string())?;
@@ -16,17 +15,8 @@ fn build(json: &str) -> Result<MassSpring, String> {
     build_from_scene(&scene, spec).map_err(|e| e.to_string())
 }
 
-/// Steps the model with tool 0 held at `pose` (cut button `cut`), `steps` times.
 fn step_with(model: &mut MassSpring, pose: Option<Pose>, cut: bool, steps: usize) {
-    let tools = model.tools().len();
-    let mut commands = vec![ToolCommand::default(); tools];
-    let mut feedback = vec![ToolFeedback::default(); tools];
-    if let Some(p) = pose {
-        commands[0] = ToolCommand { pose: p, active: true, cut };
-    }
-    for _ in 0..steps {
-        model.step(&commands, &mut feedback);
-    }
+    model.step_holding(pose, cut, steps);
 }
 
 /// What the stretch test measured.

@@ -339,6 +339,21 @@ impl MassSpring {
         self.grid.update(id, &x);
     }
 
+    /// Steps `steps` times with tool 0 held at `pose` (None: every tool away), the cut
+    /// button `cut`; returns tool 0's last feedback. For experiments and tests.
+    pub fn step_holding(&mut self, pose: Option<crate::math::Pose>, cut: bool, steps: usize) -> ToolFeedback {
+        let tools = self.tools().len();
+        let mut commands = vec![ToolCommand::default(); tools];
+        let mut feedback = vec![ToolFeedback::default(); tools];
+        if let Some(p) = pose {
+            commands[0] = ToolCommand { pose: p, active: true, cut };
+        }
+        for _ in 0..steps {
+            self.step(&commands, &mut feedback);
+        }
+        feedback.first().copied().unwrap_or_default()
+    }
+
     /// The incisions made so far, with their curves and lips.
     pub fn incisions(&self) -> &[Incision] {
         self.cutter.as_ref().map_or(&[], |c| &c.incisions)

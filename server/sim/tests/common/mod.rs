@@ -5,7 +5,7 @@ use cutsim_sim::geometry::TriMesh;
 use cutsim_sim::math::{Pose, Quat, Vec3};
 use cutsim_sim::msm::{MassSpring, build_from_scene};
 use cutsim_sim::scene::{ModelSpec, Scene};
-use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+use cutsim_sim::tool::ToolFeedback;
 
 /// A file in the shared data directory; fails loudly when the data is not there.
 pub fn shared_data(relative: &str) -> std::path::PathBuf {
@@ -60,16 +60,7 @@ pub fn pose(tip: Vec3, axis: Vec3) -> Pose {
 
 /// Steps the model with tool 0 held at `pose` (cut button `cut`), `steps` times.
 pub fn step_with(model: &mut MassSpring, pose: Option<Pose>, cut: bool, steps: usize) -> ToolFeedback {
-    let tools = cutsim_sim::tissue::Tissue::tools(model).len();
-    let mut commands = vec![ToolCommand::default(); tools];
-    let mut feedback = vec![ToolFeedback::default(); tools];
-    if let Some(p) = pose {
-        commands[0] = ToolCommand { pose: p, active: true, cut };
-    }
-    for _ in 0..steps {
-        model.step(&commands, &mut feedback);
-    }
-    feedback.first().copied().unwrap_or_default()
+    model.step_holding(pose, cut, steps)
 }
 
 /// Cuts along a straight line in `steps` steps with a blade whose tip is `depth` below
