@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs cutsim-server on the default scene with the web viewer: the README's run command.
-# Installs the viewer's JavaScript dependencies (npm, seconds) and builds the server
-# (cargo, release) on the first run. Arguments go to `cutsim-server serve`.
+# Installs the viewer's JavaScript dependencies (npm, seconds) and builds the server and
+# the clients (cargo, release) on the first run. Arguments go to `cutsim-server serve`.
+# docker/Dockerfile repeats these set-up steps word for word (tests/e2e/deploy.rs checks).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -14,4 +15,5 @@ if [ ! -d web-viewer/node_modules ]; then
     (cd web-viewer && npm ci --no-audit --no-fund)
 fi
 
-exec cargo run --release -p cutsim-server -- serve "$@"
+cargo build --release --locked -p cutsim-server -p cut-bot -p haptic-bridge
+exec cargo run --release --locked -p cutsim-server -- serve "$@"

@@ -3,6 +3,7 @@
 //! and gRPC reflection and health clients as grpcurl would use them.
 
 mod bad_input;
+mod deploy;
 mod harness;
 mod haptics;
 mod recording;

@@ -48,6 +48,19 @@ enum Command {
     Replay(ReplayArgs),
     /// Print the JSON Schema of scene files.
     SceneSchema,
+    /// Ask a running server's gRPC health service whether it is serving (exit 0) or not
+    /// (exit 1): the container's HEALTHCHECK and a probe for orchestrators without gRPC probes.
+    Health(HealthArgs),
+}
+
+#[derive(Args)]
+struct HealthArgs {
+    /// The server's gRPC address.
+    #[arg(long, default_value = "127.0.0.1:50051")]
+    grpc_addr: SocketAddr,
+    /// Give up after this many seconds.
+    #[arg(long, default_value_t = 3.0)]
+    timeout_s: f64,
 }
 
 #[derive(Args, Default)]
@@ -103,6 +116,7 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Command::Replay(args) => replay(&args),
+        Command::Health(args) => health(&args),
         Command::Serve(args) => serve(args, dirs, !cli.scenes_dir.is_empty()),
     }
 }
@@ -141,6 +155,37 @@ fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::from(2)
+        }
+    }
+}
+
+fn health(args: &HealthArgs) -> ExitCode {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().expect("a tokio runtime");
+    let timeout = std::time::Duration::from_secs_f64(args.timeout_s.clamp(0.1, 600.0));
+    let url = format!("http://{}", args.grpc_addr);
+    let check = async {
+        let channel = tonic::transport::Endpoint::from_shared(url.clone())?.connect_timeout(timeout).connect().await?;
+        let reply = HealthClient::new(channel).check(HealthCheckRequest { service: String::new() }).await?;
+        Ok::<_, Box<dyn std::error::Error>>(reply.into_inner().status)
+    };
+    match runtime.block_on(async { tokio::time::timeout(timeout, check).await }) {
+        Ok(Ok(status)) if status == ServingStatus::Serving as i32 => {
+            println!("{url}: serving");
+            ExitCode::SUCCESS
+        }
+        Ok(Ok(status)) => {
+            println!("{url}: not serving (status {status})");
+            ExitCode::from(1)
+        }
+        Ok(Err(e)) => {
+            eprintln!("{url}: no answer from the gRPC health service: {e}");
+            ExitCode::from(1)
+        }
+        Err(_) => {
+            eprintln!("{url}: no answer within {} s", args.timeout_s);
+            ExitCode::from(1)
         }
     }
 }
