@@ -24,6 +24,9 @@ tools/reference/run.sh
 echo "==> cargo test (unit, integration and end-to-end tests)"
 cargo test --workspace --locked
 
+echo "==> fuzzing: every cargo-fuzz target for 20,000 inputs (docs/fuzzing.md)"
+fuzz/run.sh 20000
+
 echo "==> Python client example (grpcio stubs from proto/cutsim.proto) against a real server"
 clients/python/setup.sh >/dev/null
 CUTSIM_SERVER_BIN="$(pwd)/target/debug/cutsim-server" clients/python/.venv/bin/python -m unittest discover -s clients/python -p "test_*.py"

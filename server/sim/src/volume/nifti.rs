@@ -108,9 +108,11 @@ pub fn parse_nifti(bytes: &[u8]) -> Result<LabelVolume, String> {
     if !(vox_offset.is_finite() && vox_offset >= HEADER_SIZE as f32) {
         return Err(format!("vox_offset is {vox_offset}; it must be at least {HEADER_SIZE}"));
     }
+    // A huge vox_offset saturates the cast; the sum must not wrap (found by fuzzing:
+    // vox_offset 1e30 wrapped `start + needed` past the length check).
     let start = vox_offset as usize;
     let needed = count * bytes_per;
-    if bytes.len() < start + needed {
+    if start.checked_add(needed).is_none_or(|end| bytes.len() < end) {
         return Err(format!(
             "the file is truncated: the header promises {needed} bytes of voxel data from byte {start}, but the file has {} bytes",
             bytes.len()
