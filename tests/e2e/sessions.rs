@@ -118,11 +118,19 @@ async fn an_auto_fidelity_session_reports_and_records_its_level() {
         .unwrap()
         .into_inner();
     let info = created.session.unwrap();
-    // A 1 s budget fits the finest level allowed.
-    assert!(info.fidelity.starts_with("fidelity auto: level 1 (fits"), "{}", info.fidelity);
+    // Which level fits depends on this machine; the session says which it took.
+    let level: u32 = info
+        .fidelity
+        .strip_prefix("fidelity auto: level ")
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no level in {:?}", info.fidelity));
+    assert!(info.fidelity.contains("error class"), "{}", info.fidelity);
+    // The recording holds the scene pinned to that level.
     let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", info.id))).unwrap();
-    let first = recording.lines().next().unwrap();
-    assert!(first.contains(r#""fidelity":"fixed""#) && first.contains(r#""level":1"#), "the recording pins the level: {}", &first[..first.len().min(600)]);
+    let header: serde_json::Value = serde_json::from_str(recording.lines().next().unwrap()).unwrap();
+    let grid = &header["scene"]["model"]["branched-grid"];
+    assert_eq!((grid["fidelity"].as_str(), grid["level"].as_u64()), (Some("fixed"), Some(u64::from(level))), "the recording pins the level: {header}");
     // A fixed scene reports nothing.
     let fixed = create(&server, "u-tube", pb::SessionMode::Lockstep).await;
     assert_eq!(fixed.info.fidelity, "");

@@ -2,8 +2,8 @@
 //! `tools/reference/run.sh` in the test command; its results are committed in
 //! tools/reference/results, or read from `$CUTSIM_REFERENCE_DIR`).
 
-use cutsim_sim::accuracy::problems::problems;
-use cutsim_sim::accuracy::reference::{Weighting, displacements_at_samples, field_error, load_reference, solve_linear};
+use cutsim_sim::accuracy::problems::{problems, sample_displacements};
+use cutsim_sim::accuracy::reference::{Weighting, field_error, load_reference, solve_linear};
 
 /// Same mesh, same trilinear elements: only round-off and the solvers' tolerances differ.
 #[test]
@@ -12,7 +12,7 @@ fn level_0_matches_scikit_fem_hex1_to_1e_6() {
         let reference = load_reference(&problem).unwrap_or_else(|e| panic!("{e}"));
         let (parts, iterations, residual) = solve_linear(&problem, 0, Weighting::Condensed, 1e-12).expect("the problem builds");
         assert!(residual <= 1e-12, "{}: CG stopped at residual {residual:e} after {iterations} iterations", problem.name);
-        let error = field_error(&displacements_at_samples(&parts, &reference), &reference.hex1.displacements());
+        let error = field_error(&sample_displacements(&parts.topo, &reference.samples), &reference.hex1.displacements());
         eprintln!("{}: {} samples, {iterations} CG iterations, error vs Hex1 rms {:.2e}, max {:.2e}", problem.name, reference.samples.len(), error.rms, error.max);
         assert!(error.max < 1e-6, "{}: level 0 differs from scikit-fem Hex1 by {:.2e} (relative, max over samples)", problem.name, error.max);
     }
@@ -32,7 +32,7 @@ fn coarse_levels_approach_the_reference_and_condensation_beats_fill_ratio_where_
         for level in 1..=3 {
             let error = |weighting| {
                 let (parts, _, _) = solve_linear(&problem, level, weighting, 1e-10).expect("the problem builds");
-                field_error(&displacements_at_samples(&parts, &reference), &finest)
+                field_error(&sample_displacements(&parts.topo, &reference.samples), &finest)
             };
             let (condensed, fill_ratio) = (error(Weighting::Condensed), error(Weighting::FillRatio));
             eprintln!("{} level {level} vs {label}: condensed rms {:.4}, fill ratio rms {:.4}", problem.name, condensed.rms, fill_ratio.rms);

@@ -2,7 +2,7 @@
 //! points facing each other on the two lips rises quickly, overshoots, falls back and
 //! settles; the plateau grows with the residual strain εr and vanishes at εr = 0.
 
-use cutsim_sim::accuracy::membrane::shrinking_gap_curve;
+use cutsim_sim::accuracy::membrane::{peak_and_plateau, shrinking_gap_curve};
 
 fn gap_curve(residual_strain: f64, steps: usize) -> Vec<f64> {
     shrinking_gap_curve(residual_strain, steps).unwrap()
@@ -11,8 +11,7 @@ fn gap_curve(residual_strain: f64, steps: usize) -> Vec<f64> {
 #[test]
 fn gap_rises_overshoots_falls_back_and_settles() {
     let d = gap_curve(0.1, 1500);
-    let (peak_at, peak) = d.iter().copied().enumerate().fold((0, 0.0), |best, (i, v)| if v > best.1 { (i, v) } else { best });
-    let plateau = d[d.len() - 100..].iter().sum::<f64>() / 100.0;
+    let ((peak_at, peak), plateau) = peak_and_plateau(&d);
     println!("εr = 0.1: gap at the cut {:.3} mm, at 1 ms {:.3} mm, peak {:.3} mm at {} ms, plateau {:.3} mm", d[0] * 1e3, d[1] * 1e3, peak * 1e3, peak_at, plateau * 1e3);
     // Rise: the lips start together and the gap grows to the peak.
     assert!(d[0] < 1e-9, "the lips start together: {:.3} mm", d[0] * 1e3);
@@ -29,10 +28,7 @@ fn gap_rises_overshoots_falls_back_and_settles() {
 
 #[test]
 fn plateau_grows_with_residual_strain_and_vanishes_without_it() {
-    let plateau = |eps: f64| {
-        let d = gap_curve(eps, 1200);
-        d[d.len() - 100..].iter().sum::<f64>() / 100.0
-    };
+    let plateau = |eps: f64| peak_and_plateau(&gap_curve(eps, 1200)).1;
     let values: Vec<(f64, f64)> = [0.0, 0.05, 0.1, 0.2].into_iter().map(|e| (e, plateau(e))).collect();
     for (e, p) in &values {
         println!("εr = {e}: plateau gap {:.3} mm", p * 1e3);

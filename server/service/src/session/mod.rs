@@ -314,16 +314,13 @@ impl Registry {
         // A level chosen by "fidelity": "auto" depends on this machine: the recording
         // pins it, so that a replay builds the same grid.
         let fidelity = tissue.fidelity();
-        let scene = match &fidelity {
-            Some((level, _)) => cutsim_sim::grid::fidelity::pin_scene(&scene, *level),
-            None => scene,
-        };
-        let scene_json = match (&fidelity, scene_json) {
-            (Some((level, summary)), json) => {
+        let (scene, scene_json) = match &fidelity {
+            Some((level, summary)) => {
+                use cutsim_sim::grid::fidelity::{pin_level, pin_scene};
                 tracing::info!(session = %id, "{summary}");
-                json.map(|j| cutsim_sim::grid::fidelity::pin_level(&j, *level)).transpose().map_err(ApiError::Internal)?
+                (pin_scene(&scene, *level), scene_json.map(|j| pin_level(&j, *level)).transpose().map_err(ApiError::Internal)?)
             }
-            (None, json) => json,
+            None => (scene, scene_json),
         };
         let initial = tissue.snapshot();
         let bounds = bounding_box(&initial);

@@ -15,8 +15,27 @@ fn build(json: &str) -> Result<MassSpring, String> {
     build_from_scene(&scene, spec).map_err(|e| e.to_string())
 }
 
-fn step_with(model: &mut MassSpring, pose: Option<Pose>, cut: bool, steps: usize) {
-    model.step_holding(pose, cut, steps);
+/// A skin patch scene (E 100 kPa, 2 mm thick, edges held, explicit integrator) with a
+/// scalpel; `msm_extra` is spliced into the msm object. The shrinking study and the
+/// tests use it.
+pub fn patch_scene(size_m: [f64; 2], resolution: [u32; 2], residual_strain: f64, msm_extra: &str) -> String {
+    format!(
+        r#"{{
+        "name": "test-patch",
+        "model": {{ "msm": {{
+            "geometry": {{ "patch": {{ "size_m": [{}, {}], "resolution": [{}, {}] }} }},
+            "material": {{ "young_pa": 100000, "thickness_m": 0.002, "density_kg_per_m3": 1100 }},
+            "residual_strain": {residual_strain},
+            "damping": {{ "mass_per_s": 20 }},
+            "fixed": [ {{ "boundary": {{}} }} ],
+            "integrator": {{ "symplectic-euler": {{ "substeps": 12 }} }},
+            "cutting": {{}}
+            {msm_extra}
+        }} }},
+        "tools": [ {{ "name": "scalpel", "shape": {{ "cylinder": {{ "radius_m": 0.0005, "length_m": 0.04 }} }}, "can_cut": true }} ]
+    }}"#,
+        size_m[0], size_m[1], resolution[0], resolution[1]
+    )
 }
 
 /// What the stretch test measured.
@@ -65,7 +84,7 @@ pub fn uniaxial_stretch() -> Result<Stretch, String> {
         m.set_node_position(i, p + Vec3::new(width * strain_applied, 0.0, 0.0));
     }
     let reference: Vec<Vec3> = m.positions().to_vec();
-    step_with(&mut m, None, false, 3000);
+    m.step_holding(None, false, 3000);
     let residual_speed = m.velocities().iter().map(|v| v.norm()).fold(0.0, f64::max);
     // Reaction: the springs pull the right side back with −F.
     let force: f64 = -right.iter().map(|&i| m.spring_force_on(i).x).sum::<f64>();
@@ -90,26 +109,12 @@ pub fn uniaxial_stretch() -> Result<Stretch, String> {
 /// update into a 10 × 8 cm patch with residual strain `residual_strain`, sampled every
 /// step for `steps` steps from the moment the lips are made.
 pub fn shrinking_gap_curve(residual_strain: f64, steps: usize) -> Result<Vec<f64>, String> {
-    let text = format!(
-        r#"{{
-        "name": "test-patch",
-        "model": {{ "msm": {{
-            "geometry": {{ "patch": {{ "size_m": [0.1, 0.08], "resolution": [40, 37] }} }},
-            "material": {{ "young_pa": 100000, "thickness_m": 0.002, "density_kg_per_m3": 1100 }},
-            "residual_strain": {residual_strain},
-            "damping": {{ "mass_per_s": 20 }},
-            "fixed": [ {{ "boundary": {{}} }} ],
-            "integrator": {{ "symplectic-euler": {{ "substeps": 12 }} }},
-            "cutting": {{}}
-        }} }},
-        "tools": [ {{ "name": "scalpel", "shape": {{ "cylinder": {{ "radius_m": 0.0005, "length_m": 0.04 }} }}, "can_cut": true }} ]
-    }}"#
-    );
+    let text = patch_scene([0.1, 0.08], [40, 37], residual_strain, "");
     let mut m = build(&text)?;
     let (from, to) = (Vec3::new(-0.02, 0.0, 0.0), Vec3::new(0.02, 0.0, 0.0));
-    let down = Pose::new(Vec3::zeros(), Quat::identity());
-    step_with(&mut m, Some(Pose::new(from - Vec3::z() * 0.005, down.orientation)), true, 1);
-    step_with(&mut m, Some(Pose::new(to - Vec3::z() * 0.005, down.orientation)), true, 1);
+    // A vertical blade 5 mm deep, in at one end and across in one step.
+    m.step_holding(Some(Pose::new(from - Vec3::z() * 0.005, Quat::identity())), true, 1);
+    m.step_holding(Some(Pose::new(to - Vec3::z() * 0.005, Quat::identity())), true, 1);
     if m.counters().cut_updates != 1 {
         return Err(format!("the incision took {} updates, not one", m.counters().cut_updates));
     }
@@ -121,7 +126,7 @@ pub fn shrinking_gap_curve(residual_strain: f64, steps: usize) -> Result<Vec<f64
     }
     let mut curve = vec![(m.positions()[a] - m.positions()[b]).norm()];
     for _ in 1..steps {
-        step_with(&mut m, None, false, 1);
+        m.step_holding(None, false, 1);
         curve.push((m.positions()[a] - m.positions()[b]).norm());
     }
     Ok(curve)

@@ -11,10 +11,13 @@
 
 use serde_json::json;
 
-use crate::grid::hex::{box_mass, box_stiffness, trilinear_weights};
+use crate::grid::hex::{box_mass, box_stiffness};
+use crate::grid::surface::cell_weights;
+use crate::grid::topology::Topology;
 use crate::grid::{GridParts, build_parts};
 use crate::hash::{StateHasher, hash_hex};
 use crate::math::Vec3;
+use crate::quantity::AccelerationMPerS2;
 use crate::scene::{ModelSpec, Scene, SceneError};
 
 /// How a problem is loaded.
@@ -73,13 +76,21 @@ fn block_scene(name: &str, size_m: [f64; 3], young_pa: f64, poisson: f64, side: 
     Scene::from_json_str(&text.to_string(), &format!("reference problem {name}"), None).expect("the reference block scenes are valid")
 }
 
+/// Standard gravity, m/s².
+pub const G: f64 = 9.81;
+
+/// The scene with gravity `m_per_s2` pointing down (−z).
+pub fn with_gravity_down(scene: &Scene, m_per_s2: f64) -> Scene {
+    let mut scene = scene.clone();
+    let a = |v: f64| AccelerationMPerS2::new(v).unwrap_or_else(|e| panic!("{e}"));
+    scene.gravity_m_per_s2 = Some([a(0.0), a(0.0), a(-m_per_s2)]);
+    scene
+}
+
 /// The bundled liver scene under gravity (it has none of its own).
 pub fn liver_scene() -> Result<Scene, SceneError> {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/liver.json");
-    let mut scene = Scene::load(&path)?;
-    let g = |v: f64| serde_json::from_value(json!(v)).expect("an acceleration");
-    scene.gravity_m_per_s2 = Some([g(0.0), g(0.0), g(-9.81)]);
-    Ok(scene)
+    Ok(with_gravity_down(&Scene::load(&path)?, G))
 }
 
 /// Every reference problem (the liver needs the shared data).
@@ -125,18 +136,9 @@ pub fn problems() -> Result<Vec<Problem>, SceneError> {
 }
 
 impl Problem {
-    /// The scene at coarsening level `level`.
-    pub fn scene_at(&self, level: u32) -> Scene {
-        let mut scene = self.scene.clone();
-        if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
-            spec.level = serde_json::from_value(json!(level)).expect("a level");
-        }
-        scene
-    }
-
     /// The grid at coarsening level `level`, with its fixed nodes.
     pub fn parts(&self, level: u32) -> Result<GridParts, SceneError> {
-        let scene = self.scene_at(level);
+        let scene = self.scene.with_grid_level(level);
         let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!("reference problems are branched grids") };
         build_parts(&scene, spec)
     }
@@ -164,7 +166,7 @@ impl Problem {
                         continue;
                     }
                     for corner in (0..8).filter(|c| (c >> axis) & 1 == 1) {
-                        for (node, w) in embedding(parts, v, corner) {
+                        for (node, w) in embedding(topo, v, corner) {
                             loads[node] += traction_pa * (area / 4.0 * w);
                         }
                     }
@@ -266,24 +268,19 @@ impl Problem {
 }
 
 /// The nodes (and weights) whose displacements interpolate corner `corner` of voxel `v`
-/// in the element holding the voxel.
-pub fn embedding(parts: &GridParts, v: usize, corner: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
-    let topo = &parts.topo;
-    let layout = &topo.layout;
+/// in the element holding the voxel (the surface's embedding, `cell_weights`).
+pub fn embedding(topo: &Topology, v: usize, corner: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
     let e = topo.voxel_element[v] as usize;
-    let g = layout.voxel_coords(v);
-    let cell = layout.cell_of_voxel(g);
-    let side = layout.side as f64;
-    let local = [0, 1, 2].map(|a| ((g[a] - cell[a] * layout.side) as f64 + ((corner >> a) & 1) as f64) / side);
-    let weights = trilinear_weights(local);
+    let half = Vec3::from(topo.layout.spacing_m) * 0.5;
+    let offset = Vec3::new(((corner & 1) as f64 * 2.0 - 1.0) * half.x, (((corner >> 1) & 1) as f64 * 2.0 - 1.0) * half.y, (((corner >> 2) & 1) as f64 * 2.0 - 1.0) * half.z);
+    let weights = cell_weights(topo, v, topo.voxel_centre(v) + offset);
     (0..8).filter(move |&k| weights[k] != 0.0).map(move |k| (topo.elements.nodes[e][k] as usize, weights[k]))
 }
 
-/// The displacement (grid frame) at each sample point of the grid `parts` in its current
+/// The displacement (grid frame) at each sample point of the grid `topo` in its current
 /// state.
-pub fn sample_displacements(parts: &GridParts, samples: &[(usize, usize)]) -> Vec<Vec3> {
-    let topo = &parts.topo;
-    samples.iter().map(|&(v, c)| embedding(parts, v, c).map(|(n, w)| (topo.nodes.x[n] - topo.nodes.rest[n]) * w).sum()).collect()
+pub fn sample_displacements(topo: &Topology, samples: &[(usize, usize)]) -> Vec<Vec3> {
+    samples.iter().map(|&(v, c)| embedding(topo, v, c).map(|(n, w)| (topo.nodes.x[n] - topo.nodes.rest[n]) * w).sum()).collect()
 }
 
 /// Replaces every element's stiffness and mass by the full cell's, scaled by the

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
-use super::problems::{Problem, sample_displacements};
+use super::problems::Problem;
 use crate::grid::GridParts;
 use crate::grid::solver::solve_static;
 use crate::math::Vec3;
@@ -119,9 +119,4 @@ pub fn solve_linear(problem: &Problem, level: u32, weighting: Weighting, toleran
     let loads = problem.loads(&parts);
     let (iterations, residual) = solve_static(&mut parts.topo, &loads, tolerance, 200_000);
     Ok((parts, iterations, residual))
-}
-
-/// The displacement of `parts` at the reference's sample points.
-pub fn displacements_at_samples(parts: &GridParts, reference: &Reference) -> Vec<Vec3> {
-    sample_displacements(parts, &reference.samples)
 }

@@ -3,12 +3,13 @@
 //! against the reference; on the cantilever also the first frequency as the dynamics
 //! deliver it).
 
-use serde_json::json;
-
 use super::problems::{Problem, sample_displacements};
 use super::reference::{Weighting, field_error, solve_linear};
+pub use crate::grid::fidelity::{StepTiming, time_probe};
+use crate::grid::topology::Topology;
 use crate::grid::{BranchedGrid, build_from_scene};
 use crate::math::Vec3;
+use crate::quantity::{CgIterations, DampingPerS, SpringDampingS, TimeStepS};
 use crate::scene::{MassSpec, ModelSpec, Scene};
 use crate::tool::{ToolCommand, ToolFeedback};
 
@@ -32,35 +33,20 @@ impl Setting {
 
     /// The scene with this setting.
     pub fn apply(&self, scene: &Scene) -> Scene {
-        let mut scene = scene.clone();
-        scene.time_step_s = serde_json::from_value(json!(self.dt_s)).expect("a time step");
+        let mut scene = scene.with_grid_level(self.level);
+        scene.time_step_s = TimeStepS::new(self.dt_s).unwrap_or_else(|e| panic!("{e}"));
         if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
-            spec.level = serde_json::from_value(json!(self.level)).expect("a level");
             spec.mass = self.mass;
-            spec.solver.cg_max_iterations = serde_json::from_value(json!(self.cg_max_iterations)).expect("an iteration cap");
+            spec.solver.cg_max_iterations = CgIterations::new(self.cg_max_iterations).unwrap_or_else(|e| panic!("{e}"));
         }
         scene
     }
-}
-
-/// Step-time quantiles, µs, and the mean CG iterations per step.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct StepTiming {
-    pub p50_us: f64,
-    pub p99_us: f64,
-    pub mean_cg: f64,
 }
 
 /// Builds a scene's grid (errors as text: a refusal names its reason).
 pub fn build_grid(scene: &Scene) -> Result<BranchedGrid, String> {
     let ModelSpec::BranchedGrid(spec) = &scene.model else { return Err("not a branched-grid scene".into()) };
     build_from_scene(scene, spec).map_err(|e| e.to_string())
-}
-
-/// Times the probe workload of [`crate::grid::fidelity::time_probe`].
-pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>) -> StepTiming {
-    let (p50_us, p99_us, mean_cg) = crate::grid::fidelity::time_probe(grid, warmup, steps, stop_above_us);
-    StepTiming { p50_us, p99_us, mean_cg }
 }
 
 /// A reference displacement field for a problem: the given one, or the linear static
@@ -70,13 +56,19 @@ pub fn own_reference(problem: &Problem, level: u32, samples: &[(usize, usize)]) 
     if residual > 1e-8 {
         return Err(format!("{}: the reference solve stopped at residual {residual:e}", problem.name));
     }
-    Ok(sample_displacements(&parts, samples))
+    Ok(sample_displacements(&parts.topo, samples))
 }
 
 /// The static error (relative rms) of the linear solution at `level` against `reference`.
 pub fn static_error(problem: &Problem, level: u32, weighting: Weighting, samples: &[(usize, usize)], reference: &[Vec3]) -> Result<f64, String> {
     let (parts, _, _) = solve_linear(problem, level, weighting, 1e-10)?;
-    Ok(field_error(&sample_displacements(&parts, samples), reference).rms)
+    Ok(field_error(&sample_displacements(&parts.topo, samples), reference).rms)
+}
+
+/// The live nodes at the cantilever's free end (the largest rest x).
+pub fn tip_nodes(topo: &Topology) -> Vec<usize> {
+    let far = topo.nodes.rest.iter().map(|r| r.x).fold(f64::NEG_INFINITY, f64::max);
+    (0..topo.nodes.len()).filter(|&n| topo.nodes.alive[n] && (topo.nodes.rest[n].x - far).abs() < 1e-9).collect()
 }
 
 /// The first frequency of the cantilever as the model's dynamics deliver it: released
@@ -86,16 +78,12 @@ pub fn static_error(problem: &Problem, level: u32, weighting: Weighting, samples
 pub fn cantilever_frequency(scene: &Scene, duration_s: f64) -> Result<Option<f64>, String> {
     let mut scene = scene.clone();
     if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
-        spec.damping.mass_per_s = serde_json::from_value(json!(0.0)).expect("damping");
-        spec.damping.stiffness_s = serde_json::from_value(json!(0.0)).expect("damping");
+        spec.damping.mass_per_s = DampingPerS(0.0);
+        spec.damping.stiffness_s = SpringDampingS(0.0);
     }
     let mut grid = build_grid(&scene)?;
     let dt = scene.time_step_s.get();
-    let topo = grid.topology();
-    let tip: Vec<usize> = {
-        let far = topo.nodes.rest.iter().map(|r| r.x).fold(f64::NEG_INFINITY, f64::max);
-        (0..topo.nodes.len()).filter(|&n| topo.nodes.alive[n] && (topo.nodes.rest[n].x - far).abs() < 1e-9).collect()
-    };
+    let tip = tip_nodes(grid.topology());
     let mut trace = Vec::new();
     let steps = (duration_s / dt).round() as usize;
     let mut feedback = vec![ToolFeedback::default(); crate::tissue::Tissue::tools(&grid).len()];

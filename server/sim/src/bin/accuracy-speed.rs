@@ -14,10 +14,11 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use cutsim_sim::accuracy::problems::{Load, Problem, problems, sample_displacements};
-use cutsim_sim::accuracy::reference::{Weighting, displacements_at_samples, field_error, load_reference, solve_linear};
+use cutsim_sim::accuracy::problems::{G, Load, Problem, problems, sample_displacements, with_gravity_down};
+use cutsim_sim::accuracy::reference::{Weighting, field_error, load_reference, solve_linear};
 use cutsim_sim::accuracy::report::{ErrorTable, LoadRow, Measured, MembraneStudy, Row, SceneStudy, markdown, svg};
-use cutsim_sim::accuracy::sweep::{Setting, build_grid, cantilever_frequency, own_reference, static_error, time_probe};
+use cutsim_sim::accuracy::sweep::{Setting, build_grid, cantilever_frequency, own_reference, static_error, time_probe, tip_nodes};
+use cutsim_sim::quantity::DampingPerS;
 use cutsim_sim::math::Vec3;
 use cutsim_sim::scene::{MassSpec, ModelSpec, Scene};
 
@@ -81,7 +82,7 @@ fn export_problems(dir: &Path) -> Result<(), String> {
 fn bundled_problem(name: &'static str) -> Result<Problem, String> {
     let mut scene = bundled_scene(name)?;
     if scene.gravity_m_per_s2.is_none() {
-        scene.gravity_m_per_s2 = Some(serde_json::from_value(serde_json::json!([0.0, 0.0, -9.81])).expect("gravity"));
+        scene = with_gravity_down(&scene, G);
     }
     Ok(Problem { name, summary: "", scene, load: Load::Gravity, frequency: false, quadratic: false, sample_stride: 16 })
 }
@@ -89,6 +90,44 @@ fn bundled_problem(name: &'static str) -> Result<Problem, String> {
 fn bundled_scene(name: &str) -> Result<Scene, String> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(format!("{name}.json"));
     Scene::load(&path).map_err(|e| e.to_string())
+}
+
+/// What a scene's errors are measured against.
+struct SceneReference {
+    samples: Vec<(usize, usize)>,
+    /// None: the static problem has no solution (parts of the body are not held).
+    field: Option<Vec<Vec3>>,
+    label: String,
+    frequency_hz: Option<f64>,
+}
+
+/// The scikit-fem reference where there is one (its finest solution), else our linear
+/// static solution at level 0 (level 1 above 60,000 voxels).
+fn scene_reference(problem: &Problem) -> Result<SceneReference, String> {
+    if let Ok(reference) = load_reference(problem) {
+        let (label, finest) = reference.finest();
+        return Ok(SceneReference {
+            field: Some(finest.displacements()),
+            label: format!("{label} on the level-0 mesh ({})", reference.generator),
+            frequency_hz: finest.first_frequency_hz,
+            samples: reference.samples,
+        });
+    }
+    let level0 = problem.parts(0).map_err(|e| e.to_string())?;
+    let voxels = level0.topo.material.iter().filter(|&&m| m != 0).count();
+    let level = if voxels <= 60_000 { 0 } else { 1 };
+    let samples = problem.samples(&if level == 0 { level0 } else { problem.parts(1).map_err(|e| e.to_string())? });
+    let (field, label) = match own_reference(problem, level, &samples) {
+        Ok(field) => (
+            Some(field),
+            format!(
+                "our linear static solution at level {level} ({}), the finest solved here; level 0 equals scikit-fem Hex1 on the reference problems to 1e-11",
+                if level == 0 { format!("{voxels} voxels") } else { format!("{voxels} voxels are too many for a quick level-0 solve") }
+            ),
+        ),
+        Err(e) => (None, format!("none: the static problem has no solution ({e}); parts of the body are not held, and a free piece has no equilibrium under gravity")),
+    };
+    Ok(SceneReference { samples, field, label, frequency_hz: None })
 }
 
 struct Progress {
@@ -110,7 +149,6 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     let cantilever = all.iter().find(|p| p.name == "cantilever-gravity").expect("the cantilever problem").clone();
     let liver = all.iter().find(|p| p.name == "liver-gravity").expect("the liver problem").clone();
 
-    // Plans: (study name, problem, reference, settings, weighting levels).
     let dt = 0.001;
     // (study, problem (its scene under gravity), the scene as users run it (timed), settings,
     // levels for the weighting comparison).
@@ -148,7 +186,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     for problem in &all {
         let reference = load_reference(problem)?;
         let (parts, iterations, _) = solve_linear(problem, 0, Weighting::Condensed, 1e-12)?;
-        let e = field_error(&displacements_at_samples(&parts, &reference), &reference.hex1.displacements());
+        let e = field_error(&sample_displacements(&parts.topo, &reference.samples), &reference.hex1.displacements());
         let hex2 = reference.hex2.as_ref().map(|h| field_error(&reference.hex1.displacements(), &h.displacements()).rms);
         reference_check.push(format!(
             "{} ({}; {} hexahedra, {} samples): max difference {:.1e}, rms {:.1e} ({iterations} CG iterations){}",
@@ -165,30 +203,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
 
     let mut studies = Vec::new();
     for (name, problem, timed_scene, settings, weighting_levels) in &plans {
-        // The reference field at the sample points.
-        let level0 = problem.parts(0).map_err(|e| e.to_string())?;
-        let voxels = level0.topo.material.iter().filter(|&&m| m != 0).count();
-        let (samples, reference_field, reference_label, frequency_ref) = match load_reference(problem) {
-            Ok(reference) => {
-                let (label, finest) = reference.finest();
-                (reference.samples.clone(), Some(finest.displacements()), format!("{label} on the level-0 mesh ({})", reference.generator), finest.first_frequency_hz)
-            }
-            Err(_) => {
-                let level = if voxels <= 60_000 { 0 } else { 1 };
-                let parts = if level == 0 { level0.clone() } else { problem.parts(1).map_err(|e| e.to_string())? };
-                let samples = problem.samples(&parts);
-                match own_reference(problem, level, &samples) {
-                    Ok(field) => {
-                        let label = format!(
-                            "our linear static solution at level {level} ({}), the finest solved here; level 0 equals scikit-fem Hex1 on the reference problems to 1e-11",
-                            if level == 0 { format!("{voxels} voxels") } else { format!("{voxels} voxels are too many for a quick level-0 solve") }
-                        );
-                        (samples, Some(field), label, None)
-                    }
-                    Err(e) => (samples, None, format!("none: the static problem has no solution ({e}); parts of the body are not held, and a free piece has no equilibrium under gravity"), None),
-                }
-            }
-        };
+        let SceneReference { samples, field: reference_field, label: reference_label, frequency_hz: frequency_ref } = scene_reference(problem)?;
         progress.tick(&format!("{name}: reference ready ({} samples)", samples.len()));
         let mut static_by_level = std::collections::BTreeMap::new();
         let mut rows = Vec::new();
@@ -228,7 +243,10 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
         let mut weighting = Vec::new();
         for &level in weighting_levels.iter().filter(|_| reference_field.is_some()) {
             let field = reference_field.as_ref().expect("filtered");
-            let condensed = static_error(problem, level, Weighting::Condensed, &samples, field)?;
+            let condensed = match static_by_level.get(&level) {
+                Some(&e) => e,
+                None => static_error(problem, level, Weighting::Condensed, &samples, field)?,
+            };
             let fill = static_error(problem, level, Weighting::FillRatio, &samples, field)?;
             progress.tick(&format!("{name} level {level}: condensed {:.2} %, fill ratio {:.2} %", 100.0 * condensed, 100.0 * fill));
             weighting.push((level, condensed, fill));
@@ -246,7 +264,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     let command = format!("cargo run --release -p cutsim-sim --bin accuracy-speed{}", if quick { " -- --quick" } else { "" });
     let machine = format!("{} logical CPUs", std::thread::available_parallelism().map_or(0, |n| n.get()));
     let files = [
-        ("accuracy-speed.md", markdown(&studies, &loads, Some(&membrane), &reference_check, &command, &machine)),
+        ("accuracy-speed.md", markdown(&studies, &loads, &membrane, &reference_check, &command, &machine)),
         ("accuracy-speed.svg", svg(&studies)),
         ("accuracy-speed.json", serde_json::to_string_pretty(&ErrorTable::from_studies(&studies)).expect("serialises") + "\n"),
     ];
@@ -266,10 +284,9 @@ fn growing_loads(problem: &Problem, quick: bool) -> Result<Vec<LoadRow>, String>
     let linear = hex2.displacements();
     let mut rows = Vec::new();
     for multiple in [1.0, 10.0, 30.0, 100.0] {
-        let mut scene = Setting { level: 1, mass: MassSpec::Lumped, cg_max_iterations: 200, dt_s: 0.001 }.apply(&problem.scene);
-        scene.gravity_m_per_s2 = Some(serde_json::from_value(serde_json::json!([0.0, 0.0, -9.81 * multiple])).expect("gravity"));
+        let mut scene = Setting { level: 1, mass: MassSpec::Lumped, cg_max_iterations: 200, dt_s: 0.001 }.apply(&with_gravity_down(&problem.scene, G * multiple));
         if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
-            spec.damping.mass_per_s = serde_json::from_value(serde_json::json!(300.0)).expect("damping");
+            spec.damping.mass_per_s = DampingPerS(300.0);
         }
         let mut grid = build_grid(&scene)?;
         let n = cutsim_sim::tissue::Tissue::tools(&grid).len();
@@ -277,16 +294,12 @@ fn growing_loads(problem: &Problem, quick: bool) -> Result<Vec<LoadRow>, String>
         for _ in 0..if quick { 600 } else { 1500 } {
             grid.step(&commands, &mut feedback);
         }
-        let parts = problem.parts(1).map_err(|e| e.to_string())?;
-        let mut settled = parts.clone();
-        settled.topo.nodes.x.clone_from(&grid.topology().nodes.x);
-        let u = sample_displacements(&settled, &reference.samples);
+        let topo = grid.topology();
         let scaled: Vec<Vec3> = linear.iter().map(|d| d * multiple).collect();
-        let error = field_error(&u, &scaled).rms;
-        let far = settled.topo.nodes.rest.iter().map(|r| r.x).fold(f64::NEG_INFINITY, f64::max);
-        let tip: Vec<f64> = (0..settled.topo.nodes.len()).filter(|&i| (settled.topo.nodes.rest[i].x - far).abs() < 1e-9).map(|i| settled.topo.nodes.rest[i].z - settled.topo.nodes.x[i].z).collect();
-        let deflection = tip.iter().sum::<f64>() / tip.len() as f64;
-        rows.push(LoadRow { gravity_multiple: multiple, tip_deflection_over_length: deflection / far, error });
+        let error = field_error(&sample_displacements(topo, &reference.samples), &scaled).rms;
+        let tip = tip_nodes(topo);
+        let deflection = tip.iter().map(|&i| topo.nodes.rest[i].z - topo.nodes.x[i].z).sum::<f64>() / tip.len() as f64;
+        rows.push(LoadRow { gravity_multiple: multiple, tip_deflection_over_length: deflection / topo.nodes.rest[tip[0]].x, error });
     }
     Ok(rows)
 }

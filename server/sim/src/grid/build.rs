@@ -160,7 +160,7 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
 pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
     match spec.fidelity {
         FidelitySpec::Fixed => build_fixed(scene, spec),
-        FidelitySpec::Auto => Ok(super::fidelity::build_auto(scene, spec)?.0),
+        FidelitySpec::Auto => super::fidelity::build_auto(scene, spec),
     }
 }
 

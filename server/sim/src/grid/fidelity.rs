@@ -30,8 +30,8 @@ const CALIBRATION_STEPS: usize = 150;
 pub struct FidelityChoice {
     pub level: u32,
     pub budget_us: f64,
-    /// Per level tried, coarsest first: its p99 step time, µs, or why it was refused.
-    pub tried: Vec<(u32, Result<f64, String>)>,
+    /// Per level tried, coarsest first: its p99 step time, µs (None: refused at load).
+    pub tried: Vec<(u32, Option<f64>)>,
     /// No level fitted: the coarsest buildable one was taken.
     pub over_budget: bool,
     /// The study's static error for this scene at this level, and its reference.
@@ -44,9 +44,9 @@ impl FidelityChoice {
         let tried: Vec<String> = self
             .tried
             .iter()
-            .map(|(l, r)| match r {
-                Ok(p99) => format!("L{l} p99 {:.0} µs", p99),
-                Err(_) => format!("L{l} refused"),
+            .map(|(l, p99)| match p99 {
+                Some(p99) => format!("L{l} p99 {p99:.0} µs"),
+                None => format!("L{l} refused at load"),
             })
             .collect();
         let fit = if self.over_budget { "no level fits" } else { "fits" };
@@ -64,12 +64,19 @@ impl FidelityChoice {
     }
 }
 
+/// Step-time quantiles, µs, and the mean CG iterations per step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepTiming {
+    pub p50_us: f64,
+    pub p99_us: f64,
+    pub mean_cg: f64,
+}
+
 /// Times `steps` steps (after `warmup` untimed ones) with the scene's first non-cutting
 /// tool (else its first tool, cut off) pressed 4 mm into the body's broad top over the
 /// first 100 steps and held there; no tool when the body has no broad top. Stops early
-/// once the median of 20 or more steps exceeds `stop_above_us`. Returns the p50 and p99
-/// step times, µs, and the mean CG iterations per step.
-pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>) -> (f64, f64, f64) {
+/// once the median of 20 or more steps exceeds `stop_above_us`.
+pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>) -> StepTiming {
     let tools = crate::tissue::Tissue::tools(grid).to_vec();
     let probe = tools.iter().position(|t| !t.can_cut).or(if tools.is_empty() { None } else { Some(0) });
     let top = grid.broad_top();
@@ -99,7 +106,7 @@ pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_abo
         }
     }
     let n = histogram.count().max(1) as f64;
-    (histogram.quantile_ns(0.5) as f64 / 1e3, histogram.quantile_ns(0.99) as f64 / 1e3, iterations as f64 / n)
+    StepTiming { p50_us: histogram.quantile_ns(0.5) as f64 / 1e3, p99_us: histogram.quantile_ns(0.99) as f64 / 1e3, mean_cg: iterations as f64 / n }
 }
 
 /// The study's error table (docs/accuracy-speed.json, written by `accuracy-speed`).
@@ -108,48 +115,53 @@ pub fn error_table() -> ErrorTable {
 }
 
 /// Builds the grid at the finest level from [`COARSEST_AUTO_LEVEL`] down to the scene's
-/// `level` whose p99 step fits the budget less the margin (the coarsest buildable one
-/// when none fits), and reports the choice.
-pub fn build_auto(scene: &Scene, spec: &BranchedGridSpec) -> Result<(BranchedGrid, FidelityChoice), SceneError> {
+/// `level` whose p99 step, timed on this machine with [`time_probe`], fits the budget
+/// less the margin (the coarsest buildable one when none fits); the grid reports the
+/// choice ([`BranchedGrid::fidelity_choice`]).
+pub fn build_auto(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
+    let budget_us = spec.step_budget_ms.get() * 1e3;
+    build_auto_with(scene, spec, &mut |grid| time_probe(grid, 30, CALIBRATION_STEPS, Some(budget_us)).p99_us)
+}
+
+/// [`build_auto`] with each candidate's p99 step time, µs, measured by `p99_us` (on a
+/// copy of the candidate: the grid kept is untouched).
+pub fn build_auto_with(scene: &Scene, spec: &BranchedGridSpec, p99_us: &mut dyn FnMut(&mut BranchedGrid) -> f64) -> Result<BranchedGrid, SceneError> {
     let budget_us = spec.step_budget_ms.get() * 1e3;
     let finest = spec.level.get();
-    let coarsest = COARSEST_AUTO_LEVEL.max(finest);
     let mut tried = Vec::new();
     let mut chosen: Option<(u32, BranchedGrid)> = None;
-    let mut fallback: Option<(u32, BranchedGrid)> = None;
+    let mut over_budget = false;
     let mut last_error = None;
-    for level in (finest..=coarsest).rev() {
+    for level in (finest..=COARSEST_AUTO_LEVEL.max(finest)).rev() {
         let mut candidate = spec.clone();
         candidate.level = crate::quantity::GridLevel::new(level).map_err(|e| SceneError::new(&scene.origin, "model.branched-grid.level", e))?;
         let grid = match build_fixed(scene, &candidate) {
             Ok(grid) => grid,
             Err(e) => {
-                tried.push((level, Err(e.to_string())));
+                tried.push((level, None));
                 last_error = Some(e);
                 continue;
             }
         };
-        let mut timed = grid.clone();
-        let (_, p99, _) = time_probe(&mut timed, 30, CALIBRATION_STEPS, Some(budget_us));
-        tried.push((level, Ok(p99)));
+        let p99 = p99_us(&mut grid.clone());
+        tried.push((level, Some(p99)));
         if p99 <= budget_us * (1.0 - BUDGET_MARGIN) {
             chosen = Some((level, grid));
-        } else {
-            if fallback.is_none() && chosen.is_none() {
-                fallback = Some((level, grid));
-            }
-            // Finer levels are slower still.
-            break;
+            continue;
         }
+        if chosen.is_none() {
+            chosen = Some((level, grid));
+            over_budget = true;
+        }
+        // Finer levels are slower still.
+        break;
     }
-    let over_budget = chosen.is_none();
-    let Some((level, mut grid)) = chosen.or(fallback) else {
+    let Some((level, mut grid)) = chosen else {
         return Err(last_error.unwrap_or_else(|| SceneError::new(&scene.origin, "model.branched-grid.fidelity", "no level could be built")));
     };
     let error = error_table().lookup(&scene.name, level).map(|(e, reference)| (e, reference.to_string()));
-    let choice = FidelityChoice { level, budget_us, tried, over_budget, error };
-    grid.set_fidelity(choice.clone());
-    Ok((grid, choice))
+    grid.set_fidelity(FidelityChoice { level, budget_us, tried, over_budget, error });
+    Ok(grid)
 }
 
 /// A scene's JSON with the branched grid's level pinned to `level` and its fidelity
@@ -165,9 +177,8 @@ pub fn pin_level(scene_json: &str, level: u32) -> Result<String, String> {
 /// The scene with its branched grid pinned to `level`, fidelity "fixed" (what a reset of
 /// an auto session rebuilds, so that it does not calibrate again).
 pub fn pin_scene(scene: &Scene, level: u32) -> Scene {
-    let mut scene = scene.clone();
+    let mut scene = scene.with_grid_level(level);
     if let crate::scene::ModelSpec::BranchedGrid(spec) = &mut scene.model {
-        spec.level = crate::quantity::GridLevel::new(level).expect("a level the calibration built");
         spec.fidelity = crate::scene::FidelitySpec::Fixed;
     }
     scene

@@ -378,7 +378,7 @@ impl BranchedGrid {
     // ----- read access (tests, benchmarks, reports) -----
 
     /// How `"fidelity": "auto"` chose the level (None for a fixed level).
-    pub fn fidelity(&self) -> Option<&super::fidelity::FidelityChoice> {
+    pub fn fidelity_choice(&self) -> Option<&super::fidelity::FidelityChoice> {
         self.fidelity.as_ref()
     }
 

@@ -52,6 +52,19 @@ pub struct Scene {
     pub origin: String,
 }
 
+impl Scene {
+    /// The scene with its branched grid at coarsening level `level` (other models as
+    /// they are). Panics on a level outside [`GridLevel`]'s range: callers pass levels
+    /// they chose, not input.
+    pub fn with_grid_level(&self, level: u32) -> Scene {
+        let mut scene = self.clone();
+        if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
+            spec.level = GridLevel::new(level).unwrap_or_else(|e| panic!("{e}"));
+        }
+        scene
+    }
+}
+
 fn default_time_step() -> TimeStepS {
     TimeStepS(0.001)
 }

@@ -18,26 +18,8 @@ pub fn scenes_dir() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes")
 }
 
-/// A skin patch scene with a scalpel; `msm_extra` is spliced into the msm object.
-pub fn patch_scene(size_m: [f64; 2], resolution: [u32; 2], residual_strain: f64, msm_extra: &str) -> String {
-    format!(
-        r#"{{
-        "name": "test-patch",
-        "model": {{ "msm": {{
-            "geometry": {{ "patch": {{ "size_m": [{}, {}], "resolution": [{}, {}] }} }},
-            "material": {{ "young_pa": 100000, "thickness_m": 0.002, "density_kg_per_m3": 1100 }},
-            "residual_strain": {residual_strain},
-            "damping": {{ "mass_per_s": 20 }},
-            "fixed": [ {{ "boundary": {{}} }} ],
-            "integrator": {{ "symplectic-euler": {{ "substeps": 12 }} }},
-            "cutting": {{}}
-            {msm_extra}
-        }} }},
-        "tools": [ {{ "name": "scalpel", "shape": {{ "cylinder": {{ "radius_m": 0.0005, "length_m": 0.04 }} }}, "can_cut": true }} ]
-    }}"#,
-        size_m[0], size_m[1], resolution[0], resolution[1]
-    )
-}
+#[allow(unused_imports)]
+pub use cutsim_sim::accuracy::membrane::patch_scene;
 
 pub fn scene(text: &str) -> Scene {
     Scene::from_json_str(text, "test scene", None).unwrap_or_else(|e| panic!("{e}"))
