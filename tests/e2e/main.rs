@@ -10,5 +10,6 @@ mod recording;
 mod replay;
 mod scripts;
 mod sessions;
+mod tls;
 mod viewer_client;
 mod viewers;

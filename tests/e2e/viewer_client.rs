@@ -63,7 +63,18 @@ impl Viewer {
     pub async fn connect(http: &str, session: &str, token: &str) -> Result<Viewer, tungstenite::Error> {
         let url = format!("ws://{http}/ws/sessions/{session}?token={token}");
         let (socket, _) = tokio_tungstenite::connect_async(url).await?;
-        Ok(Viewer { socket, replica: None, snapshots: 0, deltas: 0, positions_frames: 0, hello: None, closed: None })
+        Ok(Self::over(socket))
+    }
+
+    /// The same over TLS (`wss://`), trusting what `tls` trusts.
+    pub async fn connect_tls(http: &str, session: &str, token: &str, tls: std::sync::Arc<tokio_rustls::rustls::ClientConfig>) -> Result<Viewer, tungstenite::Error> {
+        let url = format!("wss://{http}/ws/sessions/{session}?token={token}");
+        let (socket, _) = tokio_tungstenite::connect_async_tls_with_config(url, None, false, Some(tokio_tungstenite::Connector::Rustls(tls))).await?;
+        Ok(Self::over(socket))
+    }
+
+    fn over(socket: Socket) -> Viewer {
+        Viewer { socket, replica: None, snapshots: 0, deltas: 0, positions_frames: 0, hello: None, closed: None }
     }
 
     /// Reads and applies frames until `done` holds (true) or `timeout` passes (false).

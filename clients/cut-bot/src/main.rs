@@ -46,6 +46,9 @@ struct RunArgs {
     /// The server's gRPC address.
     #[arg(long, default_value = "http://127.0.0.1:50051")]
     server: String,
+    /// PEM CA certificate to trust for an https:// server (besides the system's roots).
+    #[arg(long)]
+    tls_ca: Option<PathBuf>,
     /// Run on this existing session (needs its control token) instead of a new one.
     #[arg(long, requires = "token")]
     session: Option<String>,
@@ -108,7 +111,7 @@ async fn run(args: &RunArgs) -> anyhow::Result<bool> {
     let script_text = std::fs::read_to_string(&args.script).with_context(|| format!("cannot read the script {}", args.script.display()))?;
     let script: serde_json::Value = serde_json::from_str(&script_text).map_err(|e| anyhow!("{}: not JSON: {e}", args.script.display()))?;
     let name = args.script.file_stem().and_then(|s| s.to_str()).unwrap_or("script").to_owned();
-    let channel = connect(&args.server).await?;
+    let channel = connect(&args.server, args.tls_ca.as_deref()).await?;
     let mut sessions = SessionsClient::new(channel.clone());
 
     let (session_id, token, created) = match (&args.session, &args.token) {
@@ -154,8 +157,8 @@ async fn run(args: &RunArgs) -> anyhow::Result<bool> {
     Ok(report.passed)
 }
 
-async fn connect(url: &str) -> anyhow::Result<Channel> {
-    let endpoint = Channel::from_shared(url.to_owned()).map_err(|e| anyhow!("{url:?} is not a server address ({e}); use e.g. http://127.0.0.1:50051"))?;
+async fn connect(url: &str, ca: Option<&Path>) -> anyhow::Result<Channel> {
+    let endpoint = cutsim_proto::endpoint(url, ca).map_err(|e| anyhow!(e))?;
     endpoint
         .connect_timeout(Duration::from_secs(5))
         .connect()

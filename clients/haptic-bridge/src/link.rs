@@ -34,7 +34,8 @@ pub struct Link {
 }
 
 pub struct Target {
-    pub server: String,
+    /// The server, checked (`cutsim_proto::endpoint`) before the link starts.
+    pub server: tonic::transport::Endpoint,
     pub session: String,
     pub token: String,
     pub tool: u32,
@@ -96,8 +97,7 @@ async fn run(
             backoff = (backoff * 2).min(Duration::from_secs(2));
         }
         first = false;
-        let Ok(endpoint) = tonic::transport::Channel::from_shared(target.server.clone()) else { return };
-        let Ok(channel) = endpoint.connect_timeout(Duration::from_millis(500)).connect().await else { continue };
+        let Ok(channel) = target.server.clone().connect_timeout(Duration::from_millis(500)).connect().await else { continue };
         // Each pose the device loop publishes, once; a newer one replaces an unsent one.
         let outgoing = futures_util::stream::unfold(pose_rx.clone(), |mut rx| async move {
             loop {

@@ -38,6 +38,9 @@ struct Args {
     /// The server's gRPC address.
     #[arg(long, default_value = "http://127.0.0.1:50051")]
     server: String,
+    /// PEM CA certificate to trust for an https:// server (besides the system's roots).
+    #[arg(long)]
+    tls_ca: Option<std::path::PathBuf>,
     /// The session to join.
     #[arg(long)]
     session: String,
@@ -177,9 +180,10 @@ fn open_device(spec: &str) -> anyhow::Result<Box<dyn Device>> {
 fn run(args: &Args) -> anyhow::Result<()> {
     let config = load_config(args)?;
     let mut device = open_device(&args.device)?;
+    let server = cutsim_proto::endpoint(&args.server, args.tls_ca.as_deref()).map_err(|e| anyhow::anyhow!(e))?;
     let origin = Instant::now();
     let mut link = link::Link::start(
-        link::Target { server: args.server.clone(), session: args.session.clone(), token: args.token.clone(), tool: args.tool },
+        link::Target { server, session: args.session.clone(), token: args.token.clone(), tool: args.tool },
         origin,
     );
     let interrupted = Arc::new(AtomicBool::new(false));

@@ -60,6 +60,8 @@ pub struct ServerConfig {
     /// Lets its holder list recordings and replay them (they hold every trainee's
     /// actions). When not given, one is made up at start and printed.
     pub admin_token: Option<String>,
+    /// TLS for both listeners; plain TCP when absent (fine on loopback only).
+    pub tls: Option<crate::tls::TlsConfig>,
     pub limits: Limits,
 }
 
@@ -73,6 +75,7 @@ impl Default for ServerConfig {
             viewer_dir: default_viewer_dir(),
             viewer_rate_hz: 60.0,
             admin_token: None,
+            tls: None,
             limits: Limits::default(),
         }
     }

@@ -19,6 +19,7 @@ mod http;
 mod metrics;
 mod serve;
 mod session;
+mod tls;
 mod ws;
 
 use std::net::SocketAddr;
@@ -61,6 +62,9 @@ struct HealthArgs {
     /// Give up after this many seconds.
     #[arg(long, default_value_t = 3.0)]
     timeout_s: f64,
+    /// Ask over TLS, trusting this PEM CA certificate (a server started with --tls-cert).
+    #[arg(long)]
+    tls_ca: Option<PathBuf>,
 }
 
 #[derive(Args, Default)]
@@ -83,6 +87,12 @@ struct ServeArgs {
     /// Where session recordings are written.
     #[arg(long)]
     recordings_dir: Option<PathBuf>,
+    /// PEM certificate chain: serve gRPC and HTTP/WebSocket over TLS (with --tls-key).
+    #[arg(long, requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -148,6 +158,9 @@ fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
     if let Some(d) = args.recordings_dir {
         config.recordings_dir = d;
     }
+    if let (Some(cert_path), Some(key_path)) = (args.tls_cert, args.tls_key) {
+        config.tls = Some(tls::TlsConfig { cert_path, key_path });
+    }
     let first = (!args.no_session).then_some(args.scene);
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("a tokio runtime");
     match runtime.block_on(serve::serve(config, first)) {
@@ -164,9 +177,9 @@ fn health(args: &HealthArgs) -> ExitCode {
     use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().expect("a tokio runtime");
     let timeout = std::time::Duration::from_secs_f64(args.timeout_s.clamp(0.1, 600.0));
-    let url = format!("http://{}", args.grpc_addr);
+    let url = format!("{}://{}", if args.tls_ca.is_some() { "https" } else { "http" }, args.grpc_addr);
     let check = async {
-        let channel = tonic::transport::Endpoint::from_shared(url.clone())?.connect_timeout(timeout).connect().await?;
+        let channel = cutsim_proto::endpoint(&url, args.tls_ca.as_deref())?.connect_timeout(timeout).connect().await?;
         let reply = HealthClient::new(channel).check(HealthCheckRequest { service: String::new() }).await?;
         Ok::<_, Box<dyn std::error::Error>>(reply.into_inner().status)
     };

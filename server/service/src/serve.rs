@@ -42,7 +42,15 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     let (stop_tx, _) = tokio::sync::broadcast::channel::<()>(1);
     let mut stop_grpc = stop_tx.subscribe();
     let mut stop_http = stop_tx.subscribe();
-    let grpc = tonic::transport::Server::builder()
+    let tls = match &config.tls {
+        Some(c) => Some(crate::tls::Tls::load(c).map_err(|e| anyhow::anyhow!(e))?),
+        None => None,
+    };
+    let mut grpc_server = tonic::transport::Server::builder();
+    if let Some(tls) = &tls {
+        grpc_server = grpc_server.tls_config(tls.grpc_config()).context("TLS for gRPC")?;
+    }
+    let grpc = grpc_server
         .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(reflection)
@@ -53,18 +61,30 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
             let _ = stop_grpc.recv().await;
         });
     let app = http::router(AppState { registry: registry.clone(), metrics });
-    let http_server = axum::serve(
-        axum::serve::ListenerExt::tap_io(http_listener, |tcp| {
-            let _ = tcp.set_nodelay(true);
-        }),
-        app,
-    )
-    .with_graceful_shutdown(async move {
+    let stop_http = async move {
         let _ = stop_http.recv().await;
-    });
+    };
+    let http_server: std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>> = match &tls {
+        Some(tls) => Box::pin(crate::tls::serve_https(http_listener, tls.http_acceptor.clone(), app, stop_http)),
+        None => {
+            let listener = axum::serve::ListenerExt::tap_io(http_listener, |tcp| {
+                let _ = tcp.set_nodelay(true);
+            });
+            let serving = axum::serve(listener, app.into_make_service_with_connect_info::<std::net::SocketAddr>()).with_graceful_shutdown(stop_http);
+            Box::pin(async move {
+                if let Err(e) = serving.await {
+                    tracing::error!("HTTP server: {e}");
+                }
+            })
+        }
+    };
+    let scheme = if tls.is_some() { "https" } else { "http" };
 
     println!("grpc listening on {grpc_addr}");
     println!("http listening on {http_addr}");
+    if tls.is_some() {
+        println!("tls on: gRPC and HTTP/WebSocket take TLS only (https://, wss://)");
+    }
     if admin_made_up {
         println!("admin token (recordings and replays): {admin}");
     }
@@ -74,7 +94,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
         let session = registry.create(SceneSource::Operator(scene), Mode::Realtime, "default".into()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         let (control, observe) = session.tokens();
         println!("session {} on scene {}", session.id, session.scene_name);
-        println!("  viewer:        http://{http_addr}/?session={}&token={observe}", session.id);
+        println!("  viewer:        {scheme}://{http_addr}/?session={}&token={observe}", session.id);
         println!("  control token: {control}");
         if let Some(path) = session.recording_path() {
             println!("  recording:     {}", path.display());
@@ -84,7 +104,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     let _ = std::io::stdout().flush();
 
     let grpc_task = tokio::spawn(grpc);
-    let http_task = tokio::spawn(async move { http_server.await });
+    let http_task = tokio::spawn(http_server);
     shutdown.await;
     tracing::info!("shutting down: closing sessions");
     let _ = stop_tx.send(());
