@@ -163,3 +163,78 @@ async fn the_session_limit_is_refused_clearly() {
     assert_eq!(e.code(), Code::ResourceExhausted);
     assert!(e.message().contains("maximum of 2 sessions"), "{}", e.message());
 }
+
+/// A gRPC channel whose connections come from `source` (another loopback address is
+/// another client to the server).
+async fn channel_from(server: &Server, source: &str) -> tonic::transport::Channel {
+    tonic::transport::Endpoint::from_shared(format!("http://{}", server.grpc)).unwrap().local_address(Some(source.parse().unwrap())).connect().await.expect("gRPC connects")
+}
+
+async fn http_status_from(server: &Server, source: &str, path: &str) -> u16 {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.bind(format!("{source}:0").parse().unwrap()).unwrap();
+    let mut stream = socket.connect(server.http.parse().unwrap()).await.unwrap();
+    stream.write_all(format!("GET {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\n\r\n", server.http).as_bytes()).await.unwrap();
+    let mut text = String::new();
+    stream.read_to_string(&mut text).await.unwrap();
+    text.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0)
+}
+
+#[tokio::test]
+async fn a_client_over_its_rate_is_refused_and_others_are_not() {
+    use cutsim_proto::v1::sessions_client::SessionsClient;
+    let config = TempDir::new("rate-config");
+    let path = config.0.join("server.json");
+    let limits = r#"{"limits": {"requests_per_second_per_client": 1, "request_burst_per_client": 5, "tool_commands_per_second": 50}}"#;
+    std::fs::write(&path, limits).unwrap();
+    let server = Server::start_with(&["--no-session", "--config", path.to_str().unwrap()]);
+    let (noisy, calm) = ("127.0.0.1", "127.0.0.2");
+
+    let mut calm_sessions = SessionsClient::new(channel_from(&server, calm).await);
+    let created = calm_sessions
+        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Realtime as i32, label: "rate".into() })
+        .await
+        .unwrap()
+        .into_inner();
+
+    // The noisy client spends its burst of 5, then is refused (gRPC and HTTP alike).
+    let mut noisy_sessions = SessionsClient::new(channel_from(&server, noisy).await);
+    for _ in 0..5 {
+        noisy_sessions.list_sessions(pb::ListSessionsRequest {}).await.expect("within the burst");
+    }
+    let refused = noisy_sessions.list_sessions(pb::ListSessionsRequest {}).await.unwrap_err();
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(refused.message().contains("rate limit: 127.0.0.1 sends more than 1 requests per second") && refused.message().contains("retry in"), "{}", refused.message());
+    assert_eq!(http_status_from(&server, noisy, "/healthz").await, 429);
+
+    // The other client is served.
+    calm_sessions.list_sessions(pb::ListSessionsRequest {}).await.expect("another client is not limited");
+    assert_eq!(http_status_from(&server, calm, "/healthz").await, 200);
+
+    // A haptic stream flooding commands (far over 50/s, past its 100 saved up) is ended
+    // with RESOURCE_EXHAUSTED; the session keeps stepping.
+    let id = created.session.as_ref().unwrap().id.clone();
+    let (tx, feedback) = crate::haptics::open_on(channel_from(&server, calm).await, &id, &created.control_token).await;
+    let mut feedback = feedback.expect("the stream opens");
+    let probe = pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, 0.05)), active: true, cut: false, client_time_ns: 1, feedback_every_steps: 1 };
+    tokio::spawn(async move {
+        for _ in 0..300 {
+            if tx.send(probe).await.is_err() {
+                break;
+            }
+        }
+    });
+    let ended = loop {
+        match tokio::time::timeout(Duration::from_secs(10), feedback.message()).await.expect("the stream ends") {
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("the flood must be refused, not accepted"),
+            Err(status) => break status,
+        }
+    };
+    assert_eq!(ended.code(), Code::ResourceExhausted, "{}", ended.message());
+    assert!(ended.message().contains("more than 50 tool commands per second"), "{}", ended.message());
+    tokio::time::sleep(Duration::from_millis(1100)).await;
+    let info = calm_sessions.get_session(authed(pb::GetSessionRequest { session_id: id, with_state_hash: false }, &created.observe_token)).await.unwrap().into_inner();
+    assert!(info.step > 0);
+}

@@ -11,7 +11,12 @@ use crate::harness::*;
 
 /// Opens a haptics stream on a session with a token; returns the sender and the response.
 pub async fn open(server: &Server, session: &str, token: &str) -> (mpsc::Sender<pb::ToolCommand>, Result<tonic::Streaming<pb::ForceFeedback>, tonic::Status>) {
-    let mut client = HapticsClient::new(server.channel().await);
+    open_on(server.channel().await, session, token).await
+}
+
+/// The same on a given channel.
+pub async fn open_on(channel: tonic::transport::Channel, session: &str, token: &str) -> (mpsc::Sender<pb::ToolCommand>, Result<tonic::Streaming<pb::ForceFeedback>, tonic::Status>) {
+    let mut client = HapticsClient::new(channel);
     let (tx, rx) = mpsc::channel(16);
     let mut request = tonic::Request::new(ReceiverStream::new(rx));
     request.metadata_mut().insert("cutsim-session", session.parse().unwrap());

@@ -26,6 +26,15 @@ pub struct Limits {
     pub max_script_steps: u64,
     /// How far outside the tissue's bounding box a tool may be, m.
     pub pose_margin_m: f64,
+    /// Requests (gRPC calls, HTTP requests, WebSocket upgrades) per second per client
+    /// address, sustained …
+    pub requests_per_second_per_client: f64,
+    /// … and at once.
+    pub request_burst_per_client: f64,
+    /// Tool commands per second on one haptic stream (two seconds' worth may arrive at once).
+    pub tool_commands_per_second: f64,
+    /// Requests per second from one WebSocket viewer (resync, set rate).
+    pub viewer_requests_per_second: f64,
 }
 
 impl Default for Limits {
@@ -39,7 +48,29 @@ impl Default for Limits {
             max_script_bytes: 4 << 20,
             max_script_steps: 2_000_000,
             pose_margin_m: 1.0,
+            requests_per_second_per_client: 50.0,
+            request_burst_per_client: 200.0,
+            tool_commands_per_second: 4000.0,
+            viewer_requests_per_second: 20.0,
         }
+    }
+}
+
+impl Limits {
+    /// Rates must be positive and finite (a zero rate would refuse everything forever).
+    fn check(&self) -> Result<(), String> {
+        let rates = [
+            ("requests_per_second_per_client", self.requests_per_second_per_client),
+            ("request_burst_per_client", self.request_burst_per_client),
+            ("tool_commands_per_second", self.tool_commands_per_second),
+            ("viewer_requests_per_second", self.viewer_requests_per_second),
+        ];
+        for (name, value) in rates {
+            if !(value.is_finite() && value >= 1.0) {
+                return Err(format!("{name}: must be a finite number ≥ 1, got {value}"));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -92,6 +123,8 @@ impl ServerConfig {
     pub fn load(path: &std::path::Path) -> Result<Self, String> {
         let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read config {}: {e}", path.display()))?;
         let de = &mut serde_json::Deserializer::from_str(&text);
-        serde_path_to_error::deserialize(de).map_err(|e| format!("{}: {}: {}", path.display(), e.path(), e.inner()))
+        let config: Self = serde_path_to_error::deserialize(de).map_err(|e| format!("{}: {}: {}", path.display(), e.path(), e.inner()))?;
+        config.limits.check().map_err(|e| format!("{}: limits.{e}", path.display()))?;
+        Ok(config)
     }
 }

@@ -16,6 +16,7 @@ use tower_http::services::ServeDir;
 
 use crate::auth::{Role, TOKEN_KEY, Token};
 use crate::convert;
+use crate::rate::ClientRates;
 use crate::error::ApiError;
 use crate::session::PlaybackCommand;
 use crate::metrics::{self, Metrics};
@@ -29,6 +30,7 @@ const PROTO: &str = include_str!("../../../proto/cutsim.proto");
 pub struct AppState {
     pub registry: Arc<Registry>,
     pub metrics: Arc<Metrics>,
+    pub rates: Arc<ClientRates>,
 }
 
 pub fn router(state: AppState) -> Router {
@@ -44,7 +46,17 @@ pub fn router(state: AppState) -> Router {
         .route("/healthz", get(|| async { "ok\n" }))
         .route("/cutsim.proto", get(|| async { ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], PROTO) }))
         .fallback_service(viewer)
+        .layer(axum::middleware::from_fn_with_state(state.clone(), rate_limited))
         .with_state(state)
+}
+
+/// Every HTTP request (pages, API, WebSocket upgrades) counts against its client's rate.
+async fn rate_limited(State(app): State<AppState>, request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+    let client = request.extensions().get::<axum::extract::ConnectInfo<std::net::SocketAddr>>().map(|c| c.0);
+    match app.rates.admit(client) {
+        Ok(()) => next.run(request).await,
+        Err(refused) => refused.into_response(),
+    }
 }
 
 /// One session in the public list (no tokens).

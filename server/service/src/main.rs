@@ -17,6 +17,7 @@ mod grpc;
 mod headless;
 mod http;
 mod metrics;
+mod rate;
 mod serve;
 mod session;
 mod tls;

@@ -27,7 +27,8 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     let grpc_addr = grpc_listener.local_addr()?;
     let http_addr = http_listener.local_addr()?;
 
-    let api = Api { registry: registry.clone() };
+    let rates = Arc::new(crate::rate::ClientRates::new(config.limits.requests_per_second_per_client, config.limits.request_burst_per_client));
+    let api = Api { registry: registry.clone(), rates: rates.clone() };
     let limit = config.limits.max_message_bytes;
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<SessionsServer<Api>>().await;
@@ -60,7 +61,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
         .serve_with_incoming_shutdown(tonic::transport::server::TcpIncoming::from(grpc_listener).with_nodelay(Some(true)), async move {
             let _ = stop_grpc.recv().await;
         });
-    let app = http::router(AppState { registry: registry.clone(), metrics });
+    let app = http::router(AppState { registry: registry.clone(), metrics, rates });
     let stop_http = async move {
         let _ = stop_http.recv().await;
     };

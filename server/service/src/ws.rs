@@ -63,9 +63,10 @@ pub async fn upgrade(
         None => app.registry.config.viewer_rate_hz,
     };
     let metrics = app.metrics.clone();
+    let requests_per_second = app.registry.config.limits.viewer_requests_per_second;
     Ok(ws.max_message_size(MAX_INCOMING_BYTES).on_upgrade(move |socket: WebSocket| async move {
         let (sink, stream) = socket.split();
-        let outcome = run_viewer(sink, stream, session.clone(), role == Role::Observe, rate, &metrics).await;
+        let outcome = run_viewer(sink, stream, session.clone(), ViewerOptions { observer: role == Role::Observe, rate_hz: rate, requests_per_second }, &metrics).await;
         tracing::debug!(session = %session.id, ?outcome, "viewer left");
     }))
 }
@@ -155,13 +156,22 @@ fn frame_bytes(frame: pb::viewer_frame::Frame) -> Vec<u8> {
     pb::ViewerFrame { frame: Some(frame) }.encode_to_vec()
 }
 
+/// How one viewer is served.
+pub struct ViewerOptions {
+    /// Holds the observe token (not the control token).
+    pub observer: bool,
+    /// Positions frames per second, to begin with.
+    pub rate_hz: f64,
+    /// ViewerRequests per second it may send (a second's worth at once).
+    pub requests_per_second: f64,
+}
+
 /// Runs one viewer until it leaves, the session closes or a send fails.
 pub async fn run_viewer<Tx, Rx, E>(
     mut sink: Tx,
     mut incoming: Rx,
     session: Arc<Session>,
-    observer: bool,
-    rate_hz: f64,
+    ViewerOptions { observer, rate_hz, requests_per_second }: ViewerOptions,
     metrics: &crate::metrics::Metrics,
 ) -> ViewerEnd
 where
@@ -197,6 +207,7 @@ where
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut ticks: u64 = 0;
     let mut last_playback = None;
+    let mut requests = crate::rate::TokenBucket::new(requests_per_second, requests_per_second, std::time::Instant::now());
     loop {
         let mut resync = false;
         tokio::select! {
@@ -255,6 +266,9 @@ where
                 ticks += 1;
             },
             message = incoming.next() => match message {
+                Some(Ok(Message::Binary(_))) if requests.take(std::time::Instant::now()).is_err() => {
+                    return close(&mut sink, 1008, &format!("more than {requests_per_second} requests per second")).await;
+                }
                 Some(Ok(Message::Binary(bytes))) => match pb::ViewerRequest::decode(bytes.as_ref()) {
                     Ok(pb::ViewerRequest { request: Some(pb::viewer_request::Request::Resync(_)) }) => resync = true,
                     Ok(pb::ViewerRequest { request: Some(pb::viewer_request::Request::SetRateHz(hz)) }) if (1.0..=240.0).contains(&hz) => {
