@@ -27,6 +27,10 @@ cargo test --workspace --locked
 echo "==> fuzzing: every cargo-fuzz target for 20,000 inputs (docs/fuzzing.md)"
 fuzz/run.sh 20000
 
+echo "==> load and faults, short (cutsim-load; its full run writes docs/reliability.md)"
+cargo build --locked -p cutsim-load
+target/debug/cutsim-load --sessions 2 --viewers 2 --seconds 8 --report target/reliability-ci.md >/dev/null
+
 echo "==> Python client example (grpcio stubs from proto/cutsim.proto) against a real server"
 clients/python/setup.sh >/dev/null
 CUTSIM_SERVER_BIN="$(pwd)/target/debug/cutsim-server" clients/python/.venv/bin/python -m unittest discover -s clients/python -p "test_*.py"

@@ -11,5 +11,4 @@ mod replay;
 mod scripts;
 mod sessions;
 mod tls;
-mod viewer_client;
 mod viewers;

@@ -7,7 +7,7 @@ use cutsim_proto::v1 as pb;
 
 use crate::harness::*;
 use crate::sessions::http_get;
-use crate::viewer_client::Viewer;
+use cutsim_load::viewer::Viewer;
 
 const ADMIN: &str = "0123456789abcdef0123456789abcdef";
 

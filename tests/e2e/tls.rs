@@ -11,7 +11,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_rustls::rustls;
 
 use crate::harness::{Server, TempDir, server_binary};
-use crate::viewer_client::Viewer;
+use cutsim_load::viewer::Viewer;
 
 struct Certificate {
     dir: TempDir,

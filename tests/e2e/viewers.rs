@@ -5,7 +5,7 @@ use std::time::Duration;
 use cutsim_proto::v1 as pb;
 
 use crate::harness::*;
-use crate::viewer_client::Viewer;
+use cutsim_load::viewer::Viewer;
 
 async fn server_surface_hash(server: &Server, session: &Created) -> (String, usize) {
     let s = server.sessions().await.get_snapshot(authed(pb::GetSnapshotRequest { session_id: session.id.clone() }, &session.observe)).await.unwrap().into_inner();

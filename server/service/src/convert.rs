@@ -91,6 +91,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         scene: s.scene_name.clone(),
         model: s.model.to_owned(),
         fidelity: s.fidelity.clone(),
+        recording_problem: s.recording_problem().unwrap_or_default(),
         mode: mode(s.mode) as i32,
         status: status(if s.is_closed() { Status::Closed } else { frame.status }) as i32,
         rate_hz: s.rate_hz,

@@ -133,6 +133,13 @@ fn main() -> ExitCode {
 }
 
 fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
+    // A recording that grows past the file-size limit must fail its write (EFBIG, counted
+    // and reported like a full disk), not kill every session with SIGXFSZ.
+    #[cfg(unix)]
+    // SAFETY: setting a signal's disposition to "ignore" at start, before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
         .with_writer(std::io::stderr)

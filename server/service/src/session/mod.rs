@@ -175,6 +175,11 @@ impl Session {
         self.recorder.lock().expect("recorder lock").as_ref().map_or((0, 0), Recorder::losses)
     }
 
+    /// What went wrong with the recording (a full disk…), reported in SessionInfo.
+    pub fn recording_problem(&self) -> Option<String> {
+        self.recorder.lock().expect("recorder lock").as_ref().and_then(Recorder::problem)
+    }
+
     pub fn recording_path(&self) -> Option<std::path::PathBuf> {
         self.recorder.lock().expect("recorder lock").as_ref().map(|r| r.path.clone())
     }

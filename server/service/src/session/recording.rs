@@ -58,11 +58,28 @@ impl RecordingProducer {
     }
 }
 
+/// Failed writes (a full disk…): how many, and the first one's error, which the
+/// session reports until it closes.
+#[derive(Default)]
+struct WriteFailures {
+    count: AtomicU64,
+    first: std::sync::OnceLock<String>,
+}
+
+impl WriteFailures {
+    fn record(&self, error: &std::io::Error, path: &Path) {
+        self.count.fetch_add(1, Ordering::Relaxed);
+        if self.first.set(error.to_string()).is_ok() {
+            tracing::error!(recording = %path.display(), %error, "a recording write failed: the session goes on, its recording is incomplete from here");
+        }
+    }
+}
+
 /// The recorder thread and what it reports.
 pub struct Recorder {
     pub path: PathBuf,
     lost: Arc<AtomicU64>,
-    write_errors: Arc<AtomicU64>,
+    write_errors: Arc<WriteFailures>,
     stop: Arc<AtomicBool>,
     sync_tx: std::sync::mpsc::Sender<std::sync::mpsc::Sender<()>>,
     thread: Option<std::thread::JoinHandle<()>>,
@@ -106,11 +123,11 @@ impl Recorder {
         file.flush()?;
         let (producer, mut consumer) = rtrb::RingBuffer::new(RING_CAPACITY);
         let lost = Arc::new(AtomicU64::new(0));
-        let write_errors = Arc::new(AtomicU64::new(0));
+        let write_errors = Arc::new(WriteFailures::default());
         let stop = Arc::new(AtomicBool::new(false));
         let (sync_tx, sync_rx) = std::sync::mpsc::channel::<std::sync::mpsc::Sender<()>>();
         let thread = {
-            let (lost, write_errors, stop) = (lost.clone(), write_errors.clone(), stop.clone());
+            let (lost, write_errors, stop, path) = (lost.clone(), write_errors.clone(), stop.clone(), path.clone());
             let name = format!("record-{}", &session[..session.len().min(8)]);
             std::thread::Builder::new().name(name).spawn(move || {
                 let mut out = std::io::BufWriter::with_capacity(1 << 16, file);
@@ -131,16 +148,16 @@ impl Recorder {
                             RecordEvent::Checkpoint { step, hash } => Line::Check { step, hash: hash_hex(hash) },
                             RecordEvent::End { step } => Line::End { step },
                         };
-                        write_line(&mut out, &line, &write_errors);
+                        write_line(&mut out, &line, &write_errors, &path);
                     }
                     let now_lost = lost.load(Ordering::Relaxed);
                     if now_lost > reported_lost {
-                        write_line(&mut out, &Line::Lost { count: now_lost - reported_lost }, &write_errors);
+                        write_line(&mut out, &Line::Lost { count: now_lost - reported_lost }, &write_errors, &path);
                         reported_lost = now_lost;
                         wrote = true;
                     }
-                    if wrote && out.flush().is_err() {
-                        write_errors.fetch_add(1, Ordering::Relaxed);
+                    if wrote && let Err(e) = out.flush() {
+                        write_errors.record(&e, &path);
                     }
                     for ack in waiting.drain(..) {
                         let _ = ack.send(());
@@ -161,7 +178,21 @@ impl Recorder {
 
     /// Events the ring could not take, and write failures (disk full…), so far.
     pub fn losses(&self) -> (u64, u64) {
-        (self.lost.load(Ordering::Relaxed), self.write_errors.load(Ordering::Relaxed))
+        (self.lost.load(Ordering::Relaxed), self.write_errors.count.load(Ordering::Relaxed))
+    }
+
+    /// What went wrong with this recording, if anything: a replay cannot be exact past it.
+    pub fn problem(&self) -> Option<String> {
+        let (lost, failed) = self.losses();
+        let mut problems = Vec::new();
+        if failed > 0 {
+            let first = self.write_errors.first.get().map_or("", String::as_str);
+            problems.push(format!("{failed} writes to {} failed (first: {first}); the recording is incomplete from there", self.path.display()));
+        }
+        if lost > 0 {
+            problems.push(format!("{lost} events could not be recorded (the recorder fell behind)"));
+        }
+        (!problems.is_empty()).then(|| problems.join("; "))
     }
 
     /// Waits (up to a second) until everything recorded so far is written to the file.
@@ -187,10 +218,10 @@ impl Drop for Recorder {
     }
 }
 
-fn write_line(out: &mut impl Write, line: &Line, errors: &AtomicU64) {
-    let ok = serde_json::to_writer(&mut *out, line).is_ok() && out.write_all(b"\n").is_ok();
-    if !ok {
-        errors.fetch_add(1, Ordering::Relaxed);
+fn write_line(out: &mut impl Write, line: &Line, failures: &WriteFailures, path: &Path) {
+    let written = serde_json::to_writer(&mut *out, line).map_err(std::io::Error::from).and_then(|()| out.write_all(b"\n"));
+    if let Err(e) = written {
+        failures.record(&e, path);
     }
 }
 

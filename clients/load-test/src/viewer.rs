@@ -1,5 +1,7 @@
-//! A viewer as a test client: a real WebSocket connection that decodes ViewerFrames and
-//! keeps a replica of the surface from the snapshot, the deltas and the positions.
+//! A viewer as a client program: a real WebSocket connection that decodes ViewerFrames and
+//! keeps a replica of the surface from the snapshot, the deltas and the positions (what
+//! the web viewer does), so that its surface hash can be checked against the server's.
+//! Used by the load test and the end-to-end tests.
 
 use std::time::{Duration, Instant};
 
@@ -19,6 +21,10 @@ pub struct Viewer {
     pub positions_frames: u32,
     pub hello: Option<pb::Hello>,
     pub closed: Option<String>,
+    /// Frames received.
+    pub frames: u64,
+    /// What did not decode or apply (empty for a correct server).
+    pub errors: Vec<String>,
 }
 
 pub fn snapshot_from(s: &pb::Snapshot) -> SurfaceSnapshot {
@@ -74,7 +80,7 @@ impl Viewer {
     }
 
     fn over(socket: Socket) -> Viewer {
-        Viewer { socket, replica: None, snapshots: 0, deltas: 0, positions_frames: 0, hello: None, closed: None }
+        Viewer { socket, replica: None, snapshots: 0, deltas: 0, positions_frames: 0, hello: None, closed: None, frames: 0, errors: Vec::new() }
     }
 
     /// Reads and applies frames until `done` holds (true) or `timeout` passes (false).
@@ -97,23 +103,32 @@ impl Viewer {
     }
 
     fn apply(&mut self, bytes: &[u8]) {
-        let frame = pb::ViewerFrame::decode(bytes).expect("a ViewerFrame");
-        match frame.frame.expect("a frame") {
+        let Ok(pb::ViewerFrame { frame: Some(frame) }) = pb::ViewerFrame::decode(bytes) else {
+            self.errors.push(format!("frame {} is not a ViewerFrame", self.frames));
+            return;
+        };
+        self.frames += 1;
+        match frame {
             pb::viewer_frame::Frame::Hello(h) => self.hello = Some(h),
             pb::viewer_frame::Frame::Snapshot(s) => {
                 self.replica = Some(SurfaceReplica::from_snapshot(&snapshot_from(&s)));
                 self.snapshots += 1;
             }
             pb::viewer_frame::Frame::Delta(d) => {
-                let replica = self.replica.as_mut().expect("a delta after the snapshot");
-                replica.apply(&delta_from(&d)).expect("deltas apply in order");
+                let Some(replica) = self.replica.as_mut() else { return self.errors.push("a delta before the snapshot".into()) };
+                if let Err(e) = replica.apply(&delta_from(&d)) {
+                    self.errors.push(format!("delta {} does not apply: {e}", d.version));
+                }
                 self.deltas += 1;
             }
             pb::viewer_frame::Frame::Positions(p) => {
-                let replica = self.replica.as_mut().expect("positions after the snapshot");
+                let Some(replica) = self.replica.as_mut() else { return self.errors.push("positions before the snapshot".into()) };
+                if p.positions_m.len() != 3 * p.id_deltas.len() {
+                    return self.errors.push(format!("positions frame with {} ids and {} coordinates", p.id_deltas.len(), p.positions_m.len()));
+                }
                 let mut id = 0u32;
                 for (k, delta) in p.id_deltas.iter().enumerate() {
-                    id += delta;
+                    id = id.wrapping_add(*delta);
                     replica.set_position(id, [p.positions_m[3 * k], p.positions_m[3 * k + 1], p.positions_m[3 * k + 2]]);
                 }
                 self.positions_frames += 1;
