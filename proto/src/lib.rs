@@ -14,19 +14,29 @@ pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "
 /// is TLS, trusting the system's roots and, when given, the CA certificate in `ca_pem`
 /// (a PEM file: a private CA or a self-signed server certificate).
 pub fn endpoint(url: &str, ca_pem: Option<&std::path::Path>) -> Result<tonic::transport::Endpoint, String> {
+    endpoint_for_name(url, ca_pem, None)
+}
+
+/// [`endpoint`], checking the server's certificate against `tls_name` instead of the
+/// URL's host: for a probe that dials `127.0.0.1` on a server whose certificate names
+/// its public host.
+pub fn endpoint_for_name(url: &str, ca_pem: Option<&std::path::Path>, tls_name: Option<&str>) -> Result<tonic::transport::Endpoint, String> {
     let endpoint = tonic::transport::Endpoint::from_shared(url.to_owned())
         .map_err(|e| format!("{url:?} is not a server address ({e}); use e.g. http://127.0.0.1:50051 or https://host:50051"))?;
     let tls = url.starts_with("https://");
     if !tls {
-        return match ca_pem {
-            Some(_) => Err(format!("a TLS CA was given but {url:?} is not https://")),
-            None => Ok(endpoint),
+        return match (ca_pem, tls_name) {
+            (None, None) => Ok(endpoint),
+            _ => Err(format!("TLS settings were given but {url:?} is not https://")),
         };
     }
     let mut config = tonic::transport::ClientTlsConfig::new().with_native_roots();
     if let Some(path) = ca_pem {
         let pem = std::fs::read(path).map_err(|e| format!("cannot read the TLS CA certificate {}: {e}", path.display()))?;
         config = config.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+    }
+    if let Some(name) = tls_name {
+        config = config.domain_name(name);
     }
     endpoint.tls_config(config).map_err(|e| format!("TLS set-up for {url}: {e}"))
 }

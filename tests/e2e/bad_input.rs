@@ -207,9 +207,15 @@ async fn a_client_over_its_rate_is_refused_and_others_are_not() {
     assert_eq!(refused.code(), Code::ResourceExhausted);
     assert!(refused.message().contains("rate limit: 127.0.0.1 sends more than 1 requests per second") && refused.message().contains("retry in"), "{}", refused.message());
     assert_eq!(http_status_from(&server, noisy, "/healthz").await, 429);
+    // The limit stands in front of every gRPC service, health included.
+    let mut noisy_health = tonic_health::pb::health_client::HealthClient::new(channel_from(&server, noisy).await);
+    let refused = noisy_health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.unwrap_err();
+    assert_eq!(refused.code(), Code::ResourceExhausted, "{}", refused.message());
 
     // The other client is served.
     calm_sessions.list_sessions(pb::ListSessionsRequest {}).await.expect("another client is not limited");
+    let mut calm_health = tonic_health::pb::health_client::HealthClient::new(channel_from(&server, calm).await);
+    calm_health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.expect("health answers the other client");
     assert_eq!(http_status_from(&server, calm, "/healthz").await, 200);
 
     // A haptic stream flooding commands (far over 50/s, past its 100 saved up) is ended

@@ -21,7 +21,12 @@ struct Certificate {
 impl Certificate {
     /// A self-signed certificate for 127.0.0.1 and localhost, written as cert.pem/key.pem.
     fn make() -> Self {
-        let made = rcgen::generate_simple_self_signed(vec!["127.0.0.1".to_owned(), "localhost".to_owned()]).expect("rcgen makes a certificate");
+        Self::make_for(&["127.0.0.1", "localhost"])
+    }
+
+    /// A self-signed certificate for `names` only.
+    fn make_for(names: &[&str]) -> Self {
+        let made = rcgen::generate_simple_self_signed(names.iter().map(|n| n.to_string()).collect::<Vec<_>>()).expect("rcgen makes a certificate");
         let dir = TempDir::new("tls");
         std::fs::write(dir.0.join("cert.pem"), made.cert.pem()).unwrap();
         std::fs::write(dir.0.join("key.pem"), made.signing_key.serialize_pem()).unwrap();
@@ -83,8 +88,15 @@ async fn grpc_https_and_websocket_take_tls_with_the_configured_certificate() {
     assert!(Viewer::connect(&server.http, &id, &created.observe_token).await.is_err(), "plain ws:// must not be served on a TLS listener");
 
     // The health probe speaks TLS when given the CA.
-    let probe = Command::new(server_binary()).args(["health", "--grpc-addr", &server.grpc, "--tls-ca", &cert.path("cert.pem")]).output().unwrap();
-    assert!(probe.status.success(), "{}", String::from_utf8_lossy(&probe.stderr));
+    let probe = |extra: &[&str]| Command::new(server_binary()).args(["health", "--grpc-addr", &server.grpc, "--tls-ca", &cert.path("cert.pem")]).args(extra).output().unwrap();
+    let served = probe(&[]);
+    assert!(served.status.success(), "{}", String::from_utf8_lossy(&served.stderr));
+    // A probe inside a pod dials 127.0.0.1 and checks the certificate's own name
+    // (docker/k8s/tls-patch.yaml); a name the certificate does not carry is refused.
+    let by_name = probe(&["--tls-domain", "localhost"]);
+    assert!(by_name.status.success(), "{}", String::from_utf8_lossy(&by_name.stderr));
+    let wrong_name = probe(&["--tls-domain", "cutsim.example.org"]);
+    assert_eq!(wrong_name.status.code(), Some(1), "a certificate without the name must not pass");
 }
 
 #[test]
@@ -105,4 +117,52 @@ fn a_missing_or_mismatched_key_stops_the_server_with_a_clear_error() {
     assert!(not_pem.contains("no CERTIFICATE block"), "{not_pem}");
     let mismatched = run(&cert.path("cert.pem"), &other.path("key.pem"));
     assert!(mismatched.contains("do not make a usable identity"), "{mismatched}");
+}
+
+/// The JSON arrays (YAML flow sequences) on the lines of `yaml` that start with `key:`.
+fn flow_lists(yaml: &str, key: &str) -> Vec<Vec<String>> {
+    yaml.lines()
+        .filter_map(|l| l.trim().strip_prefix(key)?.strip_prefix(':'))
+        .filter_map(|rest| serde_json::from_str(rest.trim()).ok())
+        .collect()
+}
+
+/// docker/k8s/tls-patch.yaml, run here: the server started with the patch's arguments
+/// (its Secret's files made by rcgen for the probe's name only, not for 127.0.0.1), and
+/// the patch's exec probes pass against it.
+#[test]
+fn the_kubernetes_tls_patch_serves_and_its_probes_pass() {
+    let patch = std::fs::read_to_string(crate::harness::repo("docker/k8s/tls-patch.yaml")).unwrap();
+    let args = flow_lists(&patch, "args").pop().expect("the patch gives the server's args");
+    let probes = flow_lists(&patch, "command");
+    assert_eq!(probes.len(), 2, "a readiness and a liveness probe");
+    let probe = &probes[0];
+    assert_eq!(&probes[1], probe);
+    assert!(patch.matches("grpc: null").count() == 2, "the native gRPC probes are removed");
+    let after = |list: &[String], flag: &str| list.iter().position(|a| a == flag).map(|i| list[i + 1].clone()).unwrap_or_else(|| panic!("{flag} in {list:?}"));
+    let name = after(probe, "--tls-domain");
+
+    // The Secret's files, mounted at /etc/cutsim/tls in the pod, are made here.
+    let cert = Certificate::make_for(&[&name]);
+    std::fs::copy(cert.path("cert.pem"), cert.dir.0.join("tls.crt")).unwrap();
+    std::fs::copy(cert.path("key.pem"), cert.dir.0.join("tls.key")).unwrap();
+    std::fs::copy(cert.path("cert.pem"), cert.dir.0.join("ca.crt")).unwrap();
+    std::fs::write(cert.dir.0.join("server.json"), "{}").unwrap();
+    let local = |a: &String| {
+        let a = a.replace("/etc/cutsim/tls/", &format!("{}/", cert.dir.0.display()));
+        a.replace("/etc/cutsim/server.json", &cert.path("server.json"))
+    };
+    assert_eq!(args[0], "serve");
+    let serve: Vec<String> = args[1..].iter().map(local).collect();
+    let server = Server::start_with(&serve.iter().map(String::as_str).collect::<Vec<_>>());
+
+    assert_eq!(probe[0], "cutsim-server");
+    assert_eq!(after(probe, "--grpc-addr"), "127.0.0.1:50051", "the probe dials the pod's own gRPC port");
+    let run: Vec<String> = probe[1..].iter().map(local).map(|a| a.replace("127.0.0.1:50051", &server.grpc)).collect();
+    let out = Command::new(server_binary()).args(&run).output().unwrap();
+    assert!(out.status.success(), "the probe {run:?} fails: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    // Without the name, the probe checks 127.0.0.1, which the certificate does not carry.
+    let without_name: Vec<String> = run.iter().take_while(|a| *a != "--tls-domain").cloned().collect();
+    let out = Command::new(server_binary()).args(&without_name).output().unwrap();
+    assert_eq!(out.status.code(), Some(1), "a certificate for {name} only must not pass for 127.0.0.1");
 }

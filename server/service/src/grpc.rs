@@ -19,7 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::auth::{Role, SESSION_KEY, TOKEN_KEY};
 use crate::convert;
-use crate::rate::{ClientRates, TokenBucket};
+use crate::rate::TokenBucket;
 use crate::error::ApiError;
 use crate::session::records::{FeedbackRecord, StampedCommand};
 use crate::session::{Mode, Registry, SceneSource, ScriptEvent, Session};
@@ -28,7 +28,6 @@ use crate::session::{Mode, Registry, SceneSource, ScriptEvent, Session};
 #[derive(Clone)]
 pub struct Api {
     pub registry: Arc<Registry>,
-    pub rates: Arc<ClientRates>,
 }
 
 fn metadata<'a, T>(request: &'a Request<T>, key: &str) -> Option<&'a str> {
@@ -36,11 +35,6 @@ fn metadata<'a, T>(request: &'a Request<T>, key: &str) -> Option<&'a str> {
 }
 
 impl Api {
-    /// Every call counts against its client's request rate (docs/server.md, limits).
-    fn admit<T>(&self, request: &Request<T>) -> Result<(), Status> {
-        Ok(self.rates.admit(request.remote_addr())?)
-    }
-
     fn session(&self, id: &str, token: Option<&str>, needed: Role) -> Result<Arc<Session>, ApiError> {
         let session = self.registry.get(id)?;
         session.authorize(token, needed)?;
@@ -51,7 +45,6 @@ impl Api {
 #[tonic::async_trait]
 impl Sessions for Api {
     async fn create_session(&self, request: Request<pb::CreateSessionRequest>) -> Result<Response<pb::CreateSessionResponse>, Status> {
-        self.admit(&request)?;
         let r = request.into_inner();
         let source = match r.scene {
             Some(pb::create_session_request::Scene::SceneName(name)) => SceneSource::Bundled(name),
@@ -68,14 +61,12 @@ impl Sessions for Api {
         }))
     }
 
-    async fn list_sessions(&self, request: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
-        self.admit(&request)?;
+    async fn list_sessions(&self, _request: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
         let sessions = self.registry.list().iter().map(|s| convert::session_info(s)).collect();
         Ok(Response::new(pb::ListSessionsResponse { sessions }))
     }
 
     async fn get_session(&self, request: Request<pb::GetSessionRequest>) -> Result<Response<pb::SessionInfo>, Status> {
-        self.admit(&request)?;
         let session = self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Observe)?;
         let mut info = convert::session_info(&session);
         if request.get_ref().with_state_hash {
@@ -87,14 +78,12 @@ impl Sessions for Api {
     }
 
     async fn close_session(&self, request: Request<pb::CloseSessionRequest>) -> Result<Response<pb::CloseSessionResponse>, Status> {
-        self.admit(&request)?;
         self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Control)?;
         self.registry.close(&request.get_ref().session_id).await?;
         Ok(Response::new(pb::CloseSessionResponse {}))
     }
 
     async fn get_snapshot(&self, request: Request<pb::GetSnapshotRequest>) -> Result<Response<pb::Snapshot>, Status> {
-        self.admit(&request)?;
         let session = self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Observe)?;
         let (snapshot, step) = session.snapshot().await?;
         Ok(Response::new(convert::snapshot(&snapshot, &session.id, step)))
@@ -199,7 +188,6 @@ impl Haptics for Api {
     type StreamStream = Pin<Box<dyn Stream<Item = Result<pb::ForceFeedback, Status>> + Send>>;
 
     async fn stream(&self, request: Request<Streaming<pb::ToolCommand>>) -> Result<Response<Self::StreamStream>, Status> {
-        self.admit(&request)?;
         let id = metadata(&request, SESSION_KEY)
             .ok_or_else(|| ApiError::InvalidArgument(format!("name the session in the metadata key `{SESSION_KEY}`")))?
             .to_owned();
@@ -277,7 +265,6 @@ impl Scripts for Api {
     type RunScriptStream = Pin<Box<dyn Stream<Item = Result<pb::ScriptEvent, Status>> + Send>>;
 
     async fn run_script(&self, request: Request<pb::RunScriptRequest>) -> Result<Response<Self::RunScriptStream>, Status> {
-        self.admit(&request)?;
         let session = self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Control)?;
         let r = request.into_inner();
         let limits = &self.registry.config.limits;

@@ -66,6 +66,11 @@ struct HealthArgs {
     /// Ask over TLS, trusting this PEM CA certificate (a server started with --tls-cert).
     #[arg(long)]
     tls_ca: Option<PathBuf>,
+    /// With --tls-ca: the name the server's certificate must carry, when it is not the
+    /// address dialled (a probe inside the pod dials 127.0.0.1; the certificate names the
+    /// public host).
+    #[arg(long, requires = "tls_ca")]
+    tls_domain: Option<String>,
 }
 
 #[derive(Args, Default)]
@@ -187,7 +192,7 @@ fn health(args: &HealthArgs) -> ExitCode {
     let timeout = std::time::Duration::from_secs_f64(args.timeout_s.clamp(0.1, 600.0));
     let url = format!("{}://{}", if args.tls_ca.is_some() { "https" } else { "http" }, args.grpc_addr);
     let check = async {
-        let channel = cutsim_proto::endpoint(&url, args.tls_ca.as_deref())?.connect_timeout(timeout).connect().await?;
+        let channel = cutsim_proto::endpoint_for_name(&url, args.tls_ca.as_deref(), args.tls_domain.as_deref())?.connect_timeout(timeout).connect().await?;
         let reply = HealthClient::new(channel).check(HealthCheckRequest { service: String::new() }).await?;
         Ok::<_, Box<dyn std::error::Error>>(reply.into_inner().status)
     };

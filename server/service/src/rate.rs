@@ -4,7 +4,7 @@
 
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::error::ApiError;
@@ -76,6 +76,15 @@ impl ClientRates {
                 wait.as_millis().max(1)
             ))
         })
+    }
+}
+
+/// The gRPC side: an interceptor in front of every service (ours, health and reflection
+/// alike), so each call and each stream opened counts against its client's rate.
+pub fn admit_grpc(rates: Arc<ClientRates>) -> impl FnMut(tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> + Clone {
+    move |request| {
+        rates.admit(request.remote_addr())?;
+        Ok(request)
     }
 }
 

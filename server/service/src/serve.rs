@@ -28,7 +28,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     let http_addr = http_listener.local_addr()?;
 
     let rates = Arc::new(crate::rate::ClientRates::new(config.limits.requests_per_second_per_client, config.limits.request_burst_per_client));
-    let api = Api { registry: registry.clone(), rates: rates.clone() };
+    let api = Api { registry: registry.clone() };
     let limit = config.limits.max_message_bytes;
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<SessionsServer<Api>>().await;
@@ -53,6 +53,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     }
     let grpc = grpc_server
         .tcp_nodelay(true)
+        .layer(tonic::service::InterceptorLayer::new(crate::rate::admit_grpc(rates.clone())))
         .add_service(health_service)
         .add_service(reflection)
         .add_service(SessionsServer::new(api.clone()).max_decoding_message_size(limit))
