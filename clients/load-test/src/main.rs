@@ -41,7 +41,7 @@ struct Args {
     /// How long the load runs, s.
     #[arg(long, default_value_t = 20.0)]
     seconds: f64,
-    /// Scene of the real-time sessions (bundled name).
+    /// Scene of the real-time sessions: a bundled scene's name, or a scene file (*.json) sent inline.
     #[arg(long, default_value = "skin-patch")]
     scene: String,
     /// The cutsim-server binary (default: beside this one).

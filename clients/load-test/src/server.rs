@@ -130,11 +130,18 @@ pub struct Created {
     pub info: pb::SessionInfo,
 }
 
+/// Opens a session on `scene`: a bundled scene's name, or a scene file (`*.json`) sent inline.
 pub async fn create(server: &ServerProcess, scene: &str, mode: pb::SessionMode, label: &str) -> anyhow::Result<Created> {
+    let source = if scene.ends_with(".json") {
+        let json = std::fs::read_to_string(scene).map_err(|e| anyhow!("cannot read the scene file {scene}: {e}"))?;
+        pb::create_session_request::Scene::SceneJson(json)
+    } else {
+        pb::create_session_request::Scene::SceneName(scene.into())
+    };
     let r = server
         .sessions()
         .await?
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName(scene.into())), mode: mode as i32, label: label.into() })
+        .create_session(pb::CreateSessionRequest { scene: Some(source), mode: mode as i32, label: label.into() })
         .await
         .map_err(|s| anyhow!("creating a session on {scene}: {}", s.message()))?
         .into_inner();

@@ -50,6 +50,10 @@ pub struct Physics {
     missed: u64,
     rate_window: (Instant, u64),
     estimated_step: Duration,
+    /// Steps counted (`Outputs::total_steps`) when the last viewer frame was published.
+    last_frame_step: u64,
+    /// What publishing a frame takes (a slow-leaning estimate, as for steps).
+    estimated_publish: Duration,
     pub(super) out: Outputs,
 }
 
@@ -100,6 +104,8 @@ impl Physics {
             missed: 0,
             rate_window: (Instant::now(), 0),
             estimated_step: Duration::from_micros(200),
+            last_frame_step: 0,
+            estimated_publish: Duration::ZERO,
             out: Outputs {
                 session,
                 hub,
@@ -151,10 +157,11 @@ impl Physics {
             last_start = Instant::now();
             self.read_commands();
             self.step_realtime();
-            let end = Instant::now();
             // A step that started early for a device's command re-anchors the periods
             // there (the device's clock leads); otherwise the deadlines stay absolute.
             next = if last_start < next { last_start + period } else { next + period };
+            self.publish_frame_if_room(next);
+            let end = Instant::now();
             if end > next {
                 self.missed += 1;
             }
@@ -269,9 +276,26 @@ impl Physics {
         if self.out.total_steps % STATS_EVERY_STEPS == 0 {
             self.update_stats();
         }
-        if self.out.total_steps % self.out.publish_every == 0 {
-            self.out.publish_frame(self.tissue.as_ref());
+    }
+
+    /// Publishes the viewers' frame when one is due and there is room for it before the
+    /// step's deadline, or when it is a whole frame period late. A frame copies every
+    /// surface vertex (for a branched grid, interpolated from its element's nodes: a few
+    /// hundred microseconds for a CT liver), which beside a slow step would make that step
+    /// late; viewers do not notice a frame a few steps later.
+    fn publish_frame_if_room(&mut self, deadline: Instant) {
+        let since = self.out.total_steps.saturating_sub(self.last_frame_step);
+        if since < self.out.publish_every {
+            return;
         }
+        let started = Instant::now();
+        if started + self.estimated_publish > deadline && since < 2 * self.out.publish_every {
+            return;
+        }
+        self.out.publish_frame(self.tissue.as_ref());
+        self.last_frame_step = self.out.total_steps;
+        let elapsed = started.elapsed();
+        self.estimated_publish = if elapsed > self.estimated_publish { elapsed } else { (self.estimated_publish * 63 + elapsed) / 64 };
     }
 
     fn update_stats(&mut self) {
