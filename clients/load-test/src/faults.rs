@@ -13,7 +13,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite;
 
 use crate::haptic::{self, HapticTarget, Trajectory};
-use crate::server::{self, Created, ServerProcess};
+use crate::server::{self, Created, FullDisk, ServerProcess};
 
 /// One fault case's outcome.
 #[derive(Serialize, Debug, Clone)]
@@ -241,11 +241,22 @@ pub async fn replay_after_kill(binary: &Path, restarted: &ServerProcess, recordi
 }
 
 /// A server whose recordings cannot grow past `limit` bytes: the session keeps running
-/// with its haptic client, and SessionInfo reports the loss.
+/// with its haptic client, and SessionInfo reports the loss. The disk is a real full
+/// filesystem where this process may mount one (root), else a file-size limit.
 pub async fn disk_full(binary: &Path, config: &Path, recordings: &Path, scene: &str, limit: u64) -> FaultOutcome {
     const CASE: &str = "disk full while recording";
     let run = async {
-        let server = ServerProcess::start(binary, config, recordings, Some(limit))?;
+        let (server, disk) = match ServerProcess::start(binary, config, recordings, Some(FullDisk::Tmpfs(limit))) {
+            Ok(server) => (server, format!("the recordings directory is a full filesystem (a {} KiB tmpfs: writes fail with ENOSPC)", limit >> 10)),
+            Err(tmpfs) => (
+                ServerProcess::start(binary, config, recordings, Some(FullDisk::FileSize(limit)))?,
+                format!(
+                    "recordings limited to {} KiB by a file-size limit (RLIMIT_FSIZE: writes fail with EFBIG where a full disk fails them with ENOSPC; no tmpfs: {})",
+                    limit >> 10,
+                    tmpfs.root_cause()
+                ),
+            ),
+        };
         let session = server::create(&server, scene, pb::SessionMode::Realtime, "cutsim-load disk-full").await?;
         let target = HapticTarget { grpc: server.grpc.clone(), session: session.id.clone(), token: session.control.clone(), trajectory: Trajectory::from_info(&session.info) };
         let until = Instant::now() + Duration::from_secs(4);
@@ -262,8 +273,7 @@ pub async fn disk_full(binary: &Path, config: &Path, recordings: &Path, scene: &
             CASE,
             passed,
             format!(
-                "recordings limited to {} KiB; reported {} after the session started: \"{}\"; the session kept stepping ({} steps in the last part, {rate:.0} Hz) and its haptic client got {} feedback messages{}",
-                limit >> 10,
+                "{disk}; reported {} after the session started: \"{}\"; the session kept stepping ({} steps in the last part, {rate:.0} Hz) and its haptic client got {} feedback messages{}",
                 reported.map_or("never".into(), |t| format!("{:.1} s", t.as_secs_f64())),
                 after.recording_problem,
                 after.step - before.step,

@@ -84,7 +84,7 @@ pub fn markdown(r: &Report) -> String {
         }
         let _ = writeln!(
             w,
-            "\nThe full disk is simulated with a file-size limit on the server process (`RLIMIT_FSIZE`): the recording's writes fail with EFBIG exactly where a full disk fails them with ENOSPC (the server ignores SIGXFSZ so that the failure is an error, not a signal)."
+            "\nThe full disk is a real filesystem that fills up (a tmpfs mounted over the recordings directory in the server's own mount namespace) where cutsim-load may mount one, as root; elsewhere a file-size limit on the server process (`RLIMIT_FSIZE`) makes the recording's writes fail with EFBIG where a full disk fails them with ENOSPC (the server ignores SIGXFSZ so that the failure is an error, not a signal)."
         );
     }
     if !r.capacity.is_empty() {

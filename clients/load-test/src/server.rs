@@ -38,10 +38,22 @@ pub struct ServerProcess {
     _lines: mpsc::Receiver<String>,
 }
 
+/// How the full-disk fault fills the disk under the server's recordings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FullDisk {
+    /// A real filesystem of this many bytes: a tmpfs mounted over the recordings directory
+    /// in the server's own mount namespace (nobody else sees it). Writes past it fail with
+    /// ENOSPC. Needs CAP_SYS_ADMIN (root).
+    Tmpfs(u64),
+    /// A file-size limit (RLIMIT_FSIZE) of this many bytes on the server process: writes
+    /// past it fail with EFBIG where a full disk fails them with ENOSPC.
+    FileSize(u64),
+}
+
 impl ServerProcess {
-    /// Starts `binary serve` with no session; `file_size_limit` (bytes) stands in for a
-    /// full disk: writes past it fail (EFBIG) as they would with ENOSPC.
-    pub fn start(binary: &Path, config: &Path, recordings: &Path, file_size_limit: Option<u64>) -> anyhow::Result<Self> {
+    /// Starts `binary serve` with no session, its recordings on a disk that fills up at
+    /// `full_disk` when given.
+    pub fn start(binary: &Path, config: &Path, recordings: &Path, full_disk: Option<FullDisk>) -> anyhow::Result<Self> {
         let mut command = Command::new(binary);
         command
             .args(["serve", "--no-session", "--grpc-addr", "127.0.0.1:0", "--http-addr", "127.0.0.1:0", "--config"])
@@ -51,17 +63,12 @@ impl ServerProcess {
             .env("RUST_LOG", "warn")
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit());
-        if let Some(limit) = file_size_limit {
-            use std::os::unix::process::CommandExt;
-            // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
-            unsafe {
-                command.pre_exec(move || {
-                    let rlimit = libc::rlimit { rlim_cur: limit, rlim_max: limit };
-                    if libc::setrlimit(libc::RLIMIT_FSIZE, &rlimit) != 0 {
-                        return Err(std::io::Error::last_os_error());
-                    }
-                    Ok(())
-                });
+        match full_disk {
+            None => {}
+            Some(FullDisk::FileSize(limit)) => limit_file_size(&mut command, limit),
+            Some(FullDisk::Tmpfs(bytes)) => {
+                std::fs::create_dir_all(recordings).with_context(|| format!("creating {}", recordings.display()))?;
+                mount_tmpfs(&mut command, recordings, bytes)?;
             }
         }
         let mut child = command.spawn().with_context(|| format!("starting {}", binary.display()))?;
@@ -168,4 +175,39 @@ pub async fn http(addr: &str, method: &str, path: &str, token: &str, body: &str)
     let text = String::from_utf8_lossy(&buf).into_owned();
     let status = text.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
     Ok((status, text.split("\r\n\r\n").nth(1).unwrap_or_default().to_owned()))
+}
+
+fn limit_file_size(command: &mut Command, limit: u64) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        command.pre_exec(move || {
+            let rlimit = libc::rlimit { rlim_cur: limit, rlim_max: limit };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &rlimit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
+/// Between fork and exec: a private mount namespace with a `bytes`-sized tmpfs over `dir`.
+/// Spawning fails (EPERM) where the process may not mount.
+fn mount_tmpfs(command: &mut Command, dir: &Path, bytes: u64) -> anyhow::Result<()> {
+    use std::ffi::CString;
+    use std::os::unix::ffi::OsStrExt;
+    use std::os::unix::process::CommandExt;
+    let target = CString::new(dir.as_os_str().as_bytes())?;
+    let options = CString::new(format!("size={bytes}"))?;
+    let check = |rc: libc::c_int| if rc == 0 { Ok(()) } else { Err(std::io::Error::last_os_error()) };
+    // SAFETY: unshare and mount are plain system calls; the strings were made before fork.
+    unsafe {
+        command.pre_exec(move || {
+            check(libc::unshare(libc::CLONE_NEWNS))?;
+            // Mounts made here stay in this namespace.
+            check(libc::mount(c"none".as_ptr(), c"/".as_ptr(), std::ptr::null(), libc::MS_REC | libc::MS_PRIVATE, std::ptr::null()))?;
+            check(libc::mount(c"tmpfs".as_ptr(), target.as_ptr(), c"tmpfs".as_ptr(), 0, options.as_ptr().cast()))
+        });
+    }
+    Ok(())
 }
