@@ -171,11 +171,16 @@ async fn channel_from(server: &Server, source: &str) -> tonic::transport::Channe
 }
 
 async fn http_status_from(server: &Server, source: &str, path: &str) -> u16 {
+    http_status_with(server, source, path, "").await
+}
+
+/// An HTTP GET of `path` from `source` with `headers` (each ending in CRLF): the status.
+async fn http_status_with(server: &Server, source: &str, path: &str, headers: &str) -> u16 {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     socket.bind(format!("{source}:0").parse().unwrap()).unwrap();
     let mut stream = socket.connect(server.http.parse().unwrap()).await.unwrap();
-    stream.write_all(format!("GET {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\n\r\n", server.http).as_bytes()).await.unwrap();
+    stream.write_all(format!("GET {path} HTTP/1.1\r\nHost: {}\r\n{headers}Connection: close\r\n\r\n", server.http).as_bytes()).await.unwrap();
     let mut text = String::new();
     stream.read_to_string(&mut text).await.unwrap();
     text.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0)
@@ -243,4 +248,65 @@ async fn a_client_over_its_rate_is_refused_and_others_are_not() {
     tokio::time::sleep(Duration::from_millis(1100)).await;
     let info = calm_sessions.get_session(authed(pb::GetSessionRequest { session_id: id, with_state_hash: false }, &created.observe_token)).await.unwrap().into_inner();
     assert!(info.step > 0);
+}
+
+async fn http_status_forwarded(server: &Server, source: &str, forwarded_for: &str) -> u16 {
+    http_status_with(server, source, "/healthz", &format!("X-Forwarded-For: {forwarded_for}\r\n")).await
+}
+
+/// Behind a trusted proxy each forwarded client has its own rate; anyone else's
+/// X-Forwarded-For is ignored (a client cannot dodge its limit by inventing addresses).
+#[tokio::test]
+async fn a_trusted_proxy_forwards_for_its_clients_and_others_cannot_pretend() {
+    use cutsim_proto::v1::sessions_client::SessionsClient;
+    let config = TempDir::new("proxy-config");
+    let path = config.0.join("server.json");
+    std::fs::write(&path, r#"{"limits": {"requests_per_second_per_client": 1, "request_burst_per_client": 3, "trusted_proxies": ["127.0.0.1/32", "fd00::/8"]}}"#).unwrap();
+    let server = Server::start_with(&["--no-session", "--config", path.to_str().unwrap()]);
+    let (proxy, stranger) = ("127.0.0.1", "127.0.0.2");
+
+    // Through the proxy (HTTP): one forwarded client spends its burst; the next is served.
+    for _ in 0..3 {
+        assert_eq!(http_status_forwarded(&server, proxy, "203.0.113.1").await, 200);
+    }
+    assert_eq!(http_status_forwarded(&server, proxy, "203.0.113.1").await, 429);
+    assert_eq!(http_status_forwarded(&server, proxy, "198.51.100.7, 203.0.113.2").await, 200, "the nearest hop is the client");
+
+    // gRPC through the proxy: the metadata names the client, and the refusal names it too.
+    let mut via_proxy = SessionsClient::new(channel_from(&server, proxy).await);
+    let forwarded = |who: &str| {
+        let mut request = tonic::Request::new(pb::ListSessionsRequest {});
+        request.metadata_mut().insert("x-forwarded-for", who.parse().unwrap());
+        request
+    };
+    for _ in 0..3 {
+        via_proxy.list_sessions(forwarded("203.0.113.50")).await.expect("within the forwarded client's burst");
+    }
+    let refused = via_proxy.list_sessions(forwarded("203.0.113.50")).await.unwrap_err();
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(refused.message().contains("203.0.113.50"), "{}", refused.message());
+    via_proxy.list_sessions(forwarded("203.0.113.51")).await.expect("another forwarded client");
+
+    // A peer that is not a trusted proxy is its own client, whatever it claims.
+    let mut statuses = Vec::new();
+    for k in 0..4 {
+        statuses.push(http_status_forwarded(&server, stranger, &format!("192.0.2.{k}")).await);
+    }
+    assert_eq!(statuses, [200, 200, 200, 429], "an untrusted peer's X-Forwarded-For is ignored");
+}
+
+#[test]
+fn bad_limits_stop_the_server_naming_the_setting() {
+    let dir = TempDir::new("bad-limits");
+    for (limits, expected) in [
+        (r#"{"trusted_proxies": ["10.0.0.0/8", "10.0.0/8"]}"#, "limits.trusted_proxies[1]: \"10.0.0/8\" is not an address or a CIDR block"),
+        (r#"{"requests_per_second_per_client": 0}"#, "limits.requests_per_second_per_client: must be a finite number ≥ 1, got 0"),
+    ] {
+        let path = dir.0.join("server.json");
+        std::fs::write(&path, format!(r#"{{"limits": {limits}}}"#)).unwrap();
+        let out = std::process::Command::new(server_binary()).args(["serve", "--no-session", "--config", path.to_str().unwrap()]).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert!(stderr.contains(expected) && stderr.contains("server.json"), "{stderr}");
+    }
 }

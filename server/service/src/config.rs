@@ -35,6 +35,9 @@ pub struct Limits {
     pub tool_commands_per_second: f64,
     /// Requests per second from one WebSocket viewer (resync, set rate).
     pub viewer_requests_per_second: f64,
+    /// Proxies (addresses or CIDR blocks) whose `X-Forwarded-For` names the client that
+    /// the request rate is kept for; any other peer is the client itself.
+    pub trusted_proxies: Vec<String>,
 }
 
 impl Default for Limits {
@@ -52,6 +55,7 @@ impl Default for Limits {
             request_burst_per_client: 200.0,
             tool_commands_per_second: 4000.0,
             viewer_requests_per_second: 20.0,
+            trusted_proxies: Vec::new(),
         }
     }
 }
@@ -70,7 +74,12 @@ impl Limits {
                 return Err(format!("{name}: must be a finite number ≥ 1, got {value}"));
             }
         }
+        self.trusted_proxy_blocks()?;
         Ok(())
+    }
+
+    pub fn trusted_proxy_blocks(&self) -> Result<Vec<crate::rate::IpBlock>, String> {
+        self.trusted_proxies.iter().enumerate().map(|(i, text)| crate::rate::IpBlock::parse(text).map_err(|e| format!("trusted_proxies[{i}]: {e}"))).collect()
     }
 }
 

@@ -52,8 +52,9 @@ pub fn router(state: AppState) -> Router {
 
 /// Every HTTP request (pages, API, WebSocket upgrades) counts against its client's rate.
 async fn rate_limited(State(app): State<AppState>, request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
-    let client = request.extensions().get::<axum::extract::ConnectInfo<std::net::SocketAddr>>().map(|c| c.0);
-    match app.rates.admit(client) {
+    let peer = request.extensions().get::<axum::extract::ConnectInfo<std::net::SocketAddr>>().map(|c| c.0);
+    let forwarded: Vec<&str> = request.headers().get_all("x-forwarded-for").iter().filter_map(|v| v.to_str().ok()).collect();
+    match app.rates.admit(peer, &forwarded) {
         Ok(()) => next.run(request).await,
         Err(refused) => refused.into_response(),
     }

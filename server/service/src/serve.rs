@@ -27,7 +27,8 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     let grpc_addr = grpc_listener.local_addr()?;
     let http_addr = http_listener.local_addr()?;
 
-    let rates = Arc::new(crate::rate::ClientRates::new(config.limits.requests_per_second_per_client, config.limits.request_burst_per_client));
+    let trusted_proxies = config.limits.trusted_proxy_blocks().map_err(|e| anyhow::anyhow!("limits.{e}"))?;
+    let rates = Arc::new(crate::rate::ClientRates::new(config.limits.requests_per_second_per_client, config.limits.request_burst_per_client, trusted_proxies));
     let api = Api { registry: registry.clone() };
     let limit = config.limits.max_message_bytes;
     let (health, health_service) = tonic_health::server::health_reporter();
