@@ -130,6 +130,9 @@ impl Physics {
     /// The thread's body: runs until the session closes.
     pub fn run(mut self) {
         precise_timers();
+        if self.out.session.mode == Mode::Lockstep {
+            yield_to_real_time();
+        }
         let period = Duration::from_secs_f64(self.tissue.time_step_s());
         let mut next = Instant::now();
         let mut last_start = next;
@@ -474,6 +477,21 @@ fn park_until(deadline: Instant) {
             return;
         }
         std::thread::park_timeout(deadline - now);
+    }
+}
+
+/// Niceness of the threads that run as fast as they can (lockstep scripts, replays): a
+/// bot's script beside real-time sessions takes the CPU they leave, not their deadlines.
+const BACKGROUND_NICE: libc::c_int = 19;
+
+/// Lowers this thread's scheduling priority (Linux sets niceness per thread) so that
+/// real-time sessions' physics threads win the cores when both want them.
+pub(super) fn yield_to_real_time() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: gettid has no arguments; setpriority on our own thread id changes only it.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        libc::setpriority(libc::PRIO_PROCESS, tid, BACKGROUND_NICE);
     }
 }
 
