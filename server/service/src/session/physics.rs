@@ -480,18 +480,23 @@ fn park_until(deadline: Instant) {
     }
 }
 
-/// Niceness of the threads that run as fast as they can (lockstep scripts, replays): a
-/// bot's script beside real-time sessions takes the CPU they leave, not their deadlines.
+/// Niceness of the threads that run as fast as they can (lockstep scripts, replays), kept
+/// where the kernel refuses `SCHED_IDLE` (a sandbox that filters sched_setscheduler).
 const BACKGROUND_NICE: libc::c_int = 19;
 
-/// Lowers this thread's scheduling priority (Linux sets niceness per thread) so that
-/// real-time sessions' physics threads win the cores when both want them.
+/// Puts this thread (Linux schedules threads, not processes) in the `SCHED_IDLE` class:
+/// a real-time session's physics thread waking for its deadline preempts it at once and
+/// it runs on the CPU time real-time sessions leave, so a bot's script beside them costs
+/// them little. It still runs when real-time sessions saturate the cores, only slowly.
 pub(super) fn yield_to_real_time() {
     #[cfg(target_os = "linux")]
-    // SAFETY: gettid has no arguments; setpriority on our own thread id changes only it.
+    // SAFETY: gettid has no arguments; setpriority and sched_setscheduler on our own
+    // thread id change only it, and `param` outlives the call.
     unsafe {
         let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
         libc::setpriority(libc::PRIO_PROCESS, tid, BACKGROUND_NICE);
+        let param = libc::sched_param { sched_priority: 0 };
+        libc::sched_setscheduler(tid as libc::pid_t, libc::SCHED_IDLE, &param);
     }
 }
 
