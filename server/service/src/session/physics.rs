@@ -509,3 +509,28 @@ fn precise_timers() {
         libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
     }
 }
+
+#[cfg(all(test, target_os = "linux"))]
+mod tests {
+    use super::yield_to_real_time;
+
+    #[test]
+    fn a_background_thread_leaves_the_cores_to_real_time_ones() {
+        // SAFETY: pid 0 queries the calling thread.
+        let before = unsafe { libc::sched_getscheduler(0) };
+        let (policy, nice) = std::thread::spawn(|| {
+            yield_to_real_time();
+            // SAFETY: pid 0 and PRIO_PROCESS with tid query this thread only.
+            unsafe {
+                let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+                (libc::sched_getscheduler(0), libc::getpriority(libc::PRIO_PROCESS, tid))
+            }
+        })
+        .join()
+        .unwrap();
+        assert!(policy == libc::SCHED_IDLE || nice == 19, "policy {policy}, niceness {nice}");
+        // SAFETY: as above, for the test's own thread, which must be left as it was.
+        let here = unsafe { libc::sched_getscheduler(0) };
+        assert_eq!(here, before, "only the calling thread changes");
+    }
+}
