@@ -352,6 +352,11 @@ impl Registry {
             .name(format!("physics-{}", &id[..8]))
             .spawn(move || {
                 let Ok(session) = start_rx.recv() else { return };
+                // Lockstep scripts and replays run as fast as they can; only a real-time
+                // session has deadlines, so the others take the CPU time it leaves.
+                if mode != Mode::Realtime {
+                    physics::yield_to_real_time();
+                }
                 let physics = physics::Physics::new(session, scene_for_thread, tissue, control_rx, hub_tx, producer);
                 match replay {
                     Some(recording) => physics.run_replay(recording),

@@ -130,9 +130,6 @@ impl Physics {
     /// The thread's body: runs until the session closes.
     pub fn run(mut self) {
         precise_timers();
-        if self.out.session.mode == Mode::Lockstep {
-            yield_to_real_time();
-        }
         let period = Duration::from_secs_f64(self.tissue.time_step_s());
         let mut next = Instant::now();
         let mut last_start = next;
@@ -490,13 +487,15 @@ const BACKGROUND_NICE: libc::c_int = 19;
 /// them little. It still runs when real-time sessions saturate the cores, only slowly.
 pub(super) fn yield_to_real_time() {
     #[cfg(target_os = "linux")]
-    // SAFETY: gettid has no arguments; setpriority and sched_setscheduler on our own
-    // thread id change only it, and `param` outlives the call.
+    // SAFETY: pid 0 is the calling thread, so sched_setscheduler changes only it and
+    // `param` outlives the call; gettid has no arguments and setpriority on our own
+    // thread id changes only it.
     unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        libc::setpriority(libc::PRIO_PROCESS, tid, BACKGROUND_NICE);
         let param = libc::sched_param { sched_priority: 0 };
-        libc::sched_setscheduler(tid as libc::pid_t, libc::SCHED_IDLE, &param);
+        if libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) != 0 {
+            let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+            libc::setpriority(libc::PRIO_PROCESS, tid, BACKGROUND_NICE);
+        }
     }
 }
 

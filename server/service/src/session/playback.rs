@@ -42,7 +42,6 @@ struct Player {
 impl Physics {
     /// The body of a replay session's thread.
     pub fn run_replay(mut self, recording: Arc<Recording>) {
-        super::physics::yield_to_real_time();
         let total = recording.total_steps();
         let start = Keyframe { global: 0, epoch: 0, cursor: 0, commands: self.out.commands.clone(), tissue: self.tissue.clone_box() };
         let mut player = Player { recording, epoch: 0, cursor: 0, global: 0, total, playing: false, speed: 1.0, keyframes: vec![start] };
