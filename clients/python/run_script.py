@@ -6,11 +6,15 @@ script's scene, run the script over gRPC (progress events stream while it runs, 
 report comes last), check the expectations, close the session. The stubs come from
 proto/cutsim.proto (run ./setup.sh once).
 
-    .venv/bin/python run_script.py ../cut-bot/examples/skin-patch-straight.json --server 127.0.0.1:50051
+    CUTSIM_OPERATOR_TOKEN=… .venv/bin/python run_script.py ../cut-bot/examples/skin-patch-straight.json --server 127.0.0.1:50051
+
+Creating a session needs an operator token (--operator-token, or $CUTSIM_OPERATOR_TOKEN):
+the server prints one at start when its config names none.
 """
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -21,14 +25,15 @@ import cutsim_pb2  # noqa: E402  (generated)
 import cutsim_pb2_grpc  # noqa: E402  (generated)
 
 
-def run(server: str, script_path: str) -> cutsim_pb2.ScriptReport:
+def run(server: str, script_path: str, operator_token: str) -> cutsim_pb2.ScriptReport:
     """Runs the script on a fresh lockstep session and returns the report."""
     script = Path(script_path).read_text()
     scene = json.loads(script)["scene"]
     with grpc.insecure_channel(server) as channel:
         sessions = cutsim_pb2_grpc.SessionsStub(channel)
         created = sessions.CreateSession(
-            cutsim_pb2.CreateSessionRequest(scene_name=scene, mode=cutsim_pb2.SESSION_MODE_LOCKSTEP, label="python example")
+            cutsim_pb2.CreateSessionRequest(scene_name=scene, mode=cutsim_pb2.SESSION_MODE_LOCKSTEP, label="python example"),
+            metadata=[("cutsim-token", operator_token)],
         )
         token = [("cutsim-token", created.control_token)]
         try:
@@ -51,9 +56,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("script", help="a cut script (docs/cut-script.md)")
     parser.add_argument("--server", default="127.0.0.1:50051", help="host:port of cutsim-server's gRPC")
+    parser.add_argument("--operator-token", default=os.environ.get("CUTSIM_OPERATOR_TOKEN", ""), help="creating a session needs one (default: $CUTSIM_OPERATOR_TOKEN)")
     args = parser.parse_args()
     try:
-        report = run(args.server, args.script)
+        report = run(args.server, args.script, args.operator_token)
     except grpc.RpcError as e:
         print(f"error: {e.code().name}: {e.details()}", file=sys.stderr)
         return 2

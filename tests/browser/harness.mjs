@@ -15,6 +15,8 @@ import { chromium } from 'playwright-core';
 export const repo = path.resolve(path.dirname(fileURLToPath(import.meta.url)), '../..');
 export const serverBinary = process.env.CUTSIM_SERVER_BIN || path.join(repo, 'target/debug/cutsim-server');
 export const artifacts = path.join(repo, 'artifacts');
+/** The operator token every test server is started with ($CUTSIM_OPERATOR_TOKEN). */
+export const OPERATOR = 'browser-test-operator-0123456789abcdef';
 
 export async function freePort() {
   const server = net.createServer();
@@ -30,7 +32,7 @@ export async function freePort() {
 export async function startServer({ grpcPort, httpPort, recordings, config }) {
   const extra = config ? ['--config', config] : [];
   const child = spawn(serverBinary, ['serve', '--no-session', '--grpc-addr', `127.0.0.1:${grpcPort}`, '--http-addr', `127.0.0.1:${httpPort}`, '--recordings-dir', recordings, ...extra], {
-    env: { ...process.env, RUST_LOG: 'warn' },
+    env: { ...process.env, RUST_LOG: 'warn', CUTSIM_OPERATOR_TOKEN: OPERATOR },
     stdio: ['ignore', 'pipe', 'inherit'],
   });
   let out = '';
@@ -66,7 +68,8 @@ export function grpcClients(grpcPort) {
       sessions[method](request, metadata, (err, response) => (err ? reject(err) : resolve(response)));
     });
   return {
-    createSession: (scene, mode = 'SESSION_MODE_LOCKSTEP') => unary('CreateSession', { scene_name: scene, mode, label: 'browser test' }),
+    createSession: (scene, mode = 'SESSION_MODE_LOCKSTEP') => unary('CreateSession', { scene_name: scene, mode, label: 'browser test' }, OPERATOR),
+    createInlineSession: (sceneJson, label, mode = 'SESSION_MODE_REALTIME') => unary('CreateSession', { scene_json: sceneJson, mode, label }, OPERATOR),
     snapshot: (id, token) => unary('GetSnapshot', { session_id: id }, token),
     runScript: (id, token, scriptJson) =>
       new Promise((resolve, reject) => {

@@ -8,7 +8,7 @@ import assert from 'node:assert/strict';
 import fs from 'node:fs';
 import path from 'node:path';
 import zlib from 'node:zlib';
-import { artifacts, freePort, grpcClients, launchBrowser, repo, startServer, tempDir, waitFor } from './harness.mjs';
+import { OPERATOR, artifacts, freePort, grpcClients, launchBrowser, repo, startServer, tempDir, waitFor } from './harness.mjs';
 
 /** How long the page may take to show the server's surface after a cut: stated bound. */
 const FOLLOW_MS = 5000;
@@ -34,8 +34,11 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
     page.on('pageerror', (e) => consoleErrors.push(String(e)));
     await page.goto(`http://127.0.0.1:${httpPort}/?session=${id}&token=${created.observe_token}`);
+    // The token leaves the address bar once the page has read it.
+    await waitFor('the token out of the address', () => !page.url().includes('token=') && page.url().includes(`session=${id}`));
 
-    // The session list shows the session; the panel draws a mesh of the server's size.
+    // An operator sees the session list; the panel draws a mesh of the server's size.
+    await signIn(page);
     await waitFor('the session in the list', () => page.locator(`#sessions tr[data-session="${id}"]`).count());
     const before = await api.snapshot(id, created.observe_token);
     const live = await waitFor('the mesh', async () => {
@@ -151,10 +154,7 @@ test('a recorded session replays with play, pause and scrub', async () => {
   const grpcPort = await freePort();
   const httpPort = await freePort();
   const recordings = tempDir('replay');
-  const admin = 'feedfacefeedfacefeedfacefeedface';
-  const config = path.join(recordings, 'config.json');
-  fs.writeFileSync(config, JSON.stringify({ admin_token: admin }));
-  const server = await startServer({ grpcPort, httpPort, recordings, config });
+  const server = await startServer({ grpcPort, httpPort, recordings });
   const api = grpcClients(grpcPort);
   const browser = await launchBrowser();
   const consoleErrors = [];
@@ -167,7 +167,7 @@ test('a recorded session replays with play, pause and scrub', async () => {
     page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
     page.on('pageerror', (e) => consoleErrors.push(String(e)));
     await page.goto(`http://127.0.0.1:${httpPort}/`);
-    await page.fill('#admin-token', admin);
+    await signIn(page);
     await page.click('#recordings-form button[type="submit"]');
     await page.click(`#recordings tr[data-recording="${recorded.session.id}"] button.replay`);
     const replay = await waitFor('the replay panel', () =>
@@ -204,6 +204,59 @@ test('a recorded session replays with play, pause and scrub', async () => {
     fs.rmSync(recordings, { recursive: true, force: true });
   }
 });
+
+test('a session named with markup runs no script in the viewer', async () => {
+  const grpcPort = await freePort();
+  const httpPort = await freePort();
+  const recordings = tempDir('xss');
+  const server = await startServer({ grpcPort, httpPort, recordings });
+  const api = grpcClients(grpcPort);
+  const browser = await launchBrowser();
+  const consoleErrors = [];
+  try {
+    // An inline scene whose name, and a label, are markup that would run script if the
+    // page parsed them as HTML.
+    const name = '<img src=x onerror="window.__pwned=1"><script>window.__pwned=2</script>';
+    const label = '<svg onload="window.__pwned=3"></svg>';
+    const scene = JSON.parse(fs.readFileSync(path.join(repo, 'server/scenes/skin-patch.json'), 'utf8'));
+    scene.name = name;
+    const created = await api.createInlineSession(JSON.stringify(scene), label);
+    const id = created.session.id;
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
+    page.on('pageerror', (e) => consoleErrors.push(String(e)));
+    const response = await page.goto(`http://127.0.0.1:${httpPort}/?session=${id}&token=${created.observe_token}`);
+    const csp = response.headers()['content-security-policy'] || '';
+    assert.match(csp, /script-src 'self' 'sha256-/, 'a strict CSP: own scripts and the import map by hash');
+    assert.doesNotMatch(csp, /unsafe-inline|unsafe-eval/);
+    assert.equal(response.headers()['x-content-type-options'], 'nosniff');
+    await signIn(page);
+    // The list and the panel show the markup as text, and create no element from it.
+    const row = `#sessions tr[data-session="${id}"]`;
+    await waitFor('the session in the list', () => page.locator(row).count());
+    assert.deepEqual(await page.$$eval(`${row} td`, (cells) => [cells[1].textContent, cells[2].textContent]), [label, name]);
+    await waitFor('the panel live', async () => (await pageState(page, id))?.state === 'live');
+    const title = await page.textContent(`.panel[data-session="${id}"] .scene`);
+    assert.ok(title.includes(name), `the panel shows the name as text: ${title}`);
+    assert.equal(await page.locator('#sessions img, #sessions svg, #sessions script, .panel header img, .panel header script').count(), 0, 'no element made from the markup');
+    // And were markup to reach the page by another way, the CSP would stop its script.
+    await page.evaluate(() => document.body.insertAdjacentHTML('beforeend', '<img src="data:," onerror="window.__pwned=4">'));
+    await new Promise((r) => setTimeout(r, 300));
+    assert.equal(await page.evaluate(() => window.__pwned), undefined, 'no script ran');
+    assert.ok(consoleErrors.some((e) => /Content Security Policy/.test(e)), 'the CSP refused the injected handler');
+  } finally {
+    await browser.close();
+    api.close();
+    server.kill('SIGKILL');
+    fs.rmSync(recordings, { recursive: true, force: true });
+  }
+});
+
+/** Signs the page in as an operator (the session list and recordings need it). */
+async function signIn(page) {
+  await page.fill('#operator-token', OPERATOR);
+  await page.click('#operator-form button[type="submit"]');
+}
 
 /** Counts red pixels — the lips (#d01010) and the wound's walls (#a01818, lit) — in a
  * PNG (8-bit RGB or RGBA); the skin (#e7b49c) and the background are not red. */

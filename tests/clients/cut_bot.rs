@@ -14,7 +14,7 @@ use harness::*;
 const CUT_BOT: &str = env!("CARGO_BIN_EXE_cut-bot");
 
 fn cut_bot(args: &[&str]) -> Output {
-    Command::new(CUT_BOT).args(args).output().expect("cut-bot runs")
+    Command::new(CUT_BOT).args(args).env("CUTSIM_OPERATOR_TOKEN", OPERATOR).output().expect("cut-bot runs")
 }
 
 fn text(o: &Output) -> String {

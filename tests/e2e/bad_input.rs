@@ -67,21 +67,21 @@ async fn bad_requests_get_the_right_status_and_the_session_survives() {
     // Oversized messages: a scene above the scene limit, and a message above the gRPC limit.
     let big_scene = format!("{{\"name\": \"x\", \"description\": \"{}\"}}", "a".repeat(2 << 20));
     let e = sessions
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(big_scene)), mode: 0, label: String::new() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(big_scene)), mode: 0, label: String::new() }))
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted, "{}", e.message());
     assert!(e.message().contains("at most 1048576"), "{}", e.message());
     let huge = "a".repeat(5 << 20);
     let e = sessions
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(huge)), mode: 0, label: String::new() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(huge)), mode: 0, label: String::new() }))
         .await
         .unwrap_err();
     assert!(matches!(e.code(), Code::ResourceExhausted | Code::OutOfRange), "{:?}: {}", e.code(), e.message());
 
     // Bad scenes and scripts name the JSON path.
     let e = sessions
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson("{\"name\": \"x\", \"model\": {\"msm\": {\"geometry\": 5}}}".into())), mode: 0, label: String::new() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson("{\"name\": \"x\", \"model\": {\"msm\": {\"geometry\": 5}}}".into())), mode: 0, label: String::new() }))
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
@@ -91,7 +91,7 @@ async fn bad_requests_get_the_right_status_and_the_session_survives() {
     let existing = repo("server/scenes/skin-patch.json");
     for name in ["../secret", "../../server/scenes/skin-patch.json", existing.to_str().unwrap(), "skin-patch.json"] {
         let e = sessions
-            .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName(name.into())), mode: 0, label: String::new() })
+            .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName(name.into())), mode: 0, label: String::new() }))
             .await
             .unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument, "{name}");
@@ -103,7 +103,7 @@ async fn bad_requests_get_the_right_status_and_the_session_survives() {
             r#"{{ "name": "probe", "model": {{ "branched-grid": {{ "volume": {{ "mesh": {{ "path": {path:?}, "voxel_size_m": 0.002 }} }}, "materials": [ {{ "label": 1, "young_pa": 1000, "density_kg_per_m3": 1000 }} ], "level": 1 }} }}, "tools": [] }}"#
         );
         let e = sessions
-            .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(json)), mode: 0, label: String::new() })
+            .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(json)), mode: 0, label: String::new() }))
             .await
             .unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument, "{path}");
@@ -157,7 +157,7 @@ async fn the_session_limit_is_refused_clearly() {
     let e = server
         .sessions()
         .await
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 2, label: String::new() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 2, label: String::new() }))
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted);
@@ -198,7 +198,7 @@ async fn a_client_over_its_rate_is_refused_and_others_are_not() {
 
     let mut calm_sessions = SessionsClient::new(channel_from(&server, calm).await);
     let created = calm_sessions
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Realtime as i32, label: "rate".into() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Realtime as i32, label: "rate".into() }))
         .await
         .unwrap()
         .into_inner();
@@ -206,9 +206,9 @@ async fn a_client_over_its_rate_is_refused_and_others_are_not() {
     // The noisy client spends its burst of 5, then is refused (gRPC and HTTP alike).
     let mut noisy_sessions = SessionsClient::new(channel_from(&server, noisy).await);
     for _ in 0..5 {
-        noisy_sessions.list_sessions(pb::ListSessionsRequest {}).await.expect("within the burst");
+        noisy_sessions.list_sessions(operator(pb::ListSessionsRequest {})).await.expect("within the burst");
     }
-    let refused = noisy_sessions.list_sessions(pb::ListSessionsRequest {}).await.unwrap_err();
+    let refused = noisy_sessions.list_sessions(operator(pb::ListSessionsRequest {})).await.unwrap_err();
     assert_eq!(refused.code(), Code::ResourceExhausted);
     assert!(refused.message().contains("rate limit: 127.0.0.1 sends more than 1 requests per second") && refused.message().contains("retry in"), "{}", refused.message());
     assert_eq!(http_status_from(&server, noisy, "/healthz").await, 429);
@@ -218,7 +218,7 @@ async fn a_client_over_its_rate_is_refused_and_others_are_not() {
     assert_eq!(refused.code(), Code::ResourceExhausted, "{}", refused.message());
 
     // The other client is served.
-    calm_sessions.list_sessions(pb::ListSessionsRequest {}).await.expect("another client is not limited");
+    calm_sessions.list_sessions(operator(pb::ListSessionsRequest {})).await.expect("another client is not limited");
     let mut calm_health = tonic_health::pb::health_client::HealthClient::new(channel_from(&server, calm).await);
     calm_health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.expect("health answers the other client");
     assert_eq!(http_status_from(&server, calm, "/healthz").await, 200);
@@ -275,7 +275,7 @@ async fn a_trusted_proxy_forwards_for_its_clients_and_others_cannot_pretend() {
     // gRPC through the proxy: the metadata names the client, and the refusal names it too.
     let mut via_proxy = SessionsClient::new(channel_from(&server, proxy).await);
     let forwarded = |who: &str| {
-        let mut request = tonic::Request::new(pb::ListSessionsRequest {});
+        let mut request = operator(pb::ListSessionsRequest {});
         request.metadata_mut().insert("x-forwarded-for", who.parse().unwrap());
         request
     };

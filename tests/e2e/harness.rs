@@ -49,6 +49,15 @@ impl Drop for TempDir {
     }
 }
 
+/// The operator token every test server is started with ($CUTSIM_OPERATOR_TOKEN):
+/// creating, listing and closing sessions need it.
+pub const OPERATOR: &str = "e2e-operator-token-0123456789abcdef";
+
+/// A request with the operator token in its metadata.
+pub fn operator<T>(message: T) -> tonic::Request<T> {
+    authed(message, OPERATOR)
+}
+
 /// A running server process, killed when dropped.
 pub struct Server {
     child: Child,
@@ -66,12 +75,19 @@ impl Server {
     }
 
     pub fn start_with(extra: &[&str]) -> Self {
+        Self::start_with_env(extra, &[])
+    }
+
+    /// Starts the server with more environment variables (e.g. fault injection).
+    pub fn start_with_env(extra: &[&str], env: &[(&str, &str)]) -> Self {
         let recordings = TempDir::new("recordings");
         let mut child = Command::new(server_binary())
             .args(["serve", "--grpc-addr", "127.0.0.1:0", "--http-addr", "127.0.0.1:0", "--recordings-dir"])
             .arg(&recordings.0)
             .args(extra)
             .env("RUST_LOG", "warn")
+            .env("CUTSIM_OPERATOR_TOKEN", OPERATOR)
+            .envs(env.iter().copied())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -137,11 +153,11 @@ pub async fn create(server: &Server, scene: &str, mode: pb::SessionMode) -> Crea
     let r = server
         .sessions()
         .await
-        .create_session(pb::CreateSessionRequest {
+        .create_session(operator(pb::CreateSessionRequest {
             scene: Some(pb::create_session_request::Scene::SceneName(scene.into())),
             mode: mode as i32,
             label: "e2e".into(),
-        })
+        }))
         .await
         .expect("session created")
         .into_inner();
@@ -173,4 +189,41 @@ pub async fn run_script(server: &Server, session: &Created, script: &str) -> Res
     }
     assert!(progress > 0, "progress events stream while the script runs");
     Ok(report.expect("the last event is the report"))
+}
+
+/// An HTTP/1.1 response as a test reads it.
+pub struct HttpResponse {
+    pub status: u16,
+    /// The header block, as sent.
+    pub head: String,
+    pub body: String,
+}
+
+impl HttpResponse {
+    /// A header's value (case-insensitive name).
+    pub fn header(&self, name: &str) -> Option<&str> {
+        self.head.lines().find_map(|l| l.split_once(':').filter(|(n, _)| n.trim().eq_ignore_ascii_case(name)).map(|(_, v)| v.trim()))
+    }
+}
+
+/// A plain HTTP/1.1 request over a TCP socket (no HTTP client dependency needed).
+pub async fn http_call(addr: &str, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> HttpResponse {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let extra: String = headers.iter().map(|(n, v)| format!("{n}: {v}\r\n")).collect();
+    let request = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{extra}content-length: {}\r\n\r\n{body}", body.len());
+    stream.write_all(request.as_bytes()).await.unwrap();
+    let mut buf = Vec::new();
+    stream.read_to_end(&mut buf).await.unwrap();
+    let text = String::from_utf8_lossy(&buf).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let status = head.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    HttpResponse { status, head: head.to_owned(), body: body.to_owned() }
+}
+
+/// `method path` with a token in the `cutsim-token` header: (status, body).
+pub async fn http_request(addr: &str, method: &str, path: &str, token: Option<&str>) -> (u16, String) {
+    let headers: Vec<(&str, &str)> = token.map(|t| ("cutsim-token", t)).into_iter().collect();
+    let r = http_call(addr, method, path, &headers, "").await;
+    (r.status, r.body)
 }

@@ -24,14 +24,14 @@ async fn create_list_get_close() {
     // An inline scene works too.
     let text = std::fs::read_to_string(repo("server/scenes/skin-patch.json")).unwrap().replace("\"skin-patch\"", "\"inline-patch\"");
     let b = client
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(text)), mode: pb::SessionMode::Lockstep as i32, label: "b".into() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(text)), mode: pb::SessionMode::Lockstep as i32, label: "b".into() }))
         .await
         .unwrap()
         .into_inner();
     let b_info = b.session.unwrap();
     assert_eq!(b_info.scene, "inline-patch");
 
-    let list = client.list_sessions(pb::ListSessionsRequest {}).await.unwrap().into_inner();
+    let list = client.list_sessions(operator(pb::ListSessionsRequest {})).await.unwrap().into_inner();
     let ids: Vec<_> = list.sessions.iter().map(|s| s.id.clone()).collect();
     assert!(ids.contains(&a.id) && ids.contains(&b_info.id));
 
@@ -43,11 +43,10 @@ async fn create_list_get_close() {
     let idle = client.get_session(authed(pb::GetSessionRequest { session_id: b_info.id.clone(), with_state_hash: false }, &b.observe_token)).await.unwrap().into_inner();
     assert_eq!((idle.step, idle.status), (0, pb::SessionStatus::Idle as i32));
 
-    // The HTML and JSON lists show both.
-    let json = reqwest_like_get(&server.http, "/api/sessions").await;
+    // The JSON list shows both to an operator.
+    let (status, json) = http_request(&server.http, "GET", "/api/sessions", Some(OPERATOR)).await;
+    assert_eq!(status, 200, "{json}");
     assert!(json.contains(&a.id) && json.contains(&b_info.id), "{json}");
-    let html = reqwest_like_get(&server.http, "/sessions").await;
-    assert!(html.contains(&a.id));
     let metrics = reqwest_like_get(&server.http, "/metrics").await;
     assert!(metrics.contains(&format!("cutsim_steps_total{{session=\"{}\"}}", a.id)), "{metrics}");
 
@@ -55,7 +54,7 @@ async fn create_list_get_close() {
     let denied = client.close_session(authed(pb::CloseSessionRequest { session_id: a.id.clone() }, &a.observe)).await.unwrap_err();
     assert_eq!(denied.code(), tonic::Code::PermissionDenied);
     client.close_session(authed(pb::CloseSessionRequest { session_id: a.id.clone() }, &a.control)).await.unwrap();
-    let list = client.list_sessions(pb::ListSessionsRequest {}).await.unwrap().into_inner();
+    let list = client.list_sessions(operator(pb::ListSessionsRequest {})).await.unwrap().into_inner();
     assert_eq!(list.sessions.len(), 1);
     let gone = client.get_session(authed(pb::GetSessionRequest { session_id: a.id.clone(), with_state_hash: false }, &a.observe)).await.unwrap_err();
     assert_eq!(gone.code(), tonic::Code::NotFound);
@@ -113,7 +112,7 @@ async fn an_auto_fidelity_session_reports_and_records_its_level() {
     let auto = text.replace("\"level\": 3,", "\"level\": 1, \"fidelity\": \"auto\", \"step_budget_ms\": 1000,");
     assert_ne!(auto, text, "the u-tube scene changed shape");
     let created = client
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(auto)), mode: pb::SessionMode::Lockstep as i32, label: String::new() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(auto)), mode: pb::SessionMode::Lockstep as i32, label: String::new() }))
         .await
         .unwrap()
         .into_inner();

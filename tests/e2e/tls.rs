@@ -10,7 +10,7 @@ use cutsim_proto::v1::sessions_client::SessionsClient;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_rustls::rustls;
 
-use crate::harness::{Server, TempDir, server_binary};
+use crate::harness::{OPERATOR, Server, TempDir, operator, server_binary};
 use cutsim_load::viewer::Viewer;
 
 struct Certificate {
@@ -54,14 +54,14 @@ async fn grpc_https_and_websocket_take_tls_with_the_configured_certificate() {
     // gRPC over TLS, trusting the certificate as a CA: create a session.
     let channel = cutsim_proto::endpoint(&format!("https://{}", server.grpc), Some(&cert.dir.0.join("cert.pem"))).unwrap().connect().await.expect("gRPC over TLS connects");
     let created = SessionsClient::new(channel)
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Realtime as i32, label: "tls".into() })
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Realtime as i32, label: "tls".into() }))
         .await
         .expect("a session over TLS")
         .into_inner();
     let id = created.session.unwrap().id;
 
     // Plain gRPC to the TLS port gets nowhere.
-    let plain = async { tonic::transport::Endpoint::from_shared(format!("http://{}", server.grpc)).unwrap().connect().await.map(SessionsClient::new)?.list_sessions(pb::ListSessionsRequest {}).await.map_err(Into::into) };
+    let plain = async { tonic::transport::Endpoint::from_shared(format!("http://{}", server.grpc)).unwrap().connect().await.map(SessionsClient::new)?.list_sessions(operator(pb::ListSessionsRequest {})).await.map_err(Into::into) };
     let plain: Result<_, Box<dyn std::error::Error>> = tokio::time::timeout(Duration::from_secs(10), plain).await.expect("plain gRPC fails promptly");
     assert!(plain.is_err(), "plain-text gRPC must not be served on a TLS listener");
 
@@ -77,7 +77,7 @@ async fn grpc_https_and_websocket_take_tls_with_the_configured_certificate() {
     let mut answer = String::new();
     tls.read_to_string(&mut answer).await.unwrap();
     assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
-    assert!(answer.ends_with("ok\n"), "{answer}");
+    assert!(answer.contains("\r\n\r\nok\n"), "{answer}");
 
     // The WebSocket viewer over wss:// gets its snapshot.
     let mut viewer = Viewer::connect_tls(&server.http, &id, &created.observe_token, cert.client_config()).await.expect("wss connects");
@@ -165,4 +165,51 @@ fn the_kubernetes_tls_patch_serves_and_its_probes_pass() {
     let without_name: Vec<String> = run.iter().take_while(|a| *a != "--tls-domain").cloned().collect();
     let out = Command::new(server_binary()).args(&without_name).output().unwrap();
     assert_eq!(out.status.code(), Some(1), "a certificate for {name} only must not pass for 127.0.0.1");
+}
+
+/// Operators by client certificate (mTLS): a certificate the operators' CA signed makes
+/// its holder an operator without a token; clients without one are still served as
+/// before (trainees' browsers have none) but cannot manage sessions.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_client_certificate_from_the_operators_ca_makes_an_operator() {
+    use rcgen::{BasicConstraints, CertificateParams, IsCa, KeyPair};
+    let dir = TempDir::new("mtls");
+    let ca_key = KeyPair::generate().unwrap();
+    let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    let ca = ca_params.self_signed(&ca_key).unwrap();
+    let issuer = rcgen::Issuer::new(ca_params, ca_key);
+    let server_key = KeyPair::generate().unwrap();
+    let server_cert = CertificateParams::new(vec!["127.0.0.1".to_string(), "localhost".to_string()]).unwrap().signed_by(&server_key, &issuer).unwrap();
+    let client_key = KeyPair::generate().unwrap();
+    let client_cert = CertificateParams::new(vec!["operator.sim-lab".to_string()]).unwrap().signed_by(&client_key, &issuer).unwrap();
+    let write = |name: &str, text: String| {
+        std::fs::write(dir.0.join(name), text).unwrap();
+        dir.0.join(name).display().to_string()
+    };
+    let (ca_pem, cert_pem, key_pem) = (write("ca.pem", ca.pem()), write("cert.pem", server_cert.pem()), write("key.pem", server_key.serialize_pem()));
+    let server = Server::start_with(&["--no-session", "--tls-cert", &cert_pem, "--tls-key", &key_pem, "--tls-client-ca", &ca_pem]);
+
+    let url = format!("https://{}", server.grpc);
+    let tls = tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(ca.pem()));
+    let with_cert = tls.clone().identity(tonic::transport::Identity::from_pem(client_cert.pem(), client_key.serialize_pem()));
+    let connect = |config: tonic::transport::ClientTlsConfig| {
+        let url = url.clone();
+        async move { SessionsClient::new(tonic::transport::Endpoint::from_shared(url).unwrap().tls_config(config).unwrap().connect().await.expect("TLS connects")) }
+    };
+    let request = || pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Lockstep as i32, label: "mtls".into() };
+
+    // Without a certificate: connected, but not an operator.
+    let mut anonymous = connect(tls.clone()).await;
+    let refused = anonymous.create_session(request()).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{}", refused.message());
+    // With the CA's certificate: an operator, no token needed.
+    let mut certified = connect(with_cert).await;
+    let created = certified.create_session(request()).await.expect("a certified operator creates").into_inner();
+    let listed = certified.list_sessions(pb::ListSessionsRequest {}).await.expect("and lists").into_inner();
+    assert_eq!(listed.sessions.len(), 1);
+    // The token still works without a certificate.
+    anonymous.list_sessions(operator(pb::ListSessionsRequest {})).await.expect("an operator token over TLS");
+    assert_eq!(created.session.unwrap().scene, "skin-patch");
+    let _ = OPERATOR;
 }

@@ -1,5 +1,10 @@
-// The viewer page: the live session list, token entry, and up to four sessions side by
-// side. Open with ?session=ID&token=OBSERVE_TOKEN to go straight to a session.
+// The viewer page: the live session list (for operators), token entry, and up to four
+// sessions side by side. Open with ?session=ID&token=OBSERVE_TOKEN to go straight to a
+// session; the token leaves the address bar as soon as the page has read it.
+//
+// Nothing the server sends is ever parsed as HTML: every name, label and id goes into
+// the page as text (textContent), and the server's Content-Security-Policy forbids any
+// script but the viewer's own.
 
 import { loadProtocol } from './protocol.js';
 import { SessionPanel } from './panel.js';
@@ -17,30 +22,65 @@ function rememberToken(id, token) {
   sessionStorage.setItem('cutsim-tokens', JSON.stringify(tokens));
 }
 
+function operatorToken() {
+  return sessionStorage.getItem('cutsim-operator') || '';
+}
+
+/** Headers for an operator's request (none when not signed in). */
+export function operatorHeaders() {
+  const token = operatorToken();
+  return token ? { 'cutsim-token': token } : {};
+}
+
 function formatAge(seconds) {
   if (seconds < 90) return `${Math.round(seconds)} s`;
   if (seconds < 5400) return `${Math.round(seconds / 60)} min`;
   return `${(seconds / 3600).toFixed(1)} h`;
 }
 
+/** A table row of text cells; `first` (an element) goes in the first cell. */
+function row(first, ...texts) {
+  const tr = document.createElement('tr');
+  const lead = document.createElement('td');
+  lead.append(first);
+  tr.append(lead);
+  for (const text of texts) {
+    const td = document.createElement('td');
+    td.textContent = String(text);
+    tr.append(td);
+  }
+  return tr;
+}
+
+function button(className, text, onclick) {
+  const b = document.createElement('button');
+  b.className = className;
+  b.textContent = text;
+  b.onclick = onclick;
+  return b;
+}
+
 async function refreshSessions() {
   const list = document.querySelector('#sessions tbody');
   const status = document.querySelector('#server-status');
   try {
-    const response = await fetch('/api/sessions', { cache: 'no-store' });
+    const response = await fetch('/api/sessions', { cache: 'no-store', headers: operatorHeaders() });
+    if (response.status === 401) {
+      status.textContent = 'sign in with an operator token to list the sessions (or open one with its token)';
+      status.dataset.state = 'locked';
+      list.replaceChildren();
+      return;
+    }
     if (!response.ok) throw new Error(`HTTP ${response.status}`);
     const sessions = await response.json();
     status.textContent = `${sessions.length} session${sessions.length === 1 ? '' : 's'}`;
     status.dataset.state = 'up';
     list.replaceChildren(
       ...sessions.map((s) => {
-        const row = document.createElement('tr');
-        row.dataset.session = s.id;
-        row.innerHTML = `<td><button class="open">${s.id}</button></td><td></td><td>${s.scene}</td><td>${formatAge(s.age_s)}</td><td>${Math.round(s.achieved_rate_hz)} Hz</td><td>${s.status}</td><td>${s.viewers}</td>`;
-        row.children[1].textContent = s.label;
-        row.querySelector('button.open').onclick = () => open(s.id);
-        if (panels.has(s.id)) row.classList.add('open');
-        return row;
+        const tr = row(button('open', s.id, () => open(s.id)), s.label, s.scene, formatAge(s.age_s), `${Math.round(s.achieved_rate_hz)} Hz`, s.status, s.viewers);
+        tr.dataset.session = s.id;
+        if (panels.has(s.id)) tr.classList.add('open');
+        return tr;
       }),
     );
   } catch (e) {
@@ -57,7 +97,8 @@ function askToken(id) {
 
 function open(id, token = tokens[id], controlToken = undefined) {
   if (panels.has(id)) return panels.get(id);
-  token = token || askToken(id);
+  // An operator watches any session with the operator token.
+  token = token || operatorToken() || askToken(id);
   if (!token) return null;
   if (panels.size >= MAX_PANELS) {
     // Make room: the oldest panel gives way, so switching sessions stays quick.
@@ -81,14 +122,12 @@ function open(id, token = tokens[id], controlToken = undefined) {
   return panel;
 }
 
-// ───── recordings: listing and replaying need the server's admin token ─────
+// ───── recordings: listing and replaying need an operator ─────
 
 async function listRecordings() {
-  const admin = document.querySelector('#admin-token').value.trim();
-  sessionStorage.setItem('cutsim-admin', admin);
   const body = document.querySelector('#recordings tbody');
   const note = document.querySelector('#recordings-status');
-  const response = await fetch('/api/recordings', { headers: { 'cutsim-token': admin }, cache: 'no-store' });
+  const response = await fetch('/api/recordings', { headers: operatorHeaders(), cache: 'no-store' });
   if (!response.ok) {
     note.textContent = `cannot list recordings: ${await response.text()}`;
     return;
@@ -97,19 +136,16 @@ async function listRecordings() {
   note.textContent = `${list.length} recording${list.length === 1 ? '' : 's'}`;
   body.replaceChildren(
     ...list.map((r) => {
-      const row = document.createElement('tr');
-      row.dataset.recording = r.session;
       const when = new Date(r.modified_unix_s * 1000).toLocaleString();
-      row.innerHTML = `<td><button class="replay">${r.session}</button></td><td>${r.scene}</td><td>${when}</td><td>${r.live ? 'live' : r.ended ? 'ended' : 'cut short'}</td>`;
-      row.querySelector('button.replay').onclick = () => replay(r.session);
-      return row;
+      const tr = row(button('replay', r.session, () => replay(r.session)), r.scene, when, r.live ? 'live' : r.ended ? 'ended' : 'cut short');
+      tr.dataset.recording = r.session;
+      return tr;
     }),
   );
 }
 
 async function replay(recorded) {
-  const admin = document.querySelector('#admin-token').value.trim();
-  const response = await fetch(`/api/recordings/${encodeURIComponent(recorded)}/replay`, { method: 'POST', headers: { 'cutsim-token': admin } });
+  const response = await fetch(`/api/recordings/${encodeURIComponent(recorded)}/replay`, { method: 'POST', headers: operatorHeaders() });
   if (!response.ok) {
     document.querySelector('#recordings-status').textContent = `cannot replay ${recorded}: ${await response.text()}`;
     return null;
@@ -121,7 +157,12 @@ async function replay(recorded) {
 
 async function main() {
   await loadProtocol();
-  document.querySelector('#admin-token').value = sessionStorage.getItem('cutsim-admin') || '';
+  document.querySelector('#operator-token').value = operatorToken();
+  document.querySelector('#operator-form').onsubmit = (e) => {
+    e.preventDefault();
+    sessionStorage.setItem('cutsim-operator', document.querySelector('#operator-token').value.trim());
+    refreshSessions();
+  };
   document.querySelector('#recordings-form').onsubmit = (e) => {
     e.preventDefault();
     listRecordings();
@@ -139,6 +180,13 @@ async function main() {
   const id = params.get('session');
   const token = params.get('token');
   if (id && token) rememberToken(id, token);
+  if (token) {
+    // The token leaves the address bar (and so the history, bookmarks and screen shares)
+    // once read; the session stays in the address so a reload reopens it.
+    params.delete('token');
+    const rest = params.toString();
+    history.replaceState(null, '', `${location.pathname}${rest ? `?${rest}` : ''}${location.hash}`);
+  }
   await refreshSessions();
   if (id) open(id);
   setInterval(refreshSessions, 2000);

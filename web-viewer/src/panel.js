@@ -50,9 +50,11 @@ export class SessionPanel {
     const el = document.createElement('section');
     el.className = 'panel';
     el.dataset.session = this.id;
+    // A fixed template: every text from the server or the address bar is set below as
+    // text, never as markup.
     el.innerHTML = `
       <header>
-        <span class="title">session <code>${this.id}</code> <span class="scene"></span></span>
+        <span class="title">session <code class="id"></code> <span class="scene"></span></span>
         <span class="state" data-role="state">connecting…</span>
         <button data-role="reset" title="Reset the view">Reset view</button>
         <label><input type="checkbox" data-role="wire"> wireframe</label>
@@ -81,6 +83,7 @@ export class SessionPanel {
         </dl>
         <canvas class="plot" width="260" height="70" title="|force| over the last ${PLOT_SECONDS} s"></canvas>
       </div>`;
+    el.querySelector('code.id').textContent = this.id;
     container.appendChild(el);
     this.el = el;
     this.canvas = el.querySelector('.view canvas');
@@ -207,6 +210,10 @@ export class SessionPanel {
         this.setState('session closed', 'closed');
         return;
       }
+      if (event.code === 1011) {
+        this.setState(event.reason || 'the session failed', 'failed');
+        return;
+      }
       this.scheduleReconnect();
     };
   }
@@ -219,14 +226,11 @@ export class SessionPanel {
     await new Promise((r) => setTimeout(r, delay));
     if (this.closed) return;
     try {
-      const response = await fetch('/api/sessions', { cache: 'no-store' });
-      if (response.ok) {
-        const sessions = await response.json();
-        if (!sessions.some((s) => s.id === this.id)) {
-          this.setState('this session no longer exists on the server (it restarted or the session was closed)', 'gone');
-          this.onGone?.(this);
-          return;
-        }
+      const response = await fetch(`/api/sessions/${encodeURIComponent(this.id)}`, { cache: 'no-store', headers: { 'cutsim-token': this.token } });
+      if (response.status === 404) {
+        this.setState('this session no longer exists on the server (it restarted or the session was closed)', 'gone');
+        this.onGone?.(this);
+        return;
       }
     } catch {
       // The server is down: keep trying.

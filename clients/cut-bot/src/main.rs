@@ -49,6 +49,9 @@ struct RunArgs {
     /// PEM CA certificate to trust for an https:// server (besides the system's roots).
     #[arg(long)]
     tls_ca: Option<PathBuf>,
+    /// An operator token: creating a session needs one (default: $CUTSIM_OPERATOR_TOKEN).
+    #[arg(long, env = "CUTSIM_OPERATOR_TOKEN", hide_env_values = true)]
+    operator_token: Option<String>,
     /// Run on this existing session (needs its control token) instead of a new one.
     #[arg(long, requires = "token")]
     session: Option<String>,
@@ -130,8 +133,13 @@ async fn run(args: &RunArgs) -> anyhow::Result<bool> {
                     std::fs::read_to_string(&path).with_context(|| format!("cannot read the scene file {}", path.display()))?,
                 ),
             };
+            let Some(operator) = &args.operator_token else {
+                bail!("creating a session needs an operator token: give --operator-token or set CUTSIM_OPERATOR_TOKEN (or run on an existing session with --session ID --token CONTROL)");
+            };
+            let mut create = tonic::Request::new(pb::CreateSessionRequest { scene: Some(request), mode: pb::SessionMode::Lockstep as i32, label: format!("cut-bot {name}") });
+            create.metadata_mut().insert("cutsim-token", operator.parse().map_err(|_| anyhow!("the operator token must be printable ASCII"))?);
             let created = sessions
-                .create_session(pb::CreateSessionRequest { scene: Some(request), mode: pb::SessionMode::Lockstep as i32, label: format!("cut-bot {name}") })
+                .create_session(create)
                 .await
                 .map_err(|s| anyhow!("cannot create a session on scene {scene:?}: {}", s.message()))?
                 .into_inner();

@@ -217,7 +217,7 @@ pub async fn replay_after_kill(binary: &Path, restarted: &ServerProcess, recordi
             let verified = report["checkpoints_verified"].as_u64().unwrap_or(0);
             let mismatches = report["checkpoint_mismatches"].as_array().map_or(0, Vec::len);
             let steps = report["steps"].as_u64().unwrap_or(0);
-            let body = server::http(&restarted.http, "POST", &format!("/api/recordings/{}/replay", c.session), server::ADMIN_TOKEN, "").await?;
+            let body = server::http(&restarted.http, "POST", &format!("/api/recordings/{}/replay", c.session), server::OPERATOR_TOKEN, "").await?;
             anyhow::ensure!(body.0 == 201, "the restarted server refused the replay: {} {}", body.0, body.1);
             let created: serde_json::Value = serde_json::from_str(&body.1)?;
             let (id, control, observe) = (created["session_id"].as_str().unwrap_or_default(), created["control_token"].as_str().unwrap_or_default(), created["observe_token"].as_str().unwrap_or_default());

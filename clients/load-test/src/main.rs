@@ -202,7 +202,10 @@ async fn run_script(grpc: &str, path: &Path) -> anyhow::Result<pb::ScriptReport>
     let scene = script["scene"].as_str().ok_or_else(|| anyhow!("{} names no scene", path.display()))?;
     let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}"))?.connect().await?;
     let created = cutsim_proto::v1::sessions_client::SessionsClient::new(channel.clone())
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName(scene.into())), mode: pb::SessionMode::Lockstep as i32, label: "cutsim-load bot".into() })
+        .create_session(server::authed(
+            pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName(scene.into())), mode: pb::SessionMode::Lockstep as i32, label: "cutsim-load bot".into() },
+            server::OPERATOR_TOKEN,
+        )?)
         .await?
         .into_inner();
     let id = created.session.map(|s| s.id).unwrap_or_default();

@@ -12,17 +12,20 @@ use cutsim_proto::v1 as pb;
 use cutsim_proto::v1::sessions_client::SessionsClient;
 use tonic::transport::Channel;
 
-/// The admin token the load test configures (it replays recordings after a restart).
-pub const ADMIN_TOKEN: &str = "cutsim-load-admin-token-0123456789";
+/// The operator token the load test configures (it creates sessions and replays
+/// recordings after a restart).
+pub const OPERATOR_TOKEN: &str = "cutsim-load-operator-token-0123456789";
 
 /// Writes the server config: every client of the test comes from 127.0.0.1, so the
 /// per-client request rate is raised out of the way (the rate limits have tests of their own).
 pub fn write_config(dir: &Path) -> anyhow::Result<PathBuf> {
     let path = dir.join("server.json");
     let config = serde_json::json!({
-        "admin_token": ADMIN_TOKEN,
+        "operator_tokens": {"cutsim-load": OPERATOR_TOKEN},
         "limits": {
             "max_sessions": 64,
+            // The capacity search adds real-time sessions past one per core on purpose.
+            "max_realtime_sessions": 64,
             "requests_per_second_per_client": 100_000,
             "request_burst_per_client": 100_000,
         }
@@ -148,7 +151,7 @@ pub async fn create(server: &ServerProcess, scene: &str, mode: pb::SessionMode, 
     let r = server
         .sessions()
         .await?
-        .create_session(pb::CreateSessionRequest { scene: Some(source), mode: mode as i32, label: label.into() })
+        .create_session(authed(pb::CreateSessionRequest { scene: Some(source), mode: mode as i32, label: label.into() }, OPERATOR_TOKEN)?)
         .await
         .map_err(|s| anyhow!("creating a session on {scene}: {}", s.message()))?
         .into_inner();

@@ -22,6 +22,7 @@ fn start_server() -> (std::process::Child, String, String) {
         .args(["serve", "--no-session", "--grpc-addr", "127.0.0.1:0", "--http-addr", "127.0.0.1:0", "--recordings-dir"])
         .arg(&recordings)
         .env("RUST_LOG", "warn")
+        .env("CUTSIM_OPERATOR_TOKEN", OPERATOR)
         .stdout(Stdio::piped())
         .spawn()
         .expect("server starts");
@@ -40,6 +41,9 @@ fn start_server() -> (std::process::Child, String, String) {
     (child, grpc, http)
 }
 
+/// The operator token the benchmark's server is started with.
+const OPERATOR: &str = "roundtrip-bench-operator-0123456789";
+
 fn authed<T>(m: T, token: &str) -> tonic::Request<T> {
     let mut r = tonic::Request::new(m);
     r.metadata_mut().insert("cutsim-token", token.parse().unwrap());
@@ -49,7 +53,7 @@ fn authed<T>(m: T, token: &str) -> tonic::Request<T> {
 async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
     let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}")).unwrap().connect().await.unwrap();
     let created = SessionsClient::new(channel.clone())
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 1, label: "bench".into() })
+        .create_session(authed(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 1, label: "bench".into() }, OPERATOR))
         .await
         .unwrap()
         .into_inner();
@@ -143,7 +147,7 @@ async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
 async fn script_throughput(grpc: &str) {
     let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}")).unwrap().connect().await.unwrap();
     let created = SessionsClient::new(channel.clone())
-        .create_session(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 2, label: "bench".into() })
+        .create_session(authed(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 2, label: "bench".into() }, OPERATOR))
         .await
         .unwrap()
         .into_inner();

@@ -31,6 +31,7 @@ pub fn status(s: Status) -> pb::SessionStatus {
         Status::RunningScript => pb::SessionStatus::RunningScript,
         Status::Closed => pb::SessionStatus::Closed,
         Status::Degraded => pb::SessionStatus::Degraded,
+        Status::Failed => pb::SessionStatus::Failed,
     }
 }
 
@@ -93,7 +94,14 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         fidelity: s.fidelity.clone(),
         recording_problem: s.recording_problem().unwrap_or_default(),
         mode: mode(s.mode) as i32,
-        status: status(if s.is_closed() { Status::Closed } else { frame.status }) as i32,
+        status: status(if s.failure().is_some() {
+            Status::Failed
+        } else if s.is_closed() {
+            Status::Closed
+        } else {
+            frame.status
+        }) as i32,
+        failure: s.failure().unwrap_or_default().to_owned(),
         rate_hz: s.rate_hz,
         age_s: s.age_s(),
         step: frame.total_steps,

@@ -17,12 +17,12 @@ use cutsim_sim::tool::ToolCommand;
 use futures_util::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::auth::{Role, SESSION_KEY, TOKEN_KEY};
+use crate::auth::{Caller, Operator, Role, SESSION_KEY, TOKEN_KEY};
 use crate::convert;
 use crate::rate::TokenBucket;
 use crate::error::ApiError;
 use crate::session::records::{FeedbackRecord, StampedCommand};
-use crate::session::{Mode, Registry, SceneSource, ScriptEvent, Session};
+use crate::session::{CloseReason, Creator, Mode, Registry, SceneSource, ScriptEvent, Session};
 
 /// The state every service shares.
 #[derive(Clone)]
@@ -34,17 +34,39 @@ fn metadata<'a, T>(request: &'a Request<T>, key: &str) -> Option<&'a str> {
     request.metadata().get(key).and_then(|v| v.to_str().ok())
 }
 
+/// Who is calling: the token, the peer and whether its TLS client certificate is an
+/// operator's.
+fn caller<T>(request: &Request<T>) -> Caller<'_> {
+    Caller {
+        token: metadata(request, TOKEN_KEY),
+        peer: request.remote_addr(),
+        operator_certificate: request.peer_certs().is_some_and(|certs| !certs.is_empty()),
+    }
+}
+
 impl Api {
-    fn session(&self, id: &str, token: Option<&str>, needed: Role) -> Result<Arc<Session>, ApiError> {
+    /// A session the caller may use with `needed`: its own token, or — to watch it — an
+    /// operator's credentials.
+    fn session<T>(&self, id: &str, request: &Request<T>, needed: Role) -> Result<Arc<Session>, ApiError> {
         let session = self.registry.get(id)?;
-        session.authorize(token, needed)?;
+        if let Err(e) = session.authorize(metadata(request, TOKEN_KEY), needed) {
+            if needed != Role::Observe || self.registry.operators.authenticate(&caller(request)).is_err() {
+                return Err(e);
+            }
+        }
+        session.touch();
         Ok(session)
+    }
+
+    fn operator<T>(&self, request: &Request<T>) -> Result<Operator, ApiError> {
+        self.registry.operators.authenticate(&caller(request))
     }
 }
 
 #[tonic::async_trait]
 impl Sessions for Api {
     async fn create_session(&self, request: Request<pb::CreateSessionRequest>) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let operator = self.operator(&request)?;
         let r = request.into_inner();
         let source = match r.scene {
             Some(pb::create_session_request::Scene::SceneName(name)) => SceneSource::Bundled(name),
@@ -52,7 +74,7 @@ impl Sessions for Api {
             None => return Err(ApiError::InvalidArgument("give scene_name (a bundled scene) or scene_json".into()).into()),
         };
         let mode = if r.mode == pb::SessionMode::Lockstep as i32 { Mode::Lockstep } else { Mode::Realtime };
-        let session = self.registry.create(source, mode, r.label).await?;
+        let session = self.registry.create(source, mode, r.label, Creator { who: operator.to_string(), expires: true }).await?;
         let (control, observe) = session.tokens();
         Ok(Response::new(pb::CreateSessionResponse {
             session: Some(convert::session_info(&session)),
@@ -61,13 +83,14 @@ impl Sessions for Api {
         }))
     }
 
-    async fn list_sessions(&self, _request: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
+    async fn list_sessions(&self, request: Request<pb::ListSessionsRequest>) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        self.operator(&request)?;
         let sessions = self.registry.list().iter().map(|s| convert::session_info(s)).collect();
         Ok(Response::new(pb::ListSessionsResponse { sessions }))
     }
 
     async fn get_session(&self, request: Request<pb::GetSessionRequest>) -> Result<Response<pb::SessionInfo>, Status> {
-        let session = self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Observe)?;
+        let session = self.session(&request.get_ref().session_id, &request, Role::Observe)?;
         let mut info = convert::session_info(&session);
         if request.get_ref().with_state_hash {
             let (step, hash) = session.state_hash().await?;
@@ -77,14 +100,20 @@ impl Sessions for Api {
         Ok(Response::new(info))
     }
 
+    /// The session's control token closes it; an operator closes any session.
     async fn close_session(&self, request: Request<pb::CloseSessionRequest>) -> Result<Response<pb::CloseSessionResponse>, Status> {
-        self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Control)?;
-        self.registry.close(&request.get_ref().session_id).await?;
+        let id = &request.get_ref().session_id;
+        if let Err(e) = self.session(id, &request, Role::Control) {
+            let operator = self.operator(&request).map_err(|_| e)?;
+            self.registry.get(id)?;
+            tracing::info!(session = %id, by = %operator, "an operator closes the session");
+        }
+        self.registry.close(id, CloseReason::Closed).await?;
         Ok(Response::new(pb::CloseSessionResponse {}))
     }
 
     async fn get_snapshot(&self, request: Request<pb::GetSnapshotRequest>) -> Result<Response<pb::Snapshot>, Status> {
-        let session = self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Observe)?;
+        let session = self.session(&request.get_ref().session_id, &request, Role::Observe)?;
         let (snapshot, step) = session.snapshot().await?;
         Ok(Response::new(convert::snapshot(&snapshot, &session.id, step)))
     }
@@ -139,6 +168,10 @@ impl Stream for FeedbackStream {
             self.ended = true;
             return Poll::Ready(Some(Err(status)));
         }
+        if let Some(e) = client.session.failed_error() {
+            self.ended = true;
+            return Poll::Ready(Some(Err(e.into())));
+        }
         if client.done.load(Ordering::Acquire) || client.session.is_closed() {
             self.ended = true;
             return Poll::Ready(None);
@@ -191,12 +224,15 @@ impl Haptics for Api {
         let id = metadata(&request, SESSION_KEY)
             .ok_or_else(|| ApiError::InvalidArgument(format!("name the session in the metadata key `{SESSION_KEY}`")))?
             .to_owned();
-        let session = self.session(&id, metadata(&request, TOKEN_KEY), Role::Control)?;
+        let session = self.session(&id, &request, Role::Control)?;
+        if let Some(e) = session.failed_error() {
+            return Err(e.into());
+        }
         let slot = session.subscribers.join().ok_or_else(|| {
-            ApiError::ResourceExhausted(format!(
-                "session {id} already has its maximum of {} haptic clients",
-                self.registry.config.limits.max_haptic_clients_per_session
-            ))
+            ApiError::exhausted(
+                "haptic clients",
+                format!("session {id} already has its maximum of {} haptic clients", self.registry.config.limits.max_haptic_clients_per_session),
+            )
         })?;
         let client = Arc::new(HapticClient {
             session,
@@ -217,10 +253,13 @@ impl Haptics for Api {
             loop {
                 match commands.next().await {
                     Some(Ok(command)) => {
-                        if rate.take(std::time::Instant::now()).is_err() {
-                            let e = ApiError::ResourceExhausted(format!(
-                                "more than {per_second} tool commands per second on one stream (the physics steps at 1 kHz: one command per step is all it uses)"
-                            ));
+                        if let Err(wait) = rate.take(std::time::Instant::now()) {
+                            let e = ApiError::RateLimited {
+                                message: format!(
+                                    "more than {per_second} tool commands per second on one stream (the physics steps at 1 kHz: one command per step is all it uses)"
+                                ),
+                                retry_after: wait,
+                            };
                             reader.fail(e.into());
                             break;
                         }
@@ -230,6 +269,7 @@ impl Haptics for Api {
                                 reader.every.store(stamped.feedback_every, Ordering::Relaxed);
                                 reader.tools.fetch_or(1 << tool, Ordering::AcqRel);
                                 reader.session.submit(tool, stamped);
+                                reader.session.touch();
                                 last[tool] = Some(stamped);
                             }
                             Err(e) => {
@@ -265,37 +305,60 @@ impl Scripts for Api {
     type RunScriptStream = Pin<Box<dyn Stream<Item = Result<pb::ScriptEvent, Status>> + Send>>;
 
     async fn run_script(&self, request: Request<pb::RunScriptRequest>) -> Result<Response<Self::RunScriptStream>, Status> {
-        let session = self.session(&request.get_ref().session_id, metadata(&request, TOKEN_KEY), Role::Control)?;
+        let session = self.session(&request.get_ref().session_id, &request, Role::Control)?;
         let r = request.into_inner();
         let limits = &self.registry.config.limits;
         if r.script_json.len() > limits.max_script_bytes {
-            return Err(ApiError::ResourceExhausted(format!(
-                "script_json is {} bytes; at most {} are allowed",
-                r.script_json.len(),
-                limits.max_script_bytes
-            ))
-            .into());
+            return Err(ApiError::exhausted("script size", format!("script_json is {} bytes; at most {} are allowed", r.script_json.len(), limits.max_script_bytes)).into());
         }
-        let script = CutScript::from_json_str(&r.script_json, "script_json").map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
-        let compiled = script
-            .compile(&session.tools, 1.0 / session.rate_hz, "script_json")
-            .map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+        let script = CutScript::from_json_str(&r.script_json, "script_json").map_err(script_error)?;
+        let compiled = script.compile(&session.tools, 1.0 / session.rate_hz, "script_json").map_err(script_error)?;
         if compiled.steps > limits.max_script_steps {
-            return Err(ApiError::ResourceExhausted(format!(
-                "the script runs {} steps; at most {} are allowed",
-                compiled.steps, limits.max_script_steps
-            ))
-            .into());
+            return Err(ApiError::exhausted("script steps", format!("the script runs {} steps; at most {} are allowed", compiled.steps, limits.max_script_steps)).into());
         }
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
         session.send_control(crate::session::Control::RunScript { script: compiled, progress_every: r.progress_every_steps, events: tx })?;
         let events = tokio_stream_from(rx).map(|event| match event {
             ScriptEvent::Progress(p) => Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Progress(convert::progress(&p))) }),
             ScriptEvent::Report(report) => Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(convert::report(&report))) }),
-            ScriptEvent::Failed(message) => Err(Status::failed_precondition(message)),
+            ScriptEvent::Failed(message) => Err(Status::unavailable(message)),
         });
+        // The physics thread may die mid-script: the stream then ends with its reason
+        // rather than without a report.
+        let ended = futures_util::stream::once(async move {
+            // The thread's unwinding drops the event channel a moment before the
+            // session is marked failed.
+            for _ in 0..100 {
+                if session.failure().is_some() || session.is_closed() {
+                    break;
+                }
+                tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+            }
+            let e = session.failed_error().unwrap_or_else(|| ApiError::Unavailable(format!("session {} stopped before the script's report", session.id)));
+            Err::<pb::ScriptEvent, Status>(e.into())
+        });
+        let mut reported = false;
+        let events = events
+            .map(move |e| {
+                reported |= matches!(&e, Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(_)) }) | Err(_));
+                (e, reported)
+            })
+            .chain(ended.map(|e| (e, false)))
+            .scan(false, |done, (event, reported)| {
+                // Pass events through; the closing error only when nothing ended the run.
+                if *done {
+                    return std::future::ready(None);
+                }
+                *done = reported;
+                std::future::ready(Some(event))
+            });
         Ok(Response::new(Box::pin(events)))
     }
+}
+
+/// A script that cannot be used: the JSON path of what is wrong, as a field violation.
+fn script_error(e: cutsim_sim::scene::SceneError) -> ApiError {
+    ApiError::BadField { request_field: "script_json", field: e.path.clone(), message: e.to_string() }
 }
 
 /// An unbounded receiver as a stream.

@@ -1,29 +1,33 @@
-//! HTTP: the web viewer's files at `/`, the session list (`/api/sessions` JSON,
-//! `/sessions` HTML), Prometheus metrics at `/metrics`, `/healthz`, and the WebSocket
-//! viewer at `/ws/sessions/{id}`.
+//! HTTP: the web viewer's files at `/`, the session list for operators
+//! (`/api/sessions`), one session for its token holders (`/api/sessions/{id}`),
+//! Prometheus metrics at `/metrics`, `/healthz`, recordings and replays, and the
+//! WebSocket viewer at `/ws/sessions/{id}`.
+//!
+//! Every response carries a strict Content-Security-Policy and the usual security
+//! headers: the viewer's own scripts run, nothing injected does.
 
+use std::net::SocketAddr;
 use std::sync::Arc;
 
 use axum::Router;
-use axum::extract::State;
-use axum::http::header;
-use axum::response::{Html, IntoResponse};
-use axum::extract::Path;
-use axum::http::{HeaderMap, StatusCode};
+use axum::extract::{ConnectInfo, FromRequestParts, Path, State};
+use axum::http::request::Parts;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::IntoResponse;
 use axum::routing::{get, post};
 use serde::Serialize;
 use tower_http::services::ServeDir;
 
-use crate::auth::{Role, TOKEN_KEY, Token};
+use crate::auth::{Caller, Operator, Role, TOKEN_KEY};
 use crate::convert;
-use crate::rate::ClientRates;
 use crate::error::ApiError;
-use crate::session::PlaybackCommand;
 use crate::metrics::{self, Metrics};
-use crate::session::Registry;
+use crate::rate::ClientRates;
+use crate::session::{CloseReason, Creator, PlaybackCommand, Registry};
 
-/// The protocol's schema, served to the viewer (which parses it with protobufjs): the
-/// very file the server was built from.
+/// The protocol's schema as text (for people and tools) and as an encoded
+/// FileDescriptorSet, which the viewer decodes its frames with (reflection, no eval):
+/// the very file the server was built from.
 const PROTO: &str = include_str!("../../../proto/cutsim.proto");
 
 #[derive(Clone)]
@@ -31,6 +35,8 @@ pub struct AppState {
     pub registry: Arc<Registry>,
     pub metrics: Arc<Metrics>,
     pub rates: Arc<ClientRates>,
+    /// Security headers sent with every response.
+    pub headers: Arc<SecurityHeaders>,
 }
 
 pub fn router(state: AppState) -> Router {
@@ -40,23 +46,123 @@ pub fn router(state: AppState) -> Router {
         .route("/api/recordings", get(recordings))
         .route("/api/recordings/{session}/replay", post(replay))
         .route("/api/sessions/{id}/playback", post(playback))
+        .route("/api/sessions/{id}", get(session_json).delete(close_session))
         .route("/api/sessions", get(sessions_json))
-        .route("/sessions", get(sessions_html))
         .route("/metrics", get(metrics_text))
-        .route("/healthz", get(|| async { "ok\n" }))
+        .route("/healthz", get(healthz))
         .route("/cutsim.proto", get(|| async { ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], PROTO) }))
+        .route("/cutsim.binpb", get(|| async { ([(header::CONTENT_TYPE, "application/octet-stream")], cutsim_proto::FILE_DESCRIPTOR_SET) }))
         .fallback_service(viewer)
+        .layer(axum::middleware::from_fn_with_state(state.clone(), security_headers))
         .layer(axum::middleware::from_fn_with_state(state.clone(), rate_limited))
         .with_state(state)
 }
 
 /// Every HTTP request (pages, API, WebSocket upgrades) counts against its client's rate.
 async fn rate_limited(State(app): State<AppState>, request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
-    let peer = request.extensions().get::<axum::extract::ConnectInfo<std::net::SocketAddr>>().map(|c| c.0);
+    let peer = request.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0);
     let forwarded: Vec<&str> = request.headers().get_all("x-forwarded-for").iter().filter_map(|v| v.to_str().ok()).collect();
     match app.rates.admit(peer, &forwarded) {
         Ok(()) => next.run(request).await,
         Err(refused) => refused.into_response(),
+    }
+}
+
+/// The headers every response carries.
+pub struct SecurityHeaders {
+    list: Vec<(header::HeaderName, HeaderValue)>,
+}
+
+impl SecurityHeaders {
+    /// For the viewer in `viewer_dir`: its index.html's inline import map is allowed by
+    /// its hash, every other script must come from the server itself, and no script may
+    /// be made from text (no eval). `tls`: browsers are told to use https only.
+    pub fn new(viewer_dir: &std::path::Path, tls: bool) -> Self {
+        let import_maps = std::fs::read_to_string(viewer_dir.join("index.html")).map(|html| inline_script_hashes(&html)).unwrap_or_default();
+        let csp = format!(
+            "default-src 'none'; script-src 'self'{import_maps}; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; \
+             font-src 'self'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'; object-src 'none'"
+        );
+        let mut list = vec![
+            (header::CONTENT_SECURITY_POLICY, csp),
+            (header::X_CONTENT_TYPE_OPTIONS, "nosniff".into()),
+            (header::REFERRER_POLICY, "no-referrer".into()),
+            (header::X_FRAME_OPTIONS, "DENY".into()),
+            (header::HeaderName::from_static("cross-origin-opener-policy"), "same-origin".into()),
+            (header::HeaderName::from_static("cross-origin-resource-policy"), "same-origin".into()),
+            (header::HeaderName::from_static("permissions-policy"), "camera=(), microphone=(), geolocation=(), usb=(), payment=()".into()),
+        ];
+        if tls {
+            list.push((header::STRICT_TRANSPORT_SECURITY, "max-age=31536000".into()));
+        }
+        Self { list: list.into_iter().map(|(n, v)| (n, HeaderValue::from_str(&v).expect("header values are ASCII"))).collect() }
+    }
+}
+
+/// `'sha256-…'` sources for the inline `<script>` blocks of a page (its import map).
+fn inline_script_hashes(html: &str) -> String {
+    use base64::Engine as _;
+    let mut out = String::new();
+    let mut rest = html;
+    while let Some(open) = rest.find("<script") {
+        let after = &rest[open..];
+        let Some(tag_end) = after.find('>') else { break };
+        let tag = &after[..tag_end];
+        let body_and_more = &after[tag_end + 1..];
+        let Some(close) = body_and_more.find("</script>") else { break };
+        if !tag.contains(" src=") {
+            let digest = ring::digest::digest(&ring::digest::SHA256, body_and_more[..close].as_bytes());
+            out.push_str(&format!(" 'sha256-{}'", base64::engine::general_purpose::STANDARD.encode(digest.as_ref())));
+        }
+        rest = &body_and_more[close..];
+    }
+    out
+}
+
+async fn security_headers(State(app): State<AppState>, request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+    let api = request.uri().path().starts_with("/api/");
+    let mut response = next.run(request).await;
+    let headers = response.headers_mut();
+    for (name, value) in &app.headers.list {
+        headers.insert(name.clone(), value.clone());
+    }
+    if api {
+        headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    }
+    response
+}
+
+/// Who is calling over HTTP: the `cutsim-token` header, the peer, and whether its TLS
+/// client certificate is an operator's.
+pub struct HttpCaller {
+    token: Option<String>,
+    peer: Option<SocketAddr>,
+    certificate: bool,
+}
+
+impl HttpCaller {
+    pub fn caller(&self) -> Caller<'_> {
+        Caller { token: self.token.as_deref(), peer: self.peer, operator_certificate: self.certificate }
+    }
+
+    pub fn token(&self) -> Option<&str> {
+        self.token.as_deref()
+    }
+
+    fn operator(&self, app: &AppState) -> Result<Operator, ApiError> {
+        app.registry.operators.authenticate(&self.caller())
+    }
+}
+
+impl<S: Send + Sync> FromRequestParts<S> for HttpCaller {
+    type Rejection = std::convert::Infallible;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, Self::Rejection> {
+        Ok(Self {
+            token: parts.headers.get(TOKEN_KEY).and_then(|v| v.to_str().ok()).map(str::to_owned),
+            peer: parts.extensions.get::<ConnectInfo<SocketAddr>>().map(|c| c.0),
+            certificate: parts.extensions.get::<crate::tls::OperatorCertificate>().is_some(),
+        })
     }
 }
 
@@ -82,9 +188,8 @@ pub struct SessionSummary {
     pub surface_triangles: u64,
 }
 
-fn summaries(registry: &Registry) -> Vec<SessionSummary> {
-    registry
-        .list()
+fn summaries(sessions: &[Arc<crate::session::Session>]) -> Vec<SessionSummary> {
+    sessions
         .iter()
         .map(|s| {
             let info = convert::session_info(s);
@@ -115,55 +220,41 @@ fn summaries(registry: &Registry) -> Vec<SessionSummary> {
         .collect()
 }
 
-async fn sessions_json(State(app): State<AppState>) -> impl IntoResponse {
-    axum::Json(summaries(&app.registry))
+async fn sessions_json(State(app): State<AppState>, caller: HttpCaller) -> Result<impl IntoResponse, ApiError> {
+    caller.operator(&app)?;
+    Ok(axum::Json(summaries(&app.registry.list())))
 }
 
-async fn sessions_html(State(app): State<AppState>) -> Html<String> {
-    let rows: String = summaries(&app.registry)
-        .iter()
-        .map(|s| {
-            format!(
-                "<tr><td><a href=\"/?session={id}\">{id}</a></td><td>{label}</td><td>{scene}</td><td>{model}</td><td>{status}</td><td>{rate:.0} Hz</td><td>{age:.0} s</td><td>{p99:.0} µs</td><td>{viewers}</td></tr>",
-                id = escape(&s.id),
-                label = escape(&s.label),
-                scene = escape(&s.scene),
-                model = escape(&s.model),
-                status = escape(&s.status),
-                rate = s.achieved_rate_hz,
-                age = s.age_s,
-                p99 = s.step_time_p99_us,
-                viewers = s.viewers
-            )
-        })
-        .collect();
-    Html(format!(
-        "<!doctype html><html><head><meta charset=\"utf-8\"><title>cutsim sessions</title></head><body><h1>Sessions</h1>\
-         <table><tr><th>id</th><th>label</th><th>scene</th><th>model</th><th>status</th><th>rate</th><th>age</th><th>p99 step</th><th>viewers</th></tr>{rows}</table>\
-         <p>Open a session with its observe token: <code>/?session=ID&amp;token=TOKEN</code></p></body></html>"
-    ))
+/// `GET /api/sessions/{id}`: one session, for its token holders and operators (the
+/// viewer asks whether its session still exists).
+async fn session_json(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    let session = app.registry.get(&id)?;
+    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
+        caller.operator(&app).map_err(|_| e)?;
+    }
+    Ok(axum::Json(summaries(&[session]).remove(0)))
 }
 
-fn escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+/// `DELETE /api/sessions/{id}`: an operator closes any session; its control token
+/// closes it too.
+async fn close_session(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
+    let session = app.registry.get(&id)?;
+    if let Err(e) = session.authorize(caller.token(), Role::Control) {
+        let operator = caller.operator(&app).map_err(|_| e)?;
+        tracing::info!(session = %id, by = %operator, "an operator closes the session");
+    }
+    app.registry.close(&id, CloseReason::Closed).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// `GET /healthz`: 200 while the server serves; says how many sessions failed.
+async fn healthz(State(app): State<AppState>) -> impl IntoResponse {
+    let failed = app.registry.list().iter().filter(|s| s.failure().is_some()).count();
+    format!("ok\nsessions {}\nfailed sessions {failed}\n", app.registry.list().len())
 }
 
 async fn metrics_text(State(app): State<AppState>) -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], metrics::render(&app.registry, &app.metrics))
-}
-
-fn header_token(headers: &HeaderMap) -> Option<&str> {
-    headers.get(TOKEN_KEY).and_then(|v| v.to_str().ok())
-}
-
-/// Recordings and replays need the server's admin token.
-fn check_admin(app: &AppState, headers: &HeaderMap) -> Result<(), ApiError> {
-    let expected = app.registry.config.admin_token.as_deref().unwrap_or_default();
-    match header_token(headers) {
-        Some(given) if !expected.is_empty() && Token::from_string(expected.to_owned()).matches(given) => Ok(()),
-        Some(_) => Err(ApiError::Unauthenticated("the admin token is not valid".into())),
-        None => Err(ApiError::Unauthenticated(format!("recordings need the server's admin token (header `{TOKEN_KEY}`)"))),
-    }
 }
 
 /// One recording in the list.
@@ -178,8 +269,8 @@ pub struct RecordingSummary {
     pub live: bool,
 }
 
-async fn recordings(State(app): State<AppState>, headers: HeaderMap) -> Result<impl IntoResponse, ApiError> {
-    check_admin(&app, &headers)?;
+async fn recordings(State(app): State<AppState>, caller: HttpCaller) -> Result<impl IntoResponse, ApiError> {
+    caller.operator(&app)?;
     let dir = app.registry.config.recordings_dir.clone();
     let live: Vec<String> = app.registry.list().iter().map(|s| s.id.clone()).collect();
     let list = tokio::task::spawn_blocking(move || list_recordings(&dir, &live)).await.map_err(|e| ApiError::Internal(e.to_string()))?;
@@ -230,9 +321,9 @@ struct ReplayCreated {
     total_steps: u64,
 }
 
-async fn replay(State(app): State<AppState>, headers: HeaderMap, Path(session): Path<String>) -> Result<impl IntoResponse, ApiError> {
-    check_admin(&app, &headers)?;
-    let replay = app.registry.create_replay(&session).await?;
+async fn replay(State(app): State<AppState>, caller: HttpCaller, Path(session): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    let operator = caller.operator(&app)?;
+    let replay = app.registry.create_replay(&session, Creator { who: operator.to_string(), expires: true }).await?;
     let (control, observe) = replay.tokens();
     // The frame with the playback state comes from the replay thread; wait for it briefly.
     let mut total_steps = 0;
@@ -260,12 +351,13 @@ struct PlaybackRequest {
 
 async fn playback(
     State(app): State<AppState>,
-    headers: HeaderMap,
+    caller: HttpCaller,
     Path(id): Path<String>,
     body: Result<axum::Json<PlaybackRequest>, axum::extract::rejection::JsonRejection>,
 ) -> Result<StatusCode, ApiError> {
     let session = app.registry.get(&id)?;
-    session.authorize(header_token(&headers), Role::Control)?;
+    session.authorize(caller.token(), Role::Control)?;
+    session.touch();
     if session.mode != crate::session::Mode::Replay {
         return Err(ApiError::FailedPrecondition(format!("session {id} is not a replay; only replays have a playback")));
     }
@@ -283,6 +375,6 @@ async fn playback(
     };
     let (done, applied) = tokio::sync::oneshot::channel();
     session.send_control(crate::session::Control::Playback(command, done))?;
-    applied.await.map_err(|_| ApiError::FailedPrecondition(format!("session {id} stopped")))?;
+    applied.await.map_err(|_| session.stopped_error())?;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -99,6 +99,14 @@ struct ServeArgs {
     /// PEM private key of --tls-cert.
     #[arg(long, requires = "tls_cert")]
     tls_key: Option<PathBuf>,
+    /// With TLS: the operators' CA (PEM). A client certificate it signed makes its
+    /// holder an operator.
+    #[arg(long, requires = "tls_cert")]
+    tls_client_ca: Option<PathBuf>,
+    /// Development mode: every caller on loopback is an operator (no operator token
+    /// needed). Refused unless both listeners are on loopback.
+    #[arg(long)]
+    dev: bool,
 }
 
 #[derive(Args)]
@@ -172,7 +180,10 @@ fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
         config.recordings_dir = d;
     }
     if let (Some(cert_path), Some(key_path)) = (args.tls_cert, args.tls_key) {
-        config.tls = Some(tls::TlsConfig { cert_path, key_path });
+        config.tls = Some(tls::TlsConfig { cert_path, key_path, client_ca_path: args.tls_client_ca });
+    }
+    if args.dev {
+        config.development_mode = true;
     }
     let first = (!args.no_session).then_some(args.scene);
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("a tokio runtime");
@@ -225,7 +236,18 @@ fn replay(args: &ReplayArgs) -> ExitCode {
                 println!("recording        {}", report.recording);
                 println!("session          {} (scene {})", report.session, report.scene);
                 println!("steps replayed   {} ({} resets, {} commands)", report.steps, report.resets, report.commands);
-                println!("checkpoints      {} verified, {} mismatched", report.checkpoints_verified, report.checkpoint_mismatches.len());
+                if !report.build.is_empty() {
+                    println!("recorded by      {}", report.build);
+                }
+                println!(
+                    "checkpoints      {} verified (at least {} expected), {} mismatched",
+                    report.checkpoints_verified,
+                    report.checkpoints_expected,
+                    report.checkpoint_mismatches.len()
+                );
+                if let Some(failure) = &report.failure {
+                    println!("failed           {failure}");
+                }
                 for (step, recorded, replayed) in &report.checkpoint_mismatches {
                     println!("  step {step}: recorded {recorded}, replayed {replayed}");
                 }

@@ -21,6 +21,14 @@ pub fn render(registry: &Registry, metrics: &Metrics) -> String {
     let _ = writeln!(out, "cutsim_sessions {}", sessions.len());
     family("cutsim_sessions_created_total", "counter", "Sessions created since the server started.", &mut out);
     let _ = writeln!(out, "cutsim_sessions_created_total {}", registry.created_total.load(Ordering::Relaxed));
+    family("cutsim_sessions_failed_total", "counter", "Sessions whose physics failed (panicked) since the server started.", &mut out);
+    let _ = writeln!(out, "cutsim_sessions_failed_total {}", registry.failed_total.load(Ordering::Relaxed));
+    family("cutsim_sessions_expired_total", "counter", "Idle sessions closed since the server started.", &mut out);
+    let _ = writeln!(out, "cutsim_sessions_expired_total {}", registry.expired_total.load(Ordering::Relaxed));
+    let (admitted, realtime) = registry.admission.held();
+    family("cutsim_sessions_admitted", "gauge", "Sessions holding room (being built or running), and real-time sessions holding a core.", &mut out);
+    let _ = writeln!(out, "cutsim_sessions_admitted{{kind=\"all\"}} {admitted}");
+    let _ = writeln!(out, "cutsim_sessions_admitted{{kind=\"realtime\"}} {realtime}");
     family("cutsim_bytes_sent_total", "counter", "Bytes sent to WebSocket viewers.", &mut out);
     let _ = writeln!(out, "cutsim_bytes_sent_total{{transport=\"websocket\"}} {}", metrics.viewer_bytes.load(Ordering::Relaxed));
     family("cutsim_step_time_microseconds", "summary", "Physics step computation time per session, µs.", &mut out);
@@ -30,7 +38,9 @@ pub fn render(registry: &Registry, metrics: &Metrics) -> String {
         let _ = writeln!(out, "cutsim_step_time_microseconds{{session=\"{}\",quantile=\"0.99\"}} {}", s.id, f.stats.p99_us);
         let _ = writeln!(out, "cutsim_step_time_microseconds_count{{session=\"{}\"}} {}", s.id, f.stats.steps);
     }
-    let per_session: [(&str, &str, &str, fn(&crate::session::Session) -> f64); 7] = [
+    let per_session: [(&str, &str, &str, fn(&crate::session::Session) -> f64); 9] = [
+        ("cutsim_session_failed", "gauge", "1 when the session's physics failed.", |s| f64::from(u8::from(s.failure().is_some()))),
+        ("cutsim_stale_tool_lifts_total", "counter", "Tools lifted because their haptic client went quiet.", |s| s.stale_lifts.load(Ordering::Relaxed) as f64),
         ("cutsim_steps_total", "counter", "Physics steps taken.", |s| s.frame.load().total_steps as f64),
         ("cutsim_missed_deadlines_total", "counter", "Steps that finished after their period.", |s| s.frame.load().stats.missed_deadlines as f64),
         ("cutsim_achieved_rate_hertz", "gauge", "Steps per second over the last second.", |s| s.frame.load().stats.achieved_rate_hz),

@@ -132,14 +132,15 @@ impl ClientRates {
             buckets.retain(|_, b| !b.full(now));
         }
         let bucket = buckets.entry(client).or_insert_with(|| TokenBucket::new(self.rate, self.burst, now));
-        bucket.take(now).map_err(|wait| {
-            ApiError::ResourceExhausted(format!(
+        bucket.take(now).map_err(|wait| ApiError::RateLimited {
+            message: format!(
                 "rate limit: {} sends more than {} requests per second (burst {}); retry in {} ms",
                 client,
                 self.rate,
                 self.burst,
                 wait.as_millis().max(1)
-            ))
+            ),
+            retry_after: wait,
         })
     }
 }

@@ -12,14 +12,19 @@ use crate::config::ServerConfig;
 use crate::grpc::Api;
 use crate::http::{self, AppState};
 use crate::metrics::Metrics;
-use crate::session::{Mode, Registry, SceneSource};
+use crate::session::{Creator, Mode, Registry, SceneSource, SessionHealth};
 
 /// Runs the servers until SIGINT or SIGTERM; `first_scene` opens a session at start.
-pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> anyhow::Result<()> {
-    let admin_made_up = config.admin_token.is_none();
-    let admin = config.admin_token.get_or_insert_with(|| crate::auth::Token::generate().as_str().to_owned()).clone();
+pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow::Result<()> {
+    config.check_development_mode().map_err(|e| anyhow::anyhow!(e))?;
+    let mut operator_tokens = config.operator_token_list();
+    let made_up = operator_tokens.is_empty().then(|| crate::auth::Token::generate().as_str().to_owned());
+    if let Some(token) = &made_up {
+        operator_tokens.push(("made up at start".into(), token.clone()));
+    }
+    let operators = crate::auth::Operators::new(operator_tokens, config.development_mode).map_err(|e| anyhow::anyhow!(e))?;
     let config = Arc::new(config);
-    let registry = Registry::new(config.clone());
+    let registry = Registry::new(config.clone(), operators);
     let metrics = Arc::new(Metrics::default());
 
     let grpc_listener = TcpListener::bind(config.grpc_addr).await.with_context(|| format!("cannot listen for gRPC on {}", config.grpc_addr))?;
@@ -35,11 +40,31 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     health.set_serving::<SessionsServer<Api>>().await;
     health.set_serving::<HapticsServer<Api>>().await;
     health.set_serving::<ScriptsServer<Api>>().await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(cutsim_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .context("building the reflection service")?;
+    // Reflection in both versions: grpcurl asks v1, grpcio's tooling (Python) v1alpha.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(cutsim_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection().build_v1().context("building the reflection service (v1)")?;
+    let reflection_v1alpha = reflection().build_v1alpha().context("building the reflection service (v1alpha)")?;
+    // Each session shows in health as `cutsim.v1.Session/<id>`: SERVING, or NOT_SERVING
+    // once its physics failed (the server and its other sessions serve on).
+    let (health_tx, mut session_health) = tokio::sync::mpsc::unbounded_channel::<(String, SessionHealth)>();
+    registry.report_health_to(health_tx);
+    {
+        let mut health = health.clone();
+        tokio::spawn(async move {
+            while let Some((id, state)) = session_health.recv().await {
+                let name = format!("cutsim.v1.Session/{id}");
+                match state {
+                    SessionHealth::Serving => health.set_service_status(name, tonic_health::ServingStatus::Serving).await,
+                    SessionHealth::Failed => health.set_service_status(name, tonic_health::ServingStatus::NotServing).await,
+                    SessionHealth::Gone => health.clear_service_status(&name).await,
+                }
+            }
+        });
+    }
     let shutdown = shutdown_signal();
     let (stop_tx, _) = tokio::sync::broadcast::channel::<()>(1);
     let mut stop_grpc = stop_tx.subscribe();
@@ -52,18 +77,25 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     if let Some(tls) = &tls {
         grpc_server = grpc_server.tls_config(tls.grpc_config()).context("TLS for gRPC")?;
     }
+    // HTTP/2 keepalive finds peers that vanished without closing (a dropped network, a
+    // paused process): their streams end and their tools leave the scene.
+    let keepalive = std::time::Duration::from_secs_f64(config.limits.keepalive_interval_s);
     let grpc = grpc_server
         .tcp_nodelay(true)
+        .http2_keepalive_interval(Some(keepalive))
+        .http2_keepalive_timeout(Some(std::time::Duration::from_secs_f64(config.limits.keepalive_timeout_s)))
         .layer(tonic::service::InterceptorLayer::new(crate::rate::admit_grpc(rates.clone())))
         .add_service(health_service)
-        .add_service(reflection)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
         .add_service(SessionsServer::new(api.clone()).max_decoding_message_size(limit))
         .add_service(HapticsServer::new(api.clone()).max_decoding_message_size(limit))
         .add_service(ScriptsServer::new(api).max_decoding_message_size(limit))
-        .serve_with_incoming_shutdown(tonic::transport::server::TcpIncoming::from(grpc_listener).with_nodelay(Some(true)), async move {
+        .serve_with_incoming_shutdown(tonic::transport::server::TcpIncoming::from(grpc_listener).with_nodelay(Some(true)).with_keepalive(Some(keepalive)), async move {
             let _ = stop_grpc.recv().await;
         });
-    let app = http::router(AppState { registry: registry.clone(), metrics, rates });
+    let headers = Arc::new(http::SecurityHeaders::new(&config.viewer_dir, tls.is_some()));
+    let app = http::router(AppState { registry: registry.clone(), metrics, rates, headers });
     let stop_http = async move {
         let _ = stop_http.recv().await;
     };
@@ -88,13 +120,19 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     if tls.is_some() {
         println!("tls on: gRPC and HTTP/WebSocket take TLS only (https://, wss://)");
     }
-    if admin_made_up {
-        println!("admin token (recordings and replays): {admin}");
+    if let Some(token) = &made_up {
+        println!("operator token (create, list and close sessions; recordings): {token}");
+    }
+    if config.development_mode {
+        let warning = "DEVELOPMENT MODE: every program on this machine is an operator (creates, lists and closes sessions, reads recordings) without a token. Never use it on a shared machine.";
+        println!("WARNING: {warning}");
+        tracing::warn!("{warning}");
     }
     tracing::info!(%grpc_addr, %http_addr, "cutsim-server listening");
 
     if let Some(scene) = first_scene {
-        let session = registry.create(SceneSource::Operator(scene), Mode::Realtime, "default".into()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let creator = Creator { who: "the command line".into(), expires: false };
+        let session = registry.create(SceneSource::Operator(scene), Mode::Realtime, "default".into(), creator).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         let (control, observe) = session.tokens();
         println!("session {} on scene {}", session.id, session.scene_name);
         println!("  viewer:        {scheme}://{http_addr}/?session={}&token={observe}", session.id);
@@ -108,6 +146,7 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
 
     let grpc_task = tokio::spawn(grpc);
     let http_task = tokio::spawn(http_server);
+    tokio::spawn(housekeeping(registry.clone()));
     shutdown.await;
     tracing::info!("shutting down: closing sessions");
     let _ = stop_tx.send(());
@@ -116,6 +155,29 @@ pub async fn serve(mut config: ServerConfig, first_scene: Option<String>) -> any
     let _ = grpc_task.await;
     let _ = http_task.await;
     Ok(())
+}
+
+/// Off the request path, every second: idle sessions expire; every minute: old
+/// recordings go (retention policy).
+async fn housekeeping(registry: Arc<Registry>) {
+    let mut tick = tokio::time::interval(std::time::Duration::from_secs(1));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut ticks: u64 = 0;
+    loop {
+        tick.tick().await;
+        registry.expire_idle().await;
+        if ticks % 60 == 0 {
+            let dir = registry.config.recordings_dir.clone();
+            let policy = registry.config.recordings.clone();
+            let live: Vec<String> = registry.list().iter().map(|s| s.id.clone()).collect();
+            match tokio::task::spawn_blocking(move || crate::session::retention::sweep(&dir, &policy, &live, std::time::SystemTime::now())).await {
+                Ok(Ok(removed)) if !removed.is_empty() => tracing::info!(count = removed.len(), "recordings removed by the retention policy"),
+                Ok(Err(e)) => tracing::warn!("recording retention: {e}"),
+                _ => {}
+            }
+        }
+        ticks += 1;
+    }
 }
 
 async fn shutdown_signal() {

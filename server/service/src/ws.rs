@@ -41,21 +41,35 @@ pub struct ViewerQuery {
     rate_hz: Option<f64>,
 }
 
-/// `GET /ws/sessions/{id}?token=…[&rate_hz=…]`: checks the session, the token (observe or
-/// control; a missing or wrong one gets 401) and the viewer limit, then upgrades.
+/// `GET /ws/sessions/{id}?token=…[&rate_hz=…]`: checks the page's origin (a browser's
+/// upgrade from another site's page is refused), the session, the token (observe or
+/// control, or an operator's; a missing or wrong one gets 401) and the viewer limit,
+/// then upgrades.
 pub async fn upgrade(
     Path(id): Path<String>,
     Query(query): Query<ViewerQuery>,
     headers: HeaderMap,
+    caller: crate::http::HttpCaller,
     State(app): State<AppState>,
     ws: WebSocketUpgrade,
 ) -> Result<Response, ApiError> {
+    check_origin(&headers, &app.registry.config.allowed_origins)?;
     let session = app.registry.get(&id)?;
     let token = query.token.as_deref().or_else(|| headers.get(TOKEN_KEY).and_then(|v| v.to_str().ok()));
-    let role = session.authorize(token, Role::Observe)?;
+    let role = match session.authorize(token, Role::Observe) {
+        Ok(role) => role,
+        Err(e) => {
+            let by_query = crate::auth::Caller { token, ..caller.caller() };
+            app.registry.operators.authenticate(&by_query).map_err(|_| e)?;
+            Role::Observe
+        }
+    };
+    if let Some(e) = session.failed_error() {
+        return Err(e);
+    }
     let limit = app.registry.config.limits.max_viewers_per_session;
     if session.viewers.load(Ordering::Relaxed) as usize >= limit {
-        return Err(ApiError::ResourceExhausted(format!("session {id} already has its maximum of {limit} viewers")));
+        return Err(ApiError::exhausted("viewers", format!("session {id} already has its maximum of {limit} viewers")));
     }
     let rate = match query.rate_hz {
         Some(r) if (1.0..=240.0).contains(&r) => r,
@@ -69,6 +83,22 @@ pub async fn upgrade(
         let outcome = run_viewer(sink, stream, session.clone(), ViewerOptions { observer: role == Role::Observe, rate_hz: rate, requests_per_second }, &metrics).await;
         tracing::debug!(session = %session.id, ?outcome, "viewer left");
     }))
+}
+
+/// A browser sends the page's origin with every WebSocket upgrade: only the server's
+/// own pages (the origin's host is the Host the request was sent to) and the configured
+/// `allowed_origins` may open viewers. Clients that are not browsers send no Origin.
+fn check_origin(headers: &HeaderMap, allowed: &[String]) -> Result<(), ApiError> {
+    let Some(origin) = headers.get(axum::http::header::ORIGIN) else { return Ok(()) };
+    let origin = origin.to_str().unwrap_or_default();
+    let host = headers.get(axum::http::header::HOST).and_then(|h| h.to_str().ok()).unwrap_or_default();
+    let origin_host = origin.split_once("://").map_or("", |(_, rest)| rest.trim_end_matches('/'));
+    if (!host.is_empty() && origin_host.eq_ignore_ascii_case(host)) || allowed.iter().any(|a| a.trim_end_matches('/').eq_ignore_ascii_case(origin)) {
+        return Ok(());
+    }
+    Err(ApiError::PermissionDenied(format!(
+        "a page from {origin:?} may not open viewers here; only this server's own pages (and allowed_origins in its config) may"
+    )))
 }
 
 /// Why a viewer connection ended.
@@ -227,39 +257,51 @@ where
                 }
                 Ok(HubMessage::Reset) | Err(RecvError::Lagged(_)) => resync = true,
                 Ok(HubMessage::Closed) | Err(RecvError::Closed) => {
-                    let _ = sink.send(Message::Close(Some(CloseFrame { code: 1001, reason: "session closed".into() }))).await;
+                    // A failed session closes with "internal error" and the reason (cut
+                    // to a close frame's 123 bytes).
+                    let (code, reason) = match session.failure() {
+                        Some(reason) => (1011, format!("session failed: {reason}").chars().scan(0, |n, c| { *n += c.len_utf8(); (*n <= 123).then_some(c) }).collect::<String>()),
+                        None => (1001, "session closed".to_owned()),
+                    };
+                    let _ = sink.send(Message::Close(Some(CloseFrame { code, reason: reason.into() }))).await;
                     return ViewerEnd::SessionClosed;
                 }
             },
             _ = ticker.tick() => {
-                let frame = session.frame.load();
-                if frame.sequence == mirror.last_frame {
-                    continue;
-                }
-                mirror.last_frame = frame.sequence;
-                if let Some(moved) = mirror.moved(&frame) {
-                    if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Positions(moved))).await {
-                        return ViewerEnd::SendFailed;
+                // Encode everything from the newest frame first, then send: a frame is
+                // never held across a send, so a viewer that stops reading cannot pin the
+                // physics thread's frames (it publishes into frames nobody holds).
+                let outgoing = {
+                    let frame = session.frame.load();
+                    if frame.sequence == mirror.last_frame {
+                        continue;
                     }
-                }
-                if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Tools(convert::tool_states(&frame)))).await {
-                    return ViewerEnd::SendFailed;
-                }
-                // Stats ten times less often — and at once when a replay's playback changed.
-                let playback_changed = frame.playback != last_playback;
-                last_playback = frame.playback;
-                if ticks % 10 == 0 || playback_changed {
-                    let stats = pb::SessionStats {
-                        step: frame.total_steps,
-                        stats: Some(convert::stats(&frame.stats)),
-                        counters: Some(convert::counters(&frame.counters, frame.pieces)),
-                        viewers: session.viewers.load(Ordering::Relaxed),
-                        haptic_clients: session.subscribers.count() as u32,
-                        status: convert::status(frame.status) as i32,
-                        server_unix_ms: frame.unix_ms,
-                        playback: convert::playback(&frame.playback, &session),
-                    };
-                    if !send(&mut sink, frame_bytes(pb::viewer_frame::Frame::Stats(stats))).await {
+                    mirror.last_frame = frame.sequence;
+                    let mut outgoing = Vec::with_capacity(3);
+                    if let Some(moved) = mirror.moved(&frame) {
+                        outgoing.push(frame_bytes(pb::viewer_frame::Frame::Positions(moved)));
+                    }
+                    outgoing.push(frame_bytes(pb::viewer_frame::Frame::Tools(convert::tool_states(&frame))));
+                    // Stats ten times less often — and at once when a replay's playback changed.
+                    let playback_changed = frame.playback != last_playback;
+                    last_playback = frame.playback;
+                    if ticks % 10 == 0 || playback_changed {
+                        let stats = pb::SessionStats {
+                            step: frame.total_steps,
+                            stats: Some(convert::stats(&frame.stats)),
+                            counters: Some(convert::counters(&frame.counters, frame.pieces)),
+                            viewers: session.viewers.load(Ordering::Relaxed),
+                            haptic_clients: session.subscribers.count() as u32,
+                            status: convert::status(frame.status) as i32,
+                            server_unix_ms: frame.unix_ms,
+                            playback: convert::playback(&frame.playback, &session),
+                        };
+                        outgoing.push(frame_bytes(pb::viewer_frame::Frame::Stats(stats)));
+                    }
+                    outgoing
+                };
+                for bytes in outgoing {
+                    if !send(&mut sink, bytes).await {
                         return ViewerEnd::SendFailed;
                     }
                 }

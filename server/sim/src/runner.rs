@@ -2,6 +2,7 @@
 //! script by step index, ending with a report. No wall clock enters the physics, so the
 //! same scene and script always give the same state hash.
 
+use std::ops::ControlFlow;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -65,11 +66,22 @@ pub fn run(
     progress_every: u64,
     on_progress: impl FnMut(&Progress),
 ) -> RunReport {
-    run_with_hook(tissue, scene_name, script, steps, progress_every, on_progress, |_, _, _| {})
+    match run_with_hook(tissue, scene_name, script, steps, progress_every, on_progress, |_, _, _| ControlFlow::Continue(())) {
+        Ok(report) => report,
+        Err(Stopped { .. }) => unreachable!("the hook never stops the run"),
+    }
+}
+
+/// A run its hook stopped before the end (the client went away, the session closed).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Stopped {
+    /// Steps taken.
+    pub at_step: u64,
 }
 
 /// [`run`], calling `after_step(tissue, commands, feedback)` after every step (the
-/// server publishes deltas and frames and records commands there; it is not timed).
+/// server publishes deltas and frames and records commands there; it is not timed); the
+/// hook may stop the run.
 pub fn run_with_hook(
     tissue: &mut dyn Tissue,
     scene_name: &str,
@@ -77,8 +89,8 @@ pub fn run_with_hook(
     steps: u64,
     progress_every: u64,
     mut on_progress: impl FnMut(&Progress),
-    mut after_step: impl FnMut(&mut dyn Tissue, &[ToolCommand], &[ToolFeedback]),
-) -> RunReport {
+    mut after_step: impl FnMut(&mut dyn Tissue, &[ToolCommand], &[ToolFeedback]) -> ControlFlow<()>,
+) -> Result<RunReport, Stopped> {
     let tools = tissue.tools().len();
     let mut commands = vec![ToolCommand::default(); tools];
     let mut feedback = vec![ToolFeedback::default(); tools];
@@ -92,7 +104,9 @@ pub fn run_with_hook(
         let t0 = Instant::now();
         tissue.step(&commands, &mut feedback);
         histogram.record(t0.elapsed());
-        after_step(tissue, &commands, &feedback);
+        if after_step(tissue, &commands, &feedback).is_break() {
+            return Err(Stopped { at_step: step + 1 });
+        }
         for fb in &feedback {
             max_force = max_force.max(fb.force_n.norm());
         }
@@ -134,5 +148,5 @@ pub fn run_with_hook(
         report.expectations = s.expect.check(&report);
         report.passed = report.expectations.iter().all(|e| e.passed);
     }
-    report
+    Ok(report)
 }

@@ -16,7 +16,7 @@ use std::sync::Arc;
 use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
-use cutsim_sim::runner::{self, Progress, RunReport};
+use cutsim_sim::runner::{self, Progress};
 use cutsim_sim::scene::Scene;
 use cutsim_sim::stats::LatencyHistogram;
 use cutsim_sim::surface::{SurfaceSnapshot, TopologyDelta};
@@ -27,7 +27,7 @@ use tokio::sync::mpsc::UnboundedSender;
 use super::hub::{FramePool, HubEvent, PlaybackState, StepStats, ToolFrame};
 use super::records::{FeedbackRecord, StampedCommand};
 use super::recording::{RecordEvent, RecordingProducer};
-use super::{Control, Mode, ScriptEvent, Session, Status};
+use super::{CloseReason, Control, Mode, ScriptEvent, Session, Status};
 
 /// Frames per second published for viewers (they pick their own rate below it).
 const FRAME_RATE_HZ: f64 = 250.0;
@@ -40,8 +40,24 @@ const SPIN_WINDOW: Duration = Duration::from_micros(150);
 /// Step-time statistics are recomputed this often (quantiles walk the histogram).
 const STATS_EVERY_STEPS: u64 = 100;
 
+/// How a session's physics thread behaves beyond its scene.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Settings {
+    /// A tool whose command is older than this is lifted (real-time sessions).
+    pub stale_after: Duration,
+    /// Record the state hash every this many steps of a real-time session (0: never).
+    pub checkpoint_every: u64,
+    /// Fault injection (tests): panic when this many steps were taken.
+    pub panic_at_step: Option<u64>,
+}
+
 pub struct Physics {
     pub(super) scene: Scene,
+    settings: Settings,
+    /// When each tool's newest command arrived (for the stale-command watchdog).
+    fresh_at: Vec<Instant>,
+    /// Tools lifted by the watchdog, until their client sends again.
+    lifted: Vec<bool>,
     pub(super) tissue: Box<dyn Tissue>,
     pub(super) control: Receiver<Control>,
     stamped: Vec<StampedCommand>,
@@ -89,6 +105,7 @@ impl Physics {
         control: Receiver<Control>,
         hub: UnboundedSender<HubEvent>,
         recording: Option<RecordingProducer>,
+        settings: Settings,
     ) -> Self {
         let tools = tissue.tools().len();
         let rate = 1.0 / tissue.time_step_s();
@@ -96,6 +113,9 @@ impl Physics {
         let pieces = tissue.pieces() as u64;
         Self {
             scene,
+            settings,
+            fresh_at: vec![Instant::now(); tools],
+            lifted: vec![false; tools],
             tissue,
             control,
             stamped: vec![StampedCommand::default(); tools],
@@ -136,13 +156,13 @@ impl Physics {
         self.out.publish_frame(self.tissue.as_ref());
         loop {
             while let Ok(message) = self.control.try_recv() {
-                if !self.handle(message) {
-                    return self.finish();
+                if let Some(reason) = self.handle(message) {
+                    return self.finish(reason);
                 }
                 next = next.max(Instant::now());
             }
             if self.out.session.is_closed() {
-                return self.finish();
+                return self.finish(CloseReason::Closed);
             }
             if self.out.session.mode == Mode::Lockstep {
                 std::thread::park_timeout(Duration::from_millis(20));
@@ -156,6 +176,7 @@ impl Physics {
             }
             last_start = Instant::now();
             self.read_commands();
+            self.lift_stale_tools(last_start);
             self.step_realtime();
             // A step that started early for a device's command re-anchors the periods
             // there (the device's clock leads); otherwise the deadlines stay absolute.
@@ -200,10 +221,10 @@ impl Physics {
         }
     }
 
-    /// Handles a control message; false when the session must stop.
-    fn handle(&mut self, message: Control) -> bool {
+    /// Handles a control message; the reason when the session must stop.
+    fn handle(&mut self, message: Control) -> Option<CloseReason> {
         match message {
-            Control::Close => return false,
+            Control::Close(reason) => return Some(reason),
             Control::Snapshot(reply) => {
                 let _ = reply.send((self.snapshot(), self.tissue.step_index()));
             }
@@ -222,7 +243,7 @@ impl Physics {
             // Only replays have a playback (see `run_replay`).
             Control::Playback(..) => {}
         }
-        true
+        None
     }
 
     pub(super) fn snapshot(&self) -> SurfaceSnapshot {
@@ -240,8 +261,12 @@ impl Physics {
     fn read_commands(&mut self) {
         for (tool, slot) in self.out.session.commands.iter().enumerate() {
             if let Some((words, version)) = slot.try_read(16) {
+                if version != self.seen_versions[tool] {
+                    self.fresh_at[tool] = Instant::now();
+                    self.lifted[tool] = false;
+                }
                 self.seen_versions[tool] = version;
-                if version != 0 {
+                if version != 0 && !self.lifted[tool] {
                     self.stamped[tool] = StampedCommand::from_words(&words);
                     self.out.commands[tool] = self.stamped[tool].command;
                 }
@@ -249,7 +274,42 @@ impl Physics {
         }
     }
 
+    /// The stale-command watchdog: a tool whose client has sent nothing for
+    /// `stale_after` (its process paused, its network gone without a goodbye) is lifted
+    /// out of the tissue — it stops pressing and cutting — until commands come again.
+    /// The lift is an ordinary command change, so the recording replays it exactly.
+    fn lift_stale_tools(&mut self, now: Instant) {
+        for tool in 0..self.out.commands.len() {
+            let command = &mut self.out.commands[tool];
+            if command.active && !self.lifted[tool] && now.duration_since(self.fresh_at[tool]) > self.settings.stale_after {
+                command.active = false;
+                command.cut = false;
+                self.lifted[tool] = true;
+                self.out.session.stale_lifts.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// Fault injection for tests: a panic at a chosen step.
+    fn inject_faults(&self) {
+        if self.settings.panic_at_step == Some(self.out.total_steps) {
+            panic!("injected fault: panic_at_step {}", self.out.total_steps);
+        }
+    }
+
+    /// A real-time session writes its state hash into the recording every
+    /// `checkpoint_every` steps: a replay then proves it reached the same states.
+    fn checkpoint_if_due(&mut self) {
+        let every = self.settings.checkpoint_every;
+        let step = self.tissue.step_index();
+        if every > 0 && step > 0 && step % every == 0 {
+            let hash = self.tissue.state_hash();
+            self.out.record(RecordEvent::Checkpoint { step, hash });
+        }
+    }
+
     fn step_realtime(&mut self) {
+        self.inject_faults();
         let step = self.tissue.step_index();
         self.out.record_commands(step);
         let started = Instant::now();
@@ -273,6 +333,7 @@ impl Physics {
         }
         self.out.session.subscribers.wake_all();
         self.out.after_step(self.tissue.as_mut());
+        self.checkpoint_if_due();
         if self.out.total_steps % STATS_EVERY_STEPS == 0 {
             self.update_stats();
         }
@@ -317,7 +378,11 @@ impl Physics {
         }
     }
 
-    /// Resets the tissue to the scene's initial state and runs a script in lockstep.
+    /// Resets the tissue to the scene's initial state and runs a script in lockstep. On
+    /// a real-time session the script runs on a helper thread in the background
+    /// scheduling class (the session's own thread keeps its priority for when the
+    /// script ends). A script stops early when its client goes away or the session
+    /// closes.
     fn run_script(&mut self, script: &cutsim_sim::script::CompiledScript, progress_every: u64, events: &UnboundedSender<ScriptEvent>) {
         let previous_status = self.out.status;
         self.out.status = Status::RunningScript;
@@ -331,36 +396,60 @@ impl Physics {
         let mut last_frame = Instant::now();
         let steps = script.steps;
         let every = if progress_every == 0 { (steps / 20).max(1) } else { progress_every };
-        let out = &mut self.out;
+        let (tissue, scene_name, out, panic_at) = (self.tissue.as_mut(), &self.scene.name, &mut self.out, self.settings.panic_at_step);
+        let realtime = out.session.mode == Mode::Realtime;
         // The hook records, publishes deltas and, about 60 times a second of wall time,
         // a frame for viewers; it is not part of the timed step.
-        let report: RunReport = runner::run_with_hook(
-            self.tissue.as_mut(),
-            &self.scene.name,
-            Some(script),
-            steps,
-            every,
-            |p: &Progress| {
-                let _ = events.send(ScriptEvent::Progress(*p));
-            },
-            |tissue, commands, feedback| {
-                out.commands.copy_from_slice(commands);
-                out.feedback.copy_from_slice(feedback);
-                // The runner has stepped already: the commands were those of the step before.
-                out.record_commands(tissue.step_index() - 1);
-                out.after_step(tissue);
-                if last_frame.elapsed() >= frame_every {
-                    out.publish_frame(tissue);
-                    last_frame = Instant::now();
-                }
-            },
-        );
+        let mut run = move || {
+            if realtime {
+                yield_to_real_time();
+            }
+            runner::run_with_hook(
+                tissue,
+                scene_name,
+                Some(script),
+                steps,
+                every,
+                |p: &Progress| {
+                    let _ = events.send(ScriptEvent::Progress(*p));
+                },
+                |tissue, commands, feedback| {
+                    if panic_at == Some(out.total_steps) {
+                        panic!("injected fault: panic_at_step {}", out.total_steps);
+                    }
+                    out.commands.copy_from_slice(commands);
+                    out.feedback.copy_from_slice(feedback);
+                    // The runner has stepped already: the commands were those of the step before.
+                    out.record_commands(tissue.step_index() - 1);
+                    out.after_step(tissue);
+                    if last_frame.elapsed() >= frame_every {
+                        out.publish_frame(tissue);
+                        last_frame = Instant::now();
+                    }
+                    if events.is_closed() || out.session.is_closed() {
+                        return std::ops::ControlFlow::Break(());
+                    }
+                    std::ops::ControlFlow::Continue(())
+                },
+            )
+        };
+        let outcome = if realtime {
+            std::thread::scope(|scope| match std::thread::Builder::new().name("script".into()).spawn_scoped(scope, run) {
+                Ok(helper) => helper.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+                Err(e) => panic!("cannot start a script thread: {e}"),
+            })
+        } else {
+            run()
+        };
         let (step, hash) = (self.tissue.step_index(), self.tissue.state_hash());
         self.out.record(RecordEvent::Checkpoint { step, hash });
         self.out.status = previous_status;
         self.update_stats();
         self.out.publish_frame(self.tissue.as_ref());
-        let _ = events.send(ScriptEvent::Report(Box::new(report)));
+        let _ = events.send(match outcome {
+            Ok(report) => ScriptEvent::Report(Box::new(report)),
+            Err(stopped) => ScriptEvent::Failed(format!("the script stopped after {} of {steps} steps: its client went away or the session closed", stopped.at_step)),
+        });
     }
 
     /// Rebuilds the tissue from the scene; viewers get the new surface as a snapshot.
@@ -390,8 +479,9 @@ impl Physics {
         let _ = self.out.hub.send(HubEvent::Reset(snapshot, self.out.epoch_version));
     }
 
-    pub(super) fn finish(mut self) {
-        self.out.record(RecordEvent::End { step: self.tissue.step_index() });
+    pub(super) fn finish(mut self, reason: CloseReason) {
+        let (step, hash) = (self.tissue.step_index(), self.tissue.state_hash());
+        self.out.record(RecordEvent::End { step, hash, reason });
         self.out.status = Status::Closed;
         self.out.publish_frame(self.tissue.as_ref());
     }

@@ -51,7 +51,7 @@ impl Physics {
         loop {
             while let Ok(message) = self.control.try_recv() {
                 match message {
-                    Control::Close => return self.finish(),
+                    Control::Close(reason) => return self.finish(reason),
                     Control::Playback(command, done) => {
                         self.command(&mut player, command);
                         next = Instant::now();
@@ -69,7 +69,7 @@ impl Physics {
                 }
             }
             if self.out.session.is_closed() {
-                return self.finish();
+                return self.finish(super::CloseReason::Closed);
             }
             if !player.playing {
                 std::thread::park_timeout(Duration::from_millis(20));

@@ -3,18 +3,22 @@
 //!
 //! The physics thread pushes fixed-size events into a lock-free ring (no allocation, no
 //! lock, no I/O on the 1 kHz path); a recorder thread writes them as JSON lines and
-//! flushes them to the operating system every few milliseconds, so a recording survives
-//! the server being killed (at most the last few milliseconds are lost). If the ring
-//! overflows or the disk fails, the loss is counted and written down, never silent.
+//! flushes them to the operating system every 5 ms, so a recording survives the server
+//! being killed (at most the last few milliseconds are lost), and forces them to the
+//! disk (fdatasync) every `sync_every` (1 s by default) and at the end, so that a power
+//! cut loses at most that much. If the ring overflows or the disk fails, the loss is
+//! counted and written down, never silent.
 //!
 //! Format (one JSON object per line; floats in their shortest exact form):
 //! ```text
-//! {"format":"cutsim-recording","version":1,"session":"…","scene_origin":"…","base_dir":"…","scene":{…}}
+//! {"format":"cutsim-recording","version":1,"session":"…","build":"cutsim-server 0.1.0 (git 1a2b3c4d5e6f)",
+//!  "scene_sha256":"…","checkpoint_every_steps":10000,"scene_origin":"…","base_dir":"…","scene":{…}}
 //! {"t":"cmd","step":12,"tool":0,"p":[x,y,z],"q":[w,x,y,z],"active":true,"cut":false}
 //! {"t":"reset","step":500}                 tissue rebuilt from the scene (script start)
 //! {"t":"check","step":900,"hash":"…"}      state hash after `step` steps
 //! {"t":"lost","count":3}                    events that could not be recorded
-//! {"t":"end","step":1200}                   session closed
+//! {"t":"end","step":1200,"hash":"…","reason":"closed"}   session closed (or "expired", "shutdown")
+//! {"t":"failed","reason":"…"}               the session's physics failed; nothing follows
 //! ```
 //! A command line's `step` is the index of the first step that used it; a checkpoint's
 //! is the number of steps taken since the last reset.
@@ -37,8 +41,19 @@ pub enum RecordEvent {
     Command { step: u64, tool: u32, command: ToolCommand },
     Reset { step: u64 },
     Checkpoint { step: u64, hash: u64 },
-    End { step: u64 },
+    /// The session closed: steps since the last reset and the final state hash.
+    End { step: u64, hash: u64, reason: super::CloseReason },
 }
+
+/// How a recorder writes.
+#[derive(Debug, Clone, Copy)]
+pub struct RecorderSettings {
+    /// Forced to the disk (fdatasync) at least this often.
+    pub sync_every: Duration,
+}
+
+/// The server build that writes recordings: version and git commit.
+pub const BUILD: &str = concat!("cutsim-server ", env!("CARGO_PKG_VERSION"), " (git ", env!("CUTSIM_GIT_COMMIT"), ")");
 
 /// Ring capacity: about a minute of one tool changing every step at 1 kHz.
 const RING_CAPACITY: usize = 1 << 16;
@@ -81,6 +96,8 @@ pub struct Recorder {
     lost: Arc<AtomicU64>,
     write_errors: Arc<WriteFailures>,
     stop: Arc<AtomicBool>,
+    /// Why the session failed, written last.
+    failure: Arc<std::sync::Mutex<Option<String>>>,
     sync_tx: std::sync::mpsc::Sender<std::sync::mpsc::Sender<()>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
@@ -90,6 +107,15 @@ struct Header {
     format: String,
     version: u32,
     session: String,
+    /// The server that wrote it (absent in recordings of older servers).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    build: String,
+    /// SHA-256 of the scene JSON as written below, hex.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    scene_sha256: String,
+    /// A real-time session's checkpoint interval (0: none; absent in older recordings).
+    #[serde(default)]
+    checkpoint_every_steps: u64,
     scene_origin: String,
     base_dir: Option<PathBuf>,
     scene: serde_json::Value,
@@ -102,37 +128,59 @@ enum Line {
     Reset { step: u64 },
     Check { step: u64, hash: String },
     Lost { count: u64 },
-    End { step: u64 },
+    End {
+        step: u64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        hash: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        reason: Option<String>,
+    },
+    Failed { reason: String },
 }
 
 impl Recorder {
     /// Creates the recording file with its header and starts the recorder thread.
-    pub fn start(dir: &Path, session: &str, scene: &Scene, scene_json: &str) -> std::io::Result<(Recorder, RecordingProducer)> {
+    pub fn start(
+        dir: &Path,
+        session: &str,
+        scene: &Scene,
+        scene_json: &str,
+        checkpoint_every_steps: u64,
+        settings: RecorderSettings,
+    ) -> std::io::Result<(Recorder, RecordingProducer)> {
         std::fs::create_dir_all(dir)?;
         let path = dir.join(format!("{session}.jsonl"));
         let mut file = std::fs::OpenOptions::new().create_new(true).append(true).open(&path)?;
+        let scene_value: serde_json::Value = serde_json::from_str(scene_json).map_err(std::io::Error::other)?;
         let header = Header {
             format: "cutsim-recording".into(),
             version: 1,
             session: session.to_owned(),
+            build: BUILD.to_owned(),
+            scene_sha256: sha256_hex(scene_value.to_string().as_bytes()),
+            checkpoint_every_steps,
             scene_origin: scene.origin.clone(),
             base_dir: scene.base_dir.clone(),
-            scene: serde_json::from_str(scene_json).map_err(std::io::Error::other)?,
+            scene: scene_value,
         };
         writeln!(file, "{}", serde_json::to_string(&header).map_err(std::io::Error::other)?)?;
         file.flush()?;
+        file.sync_data()?;
         let (producer, mut consumer) = rtrb::RingBuffer::new(RING_CAPACITY);
         let lost = Arc::new(AtomicU64::new(0));
         let write_errors = Arc::new(WriteFailures::default());
         let stop = Arc::new(AtomicBool::new(false));
+        let failure = Arc::new(std::sync::Mutex::new(None::<String>));
         let (sync_tx, sync_rx) = std::sync::mpsc::channel::<std::sync::mpsc::Sender<()>>();
         let thread = {
-            let (lost, write_errors, stop, path) = (lost.clone(), write_errors.clone(), stop.clone(), path.clone());
+            let (lost, write_errors, stop, path, failure) = (lost.clone(), write_errors.clone(), stop.clone(), path.clone(), failure.clone());
             let name = format!("record-{}", &session[..session.len().min(8)]);
             std::thread::Builder::new().name(name).spawn(move || {
                 let mut out = std::io::BufWriter::with_capacity(1 << 16, file);
                 let mut reported_lost = 0;
                 let mut waiting: Vec<std::sync::mpsc::Sender<()>> = Vec::new();
+                let mut last_sync = std::time::Instant::now();
+                let mut unsynced = false;
                 loop {
                     let stopping = stop.load(Ordering::Acquire);
                     let mut wrote = false;
@@ -146,7 +194,7 @@ impl Recorder {
                             }
                             RecordEvent::Reset { step } => Line::Reset { step },
                             RecordEvent::Checkpoint { step, hash } => Line::Check { step, hash: hash_hex(hash) },
-                            RecordEvent::End { step } => Line::End { step },
+                            RecordEvent::End { step, hash, reason } => Line::End { step, hash: Some(hash_hex(hash)), reason: Some(reason.as_str().into()) },
                         };
                         write_line(&mut out, &line, &write_errors, &path);
                     }
@@ -156,8 +204,22 @@ impl Recorder {
                         reported_lost = now_lost;
                         wrote = true;
                     }
+                    if stopping && let Some(reason) = failure.lock().unwrap_or_else(|e| e.into_inner()).take() {
+                        write_line(&mut out, &Line::Failed { reason }, &write_errors, &path);
+                        wrote = true;
+                    }
                     if wrote && let Err(e) = out.flush() {
                         write_errors.record(&e, &path);
+                    }
+                    unsynced |= wrote;
+                    // A power cut loses what the page cache holds: force it to the disk
+                    // every `sync_every`, and before the thread ends.
+                    if unsynced && (stopping || last_sync.elapsed() >= settings.sync_every) {
+                        if let Err(e) = out.get_ref().sync_data() {
+                            write_errors.record(&e, &path);
+                        }
+                        last_sync = std::time::Instant::now();
+                        unsynced = false;
                     }
                     for ack in waiting.drain(..) {
                         let _ = ack.send(());
@@ -172,7 +234,7 @@ impl Recorder {
                 }
             })?
         };
-        let recorder = Recorder { path, lost: lost.clone(), write_errors, stop, sync_tx, thread: Some(thread) };
+        let recorder = Recorder { path, lost: lost.clone(), write_errors, stop, failure, sync_tx, thread: Some(thread) };
         Ok((recorder, RecordingProducer { ring: producer, lost }))
     }
 
@@ -201,6 +263,12 @@ impl Recorder {
         if self.sync_tx.send(ack_tx).is_ok() {
             let _ = ack_rx.recv_timeout(Duration::from_secs(1));
         }
+    }
+
+    /// Writes what is left, then that the session failed and why, and stops the thread.
+    pub fn finish_failed(&mut self, reason: &str) {
+        *self.failure.lock().unwrap_or_else(|e| e.into_inner()) = Some(reason.to_owned());
+        self.finish();
     }
 
     /// Writes what is left and stops the thread.
@@ -236,6 +304,12 @@ pub struct Recording {
     pub lost_events: u64,
     /// Whether it ends with an `end` line (false after a crash).
     pub ended_cleanly: bool,
+    /// Why the session's physics failed, when it did.
+    pub failure: Option<String>,
+    /// The server that wrote it ("" for older recordings).
+    pub build: String,
+    /// Its real-time checkpoint interval (0: none or unknown).
+    pub checkpoint_every_steps: u64,
 }
 
 /// The events of one tissue lifetime, sorted by step.
@@ -268,7 +342,19 @@ impl Recording {
         }
         let scene = Scene::from_json_str(&header.scene.to_string(), &header.scene_origin, header.base_dir.as_deref()).map_err(|e| e.to_string())?;
         let tools = scene.tools.len();
-        let mut recording = Recording { session: header.session, scene, epochs: vec![Epoch::default()], lost_events: 0, ended_cleanly: false };
+        if !header.scene_sha256.is_empty() && header.scene_sha256 != sha256_hex(header.scene.to_string().as_bytes()) {
+            return Err(format!("{}: line 1: the scene does not match its scene_sha256 (the recording was altered)", path.display()));
+        }
+        let mut recording = Recording {
+            session: header.session,
+            scene,
+            epochs: vec![Epoch::default()],
+            lost_events: 0,
+            ended_cleanly: false,
+            failure: None,
+            build: header.build,
+            checkpoint_every_steps: header.checkpoint_every_steps,
+        };
         for (index, line) in lines.enumerate() {
             let number = index + 2;
             let Ok(text) = line else { break };
@@ -297,10 +383,14 @@ impl Recording {
                     recording.epochs.push(Epoch::default());
                 }
                 Line::Lost { count } => recording.lost_events += count,
-                Line::End { step } => {
+                Line::End { step, hash, .. } => {
                     epoch.steps = epoch.steps.max(step);
+                    if let Some(hash) = hash {
+                        epoch.events.push((step, EpochEvent::Checkpoint { hash }));
+                    }
                     recording.ended_cleanly = true;
                 }
+                Line::Failed { reason } => recording.failure = Some(reason),
             }
         }
         Ok(recording)
@@ -329,6 +419,13 @@ pub struct ReplayReport {
     pub lost_events: u64,
     /// Whether the recording ends with an `end` line (false after a crash).
     pub ended_cleanly: bool,
+    /// The session's physics failed (the recording says why).
+    pub failure: Option<String>,
+    /// The server build that wrote the recording.
+    pub build: String,
+    /// Checkpoints the recording must have at least: its end (a clean end carries the
+    /// final hash) and one per checkpoint interval of its first tissue's steps.
+    pub checkpoints_expected: u64,
     /// Steps since the last reset, and the state hash there.
     pub final_step: u64,
     pub final_state_hash: String,
@@ -354,6 +451,9 @@ pub fn replay(path: &Path) -> Result<ReplayReport, String> {
         checkpoint_mismatches: Vec::new(),
         lost_events: recording.lost_events,
         ended_cleanly: recording.ended_cleanly,
+        failure: recording.failure.clone(),
+        build: recording.build.clone(),
+        checkpoints_expected: expected_checkpoints(&recording),
         final_step: 0,
         final_state_hash: String::new(),
         passed: false,
@@ -390,6 +490,22 @@ pub fn replay(path: &Path) -> Result<ReplayReport, String> {
     }
     report.final_step = tissue.step_index();
     report.final_state_hash = hash_hex(tissue.state_hash());
-    report.passed = report.checkpoint_mismatches.is_empty() && report.lost_events == 0;
+    report.passed = report.checkpoint_mismatches.is_empty() && report.lost_events == 0 && report.checkpoints_verified >= report.checkpoints_expected;
     Ok(report)
+}
+
+/// Checkpoints a recording must hold: its clean end's hash, and the periodic ones of a
+/// real-time session's first tissue (scripts reset the tissue; their checkpoints come
+/// at their ends).
+fn expected_checkpoints(recording: &Recording) -> u64 {
+    let periodic = match recording.checkpoint_every_steps {
+        0 => 0,
+        every => recording.epochs.first().map_or(0, |e| e.steps / every),
+    };
+    u64::from(recording.ended_cleanly) + periodic
+}
+
+/// SHA-256 of `bytes`, as 64 hex digits.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    ring::digest::digest(&ring::digest::SHA256, bytes).as_ref().iter().map(|b| format!("{b:02x}")).collect()
 }

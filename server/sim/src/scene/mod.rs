@@ -9,8 +9,10 @@
 //! Choices are externally tagged objects, e.g. `"geometry": {"patch": {...}}`: that
 //! keeps the JSON path of every error exact.
 
+mod footprint;
 mod load;
 
+pub use footprint::Footprint;
 pub use load::{SceneError, bundled_scene_names, data_dir, json_schema, resolve_bundled_scene, resolve_scene_path};
 
 use std::path::PathBuf;
