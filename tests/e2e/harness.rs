@@ -142,6 +142,7 @@ pub fn authed<T>(message: T, token: &str) -> tonic::Request<T> {
     r
 }
 
+#[derive(Debug)]
 pub struct Created {
     pub id: String,
     pub control: String,

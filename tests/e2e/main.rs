@@ -4,11 +4,13 @@
 
 mod bad_input;
 mod deploy;
+mod faults;
 mod harness;
 mod haptics;
 mod recording;
 mod replay;
 mod scripts;
+mod security;
 mod sessions;
 mod tls;
 mod viewers;

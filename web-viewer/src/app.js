@@ -64,13 +64,16 @@ async function refreshSessions() {
   const list = document.querySelector('#sessions tbody');
   const status = document.querySelector('#server-status');
   try {
-    const response = await fetch('/api/sessions', { cache: 'no-store', headers: operatorHeaders() });
-    if (response.status === 401) {
+    // Only operators may list sessions: ask first rather than provoke a refusal.
+    const who = await fetch('/api/whoami', { cache: 'no-store', headers: operatorHeaders() });
+    if (!who.ok) throw new Error(`HTTP ${who.status}`);
+    if (!(await who.json()).operator) {
       status.textContent = 'sign in with an operator token to list the sessions (or open one with its token)';
       status.dataset.state = 'locked';
       list.replaceChildren();
       return;
     }
+    const response = await fetch('/api/sessions', { cache: 'no-store', headers: operatorHeaders() });
     if (!response.ok) throw new Error(`HTTP ${response.status}`);
     const sessions = await response.json();
     status.textContent = `${sessions.length} session${sessions.length === 1 ? '' : 's'}`;

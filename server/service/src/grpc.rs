@@ -326,14 +326,7 @@ impl Scripts for Api {
         // The physics thread may die mid-script: the stream then ends with its reason
         // rather than without a report.
         let ended = futures_util::stream::once(async move {
-            // The thread's unwinding drops the event channel a moment before the
-            // session is marked failed.
-            for _ in 0..100 {
-                if session.failure().is_some() || session.is_closed() {
-                    break;
-                }
-                tokio::time::sleep(std::time::Duration::from_millis(10)).await;
-            }
+            session.settled().await;
             let e = session.failed_error().unwrap_or_else(|| ApiError::Unavailable(format!("session {} stopped before the script's report", session.id)));
             Err::<pb::ScriptEvent, Status>(e.into())
         });

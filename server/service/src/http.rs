@@ -48,6 +48,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/sessions/{id}/playback", post(playback))
         .route("/api/sessions/{id}", get(session_json).delete(close_session))
         .route("/api/sessions", get(sessions_json))
+        .route("/api/whoami", get(whoami))
         .route("/metrics", get(metrics_text))
         .route("/healthz", get(healthz))
         .route("/cutsim.proto", get(|| async { ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], PROTO) }))
@@ -245,6 +246,13 @@ async fn close_session(State(app): State<AppState>, caller: HttpCaller, Path(id)
     }
     app.registry.close(&id, CloseReason::Closed).await?;
     Ok(StatusCode::NO_CONTENT)
+}
+
+/// `GET /api/whoami`: whether the caller is an operator (the viewer asks before it
+/// lists sessions, rather than provoke a 401): `{"operator": true, "as": "operator \"lab\""}`.
+async fn whoami(State(app): State<AppState>, caller: HttpCaller) -> impl IntoResponse {
+    let operator = caller.operator(&app).ok();
+    axum::Json(serde_json::json!({ "operator": operator.is_some(), "as": operator.map(|o| o.to_string()) }))
 }
 
 /// `GET /healthz`: 200 while the server serves; says how many sessions failed.

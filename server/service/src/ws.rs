@@ -257,6 +257,7 @@ where
                 }
                 Ok(HubMessage::Reset) | Err(RecvError::Lagged(_)) => resync = true,
                 Ok(HubMessage::Closed) | Err(RecvError::Closed) => {
+                    session.settled().await;
                     // A failed session closes with "internal error" and the reason (cut
                     // to a close frame's 123 bytes).
                     let (code, reason) = match session.failure() {

@@ -202,6 +202,18 @@ impl Session {
         self.failure.get().map(String::as_str)
     }
 
+    /// Waits (up to a second) until the session has either failed or closed: when its
+    /// physics thread dies, the channels it held close a moment before the session is
+    /// marked failed, and whoever notices first should still tell the reason.
+    pub async fn settled(&self) {
+        for _ in 0..100 {
+            if self.failure().is_some() || self.is_closed() {
+                return;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    }
+
     /// The error a request on a failed session gets.
     pub fn failed_error(&self) -> Option<ApiError> {
         self.failure().map(|reason| ApiError::Internal(format!("session {} failed: {reason}; close it and start another", self.id)))
