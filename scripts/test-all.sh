@@ -27,6 +27,10 @@ cargo test --workspace --locked
 echo "==> fuzzing: every cargo-fuzz target for 20,000 inputs (docs/fuzzing.md)"
 fuzz/run.sh 20000
 
+echo "==> HTTP API fuzzing: schemathesis against docs/openapi.yaml and a real server (tools/api-fuzz)"
+cargo build --locked -p cutsim-server
+tools/api-fuzz/run.sh 100
+
 echo "==> load and faults, short (cutsim-load; its full run writes docs/reliability.md)"
 cargo build --locked -p cutsim-load
 target/debug/cutsim-load --sessions 2 --viewers 2 --seconds 8 --report target/reliability-ci.md >/dev/null
@@ -52,5 +56,8 @@ if [ ! -x "$chromium" ]; then
 fi
 (cd web-viewer && npm ci --no-audit --no-fund --loglevel=error)
 (cd tests/browser && npm ci --no-audit --no-fund --loglevel=error && CUTSIM_SERVER_BIN="$(pwd)/../../target/debug/cutsim-server" npm test)
+
+echo "==> the container image: docker/Dockerfile built and run (health check, viewer, cut-bot)"
+docker/test-image.sh
 
 echo "==> all tests passed"

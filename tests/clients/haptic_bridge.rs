@@ -153,3 +153,45 @@ async fn a_udp_device_driver_gets_forces_back() {
     assert!(fresh > 1000, "with the link healthy: {fresh}");
     assert!(strongest > 0.05, "the driver felt the skin push back: {strongest} N");
 }
+
+/// A haptic client whose packets stop without the connection closing (its process
+/// paused: SIGSTOP) has its tool lifted by the server within the stale time
+/// (`limits.stale_command_ms`, 50 ms): the recording shows the lift, at most 50 steps of
+/// 1 ms (and a few steps' slack for early starts) after the client's last command.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_paused_client_has_its_tool_lifted_within_the_stale_time() {
+    let server = Server::start();
+    let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+    let dir = TempDir::new("bridge-paused");
+    let child = bridge(&server, &session, 30.0, &dir).spawn().unwrap();
+    let pid = child.id() as libc::pid_t;
+    // Pressing by 1.5 s (sim:press); pause the bridge at 2 s.
+    tokio::time::sleep(Duration::from_millis(2000)).await;
+    // SAFETY: signalling our own child process.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    let metric = format!("cutsim_stale_tool_lifts_total{{session=\"{}\"}} 1", session.id);
+    let mut lifted = false;
+    for _ in 0..100 {
+        let (_, metrics) = http_request(&server.http, "GET", "/metrics", None).await;
+        if metrics.contains(&metric) {
+            lifted = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // SAFETY: as above; the bridge is killed once it runs again.
+    unsafe {
+        libc::kill(pid, libc::SIGKILL);
+        libc::kill(pid, libc::SIGCONT);
+    }
+    let _ = tokio::task::spawn_blocking(move || child.wait_with_output()).await;
+    assert!(lifted, "the server lifts the paused client's tool");
+    server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: session.id.clone() }, &session.control)).await.unwrap();
+    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", session.id))).unwrap();
+    let commands: Vec<serde_json::Value> = recording.lines().map(|l| serde_json::from_str(l).unwrap()).filter(|l: &serde_json::Value| l["t"] == "cmd" && l["tool"] == 1).collect();
+    let lift = commands.iter().position(|c| c["active"] == false).expect("a lift in the recording");
+    assert!(lift > 0, "the client commanded the tool first");
+    let gap = commands[lift]["step"].as_u64().unwrap() - commands[lift - 1]["step"].as_u64().unwrap();
+    assert!(gap <= 55, "lifted {gap} steps after the client's last command (stale time 50 ms at 1 kHz)");
+    assert_eq!(commands[lift]["p"], commands[lift - 1]["p"], "lifted where it was");
+}

@@ -292,3 +292,21 @@ async fn a_real_time_recording_has_periodic_checkpoints_and_a_final_hash_that_re
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("does not match its scene_sha256"));
 }
+
+#[tokio::test]
+async fn a_scene_that_does_not_fit_in_memory_is_refused_naming_the_memory() {
+    let dir = TempDir::new("memory");
+    let config = dir.0.join("server.json");
+    // More memory kept free than any machine has: nothing fits.
+    std::fs::write(&config, r#"{"limits": {"memory_reserve_mib": 1000000000}}"#).unwrap();
+    let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
+    let refused = server
+        .sessions()
+        .await
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: pb::SessionMode::Lockstep as i32, label: String::new() }))
+        .await
+        .unwrap_err();
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(refused.message().starts_with("memory: the scene needs about") && refused.message().contains("skin nodes"), "{}", refused.message());
+    assert_eq!(refused.get_error_details().resource_info().unwrap().resource_type, "memory");
+}

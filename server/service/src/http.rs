@@ -153,6 +153,15 @@ impl HttpCaller {
     fn operator(&self, app: &AppState) -> Result<Operator, ApiError> {
         app.registry.operators.authenticate(&self.caller())
     }
+
+    /// A caller with no credentials at all is refused before anything is looked up (an
+    /// anonymous client learns nothing, not even whether a session exists).
+    pub fn require_credentials(&self, app: &AppState) -> Result<(), ApiError> {
+        if self.token.as_deref().is_some_and(|t| !t.is_empty()) || self.operator(app).is_ok() {
+            return Ok(());
+        }
+        Err(ApiError::Unauthenticated(format!("this needs a session token or an operator's credentials (header `{TOKEN_KEY}`)")))
+    }
 }
 
 impl<S: Send + Sync> FromRequestParts<S> for HttpCaller {
@@ -229,6 +238,7 @@ async fn sessions_json(State(app): State<AppState>, caller: HttpCaller) -> Resul
 /// `GET /api/sessions/{id}`: one session, for its token holders and operators (the
 /// viewer asks whether its session still exists).
 async fn session_json(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    caller.require_credentials(&app)?;
     let session = app.registry.get(&id)?;
     if let Err(e) = session.authorize(caller.token(), Role::Observe) {
         caller.operator(&app).map_err(|_| e)?;
@@ -239,6 +249,7 @@ async fn session_json(State(app): State<AppState>, caller: HttpCaller, Path(id):
 /// `DELETE /api/sessions/{id}`: an operator closes any session; its control token
 /// closes it too.
 async fn close_session(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
+    caller.require_credentials(&app)?;
     let session = app.registry.get(&id)?;
     if let Err(e) = session.authorize(caller.token(), Role::Control) {
         let operator = caller.operator(&app).map_err(|_| e)?;
@@ -363,6 +374,7 @@ async fn playback(
     Path(id): Path<String>,
     body: Result<axum::Json<PlaybackRequest>, axum::extract::rejection::JsonRejection>,
 ) -> Result<StatusCode, ApiError> {
+    caller.require_credentials(&app)?;
     let session = app.registry.get(&id)?;
     session.authorize(caller.token(), Role::Control)?;
     session.touch();

@@ -5,18 +5,21 @@
 //! The estimate reads the scene and, for files, only their size (for a gzipped volume,
 //! the uncompressed size gzip stores in its last four bytes): never the data. It is an
 //! upper-leaning estimate: a volume is taken as one byte per voxel with every voxel
-//! tissue (up to the grid's material limit). The per-node and per-voxel costs were
-//! measured on the bundled scenes (peak resident memory of a build, docs/server.md).
+//! tissue (up to the grid's material limit). The per-node and per-voxel costs are the
+//! peak resident memory of builds measured with `/usr/bin/time -f %M cutsim-server run
+//! SCENE --steps 1`, rounded up: a skin patch of 1M nodes took 640 B a node; a solid box
+//! of 51³ voxels 14.4 kB a voxel at level 0, 1.8 kB at level 1, 280 B at level 2,
+//! 120 B at level 3 (101³ at level 1: 1.85 kB).
 
 use std::io::{Read, Seek, SeekFrom};
 
 use super::{ModelSpec, Scene, SceneError, SurfaceGeometry, VolumeSource};
 
 /// Bytes a mass-spring node costs at its peak (the build's temporaries included).
-pub const BYTES_PER_SKIN_NODE: u64 = 4096;
+pub const BYTES_PER_SKIN_NODE: u64 = 1024;
 /// Bytes a tissue voxel of a branched grid costs at its peak (labels, condensation,
-/// surface, the solver's vectors).
-pub const BYTES_PER_TISSUE_VOXEL: u64 = 2048;
+/// surface, the solver's data), by coarsening level 0, 1, 2, 3 and coarser.
+pub const BYTES_PER_TISSUE_VOXEL: [u64; 4] = [16384, 2048, 320, 160];
 /// Bytes per voxel of a label image held while it is read.
 pub const BYTES_PER_IMAGE_VOXEL: u64 = 8;
 /// Vertices in an OBJ file of this many bytes: a vertex line and two face lines take at
@@ -75,9 +78,12 @@ impl Scene {
                     None => voxels,
                 };
                 let tissue = voxels.min(crate::grid::MAX_MATERIAL_VOXELS as u64);
+                // "fidelity": "auto" builds its finest candidate, `level`, too.
+                let level = spec.level.get();
+                let per_voxel = BYTES_PER_TISSUE_VOXEL[(level as usize).min(BYTES_PER_TISSUE_VOXEL.len() - 1)];
                 Ok(Footprint {
-                    bytes: voxels.saturating_mul(BYTES_PER_IMAGE_VOXEL).saturating_add(tissue * BYTES_PER_TISSUE_VOXEL),
-                    basis: format!("about {voxels} voxels"),
+                    bytes: voxels.saturating_mul(BYTES_PER_IMAGE_VOXEL).saturating_add(tissue * per_voxel),
+                    basis: format!("about {voxels} voxels at level {level}"),
                 })
             }
         }
@@ -92,4 +98,30 @@ fn gzip_uncompressed_len(path: &std::path::Path) -> Option<u64> {
     let mut tail = [0u8; 4];
     file.read_exact(&mut tail).ok()?;
     Some(u64::from(u32::from_le_bytes(tail)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(json: &str) -> Scene {
+        Scene::from_json_str(json, "test", None).unwrap()
+    }
+
+    #[test]
+    fn procedural_scenes_are_sized_from_their_parameters() {
+        let patch = r#"{"name": "p", "model": {"msm": {"geometry": {"patch": {"size_m": [0.1, 0.1], "resolution": [99, 99]}},
+            "material": {"young_pa": 1e5, "thickness_m": 0.002, "density_kg_per_m3": 1000}, "integrator": {"implicit-euler": {}}}}}"#;
+        assert_eq!(scene(patch).footprint().unwrap(), Footprint { bytes: 10_000 * BYTES_PER_SKIN_NODE, basis: "10000 skin nodes".into() });
+        let box_at = |level: u32| {
+            format!(
+                r#"{{"name": "b", "model": {{"branched-grid": {{"volume": {{"box": {{"size_m": [0.01, 0.01, 0.01], "voxel_size_m": 0.001}}}},
+                "materials": [{{"label": 1, "name": "t", "young_pa": 1e4, "density_kg_per_m3": 1000}}], "level": {level}}}}}}}"#
+            )
+        };
+        // 11³ voxels: the estimate counts a voxel more than the size along each side.
+        let fine = scene(&box_at(0)).footprint().unwrap();
+        assert_eq!(fine.bytes, 1331 * (BYTES_PER_IMAGE_VOXEL + BYTES_PER_TISSUE_VOXEL[0]));
+        assert!(scene(&box_at(3)).footprint().unwrap().bytes < fine.bytes / 50, "coarse levels take far less");
+    }
 }
