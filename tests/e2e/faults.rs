@@ -181,8 +181,16 @@ async fn idle_sessions_expire_and_watched_ones_do_not() {
         assert!(Instant::now() < deadline, "the session expires once unwatched");
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    let (_, metrics) = http_request(&server.http, "GET", "/metrics", None).await;
-    assert!(metrics.contains("cutsim_sessions_expired_total 2"), "{metrics}");
+    // The count follows the close (which waits for the session's thread).
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (_, metrics) = http_request(&server.http, "GET", "/metrics", None).await;
+        if metrics.contains("cutsim_sessions_expired_total 2") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{metrics}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -67,8 +67,11 @@ async fn stream_of_2000_poses_gets_force_in_contact_and_none_outside() {
     let mut pressed_force: f64 = 0.0;
     let mut above_checked = 0;
     let mut received = 0;
+    let (mut first_step, mut last_step) = (None, 0);
     while let Ok(Some(f)) = tokio::time::timeout(Duration::from_secs(5), feedback.message()).await.unwrap_or(Ok(None)) {
         received += 1;
+        first_step.get_or_insert(f.step);
+        last_step = f.step;
         assert_eq!(f.tool, 1);
         let index = f.echo_client_time_ns as usize;
         if index == 0 {
@@ -98,7 +101,9 @@ async fn stream_of_2000_poses_gets_force_in_contact_and_none_outside() {
     let tx = sender.await.unwrap();
     drop(tx);
     let elapsed = start.elapsed();
-    assert!(received >= 1500, "feedback about every step: {received} in {elapsed:?}");
+    // One feedback per step the server took meanwhile (however fast this machine steps).
+    let steps = last_step - first_step.unwrap_or(last_step) + 1;
+    assert!(received as f64 >= 0.9 * steps as f64 && steps > 500, "feedback about every step: {received} for {steps} steps in {elapsed:?}");
     assert!(in_contact > 300 && above_checked > 500, "contact {in_contact}, above {above_checked}");
     assert!(pressed_force > 0.05 && pressed_force < 10.0, "pressing 3 mm into skin gives a force of {pressed_force} N");
 }

@@ -62,9 +62,14 @@ async fn a_replayed_script_reaches_the_recorded_state_and_viewers_follow() {
         let (server_http, id, control) = (server.http.clone(), id.clone(), control.clone());
         async move { http_post(&server_http, &format!("/api/sessions/{id}/playback"), &control, body).await }
     };
-    // Play in real time for a moment, then pause.
+    // Play in real time for a moment (until it has played 50 steps: the replay's thread
+    // runs in the background class, slower on a busy machine), then pause.
     assert_eq!(post(r#"{"action": "play"}"#).await.0, 204);
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while state(&server, &id, &observe).await.playback.unwrap().step <= 50 {
+        assert!(std::time::Instant::now() < deadline, "the replay plays");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     assert_eq!(post(r#"{"action": "pause"}"#).await.0, 204);
     let paused = state(&server, &id, &observe).await.playback.unwrap();
     assert!(paused.step > 50 && paused.step < 1500 && !paused.playing, "{paused:?}");

@@ -19,6 +19,7 @@ pub mod msm;
 pub mod quantity;
 pub mod runner;
 pub mod scene;
+pub mod solver;
 pub mod script;
 pub mod stats;
 pub mod surface;

@@ -4,11 +4,11 @@
 
 use super::condense::VoxelMatrices;
 use super::model::{BranchedGrid, Frame, GridMaterial};
-use super::solver::{MassModel, SolverSettings};
+use super::solver::{MassModel, Preconditioning, SolverSettings};
 use super::surface::GridSurface;
 use super::topology::{Layout, Topology};
 use crate::math::Vec3;
-use crate::scene::{BranchedGridSpec, FidelitySpec, GridFixedSpec, MassSpec, Scene, SceneError, VolumeSource};
+use crate::scene::{BranchedGridSpec, FidelitySpec, GridFixedSpec, MassSpec, PreconditionerSpec, Scene, SceneError, VolumeSource};
 use crate::volume::procedural::{UTube, ellipsoid, solid_box, u_tube};
 use crate::volume::{LabelVolume, nifti, voxelize, vti};
 
@@ -151,6 +151,10 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
             MassSpec::Consistent => MassModel::Consistent,
         },
         gravity: scene.gravity_m_per_s2.map(|g| frame.rotation.transpose() * Vec3::new(g[0].get(), g[1].get(), g[2].get())),
+        preconditioner: match spec.solver.preconditioner {
+            PreconditionerSpec::Multigrid => Preconditioning::Multigrid,
+            PreconditionerSpec::Jacobi => Preconditioning::Jacobi,
+        },
     };
     Ok(GridParts { topo, frame, materials, settings, volume })
 }
@@ -206,8 +210,8 @@ fn check_solver_converges(scene: &Scene, topo: &Topology, settings: &SolverSetti
     probe_settings.gravity = Some(Vec3::repeat(10.0 / 3f64.sqrt()));
     let mut probe_topo = topo.clone();
     let mut dynamics = super::solver::Dynamics::new(&probe_topo);
-    dynamics.step(&mut probe_topo, &probe_settings, &[]);
-    let (needed, residual) = (dynamics.last_iterations, dynamics.last_residual);
+    dynamics.step(&mut probe_topo, &probe_settings, &[], 0);
+    let (needed, residual) = (dynamics.last.iterations, dynamics.last.residual);
     if needed <= cap {
         return Ok(());
     }

@@ -3,8 +3,10 @@
 mod build;
 pub mod condense;
 pub mod fidelity;
+pub mod hierarchy;
 pub mod hex;
 pub mod marching;
+pub mod preconditioning;
 mod model;
 pub mod solver;
 pub mod surface;

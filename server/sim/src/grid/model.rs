@@ -176,12 +176,12 @@ impl BranchedGrid {
         }
         self.backup_x.copy_from_slice(&self.topo.nodes.x);
         self.backup_v.copy_from_slice(&self.topo.nodes.v);
-        let max_dv = self.dynamics.step(&mut self.topo, &self.settings, &self.contacts);
+        let max_dv = self.dynamics.step(&mut self.topo, &self.settings, &self.contacts, self.step_index);
         if !max_dv.is_finite() {
             // Contain: back to the last good state, at rest, and say so.
             self.topo.nodes.x.copy_from_slice(&self.backup_x);
             self.topo.nodes.v.iter_mut().for_each(|v| *v = Vec3::zeros());
-            self.dynamics.dv.iter_mut().for_each(|v| *v = Vec3::zeros());
+            self.dynamics.reset_warm_start();
             self.counters.blowups_contained += 1;
             for fb in feedback.iter_mut() {
                 fb.force_n = Vec3::zeros();
@@ -423,7 +423,7 @@ impl BranchedGrid {
 
     /// CG iterations and relative residual of the last step.
     pub fn last_solve(&self) -> (u32, f64) {
-        (self.dynamics.last_iterations, self.dynamics.last_residual)
+        (self.dynamics.last.iterations, self.dynamics.last.residual)
     }
 
     /// Fine voxels holding material now.

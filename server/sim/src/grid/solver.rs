@@ -1,6 +1,7 @@
-//! Dynamics of the branched grid: corotational hexahedra, implicit Euler solved by a
-//! warm-started, Jacobi-preconditioned conjugate gradient, Rayleigh damping, lumped or
-//! consistent mass, fixed nodes, and penalty contacts whose stiffness enters the solve.
+//! Dynamics of the branched grid: corotational hexahedra, implicit Euler on the assembled
+//! block-sparse system (crate::solver) solved by warm-started preconditioned conjugate
+//! gradient, Rayleigh damping, lumped or consistent mass, fixed nodes, and penalty
+//! contacts whose stiffness enters the solve.
 //!
 //! Rotation: per element, the polar rotation of its deformation gradient at the centre
 //! (the mean of its four x-, y- and z-edges over the cell's sides), by Newton's
@@ -18,9 +19,15 @@
 
 use nalgebra::SVector;
 
-use super::hex::{Mat24, Mat24f};
+use super::hex::Mat24;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
+use crate::solver::block_sparse::{BlockMatrix, Pattern, Scatter};
+use crate::solver::kernels::{Planar24, rotate_and_multiply};
+use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
+use crate::solver::multigrid::VCycle;
+use crate::solver::preconditioner::BlockJacobi;
+use super::preconditioning::Multigrid;
 
 type Vec24 = SVector<f64, 24>;
 
@@ -36,6 +43,16 @@ pub enum MassModel {
     Consistent,
 }
 
+/// What preconditions the solve.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Preconditioning {
+    /// The inverse of each node's 3×3 diagonal block: cheap, its iterations grow with
+    /// resolution and stiffness.
+    Jacobi,
+    /// A V-cycle over the grid's coarser levels (see `grid::preconditioning`).
+    Multigrid,
+}
+
 /// Solver settings (scene knobs).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SolverSettings {
@@ -48,6 +65,7 @@ pub struct SolverSettings {
     pub mass: MassModel,
     /// In the grid's frame, m/s².
     pub gravity: Option<Vec3>,
+    pub preconditioner: Preconditioning,
 }
 
 /// A penalty contact at a point embedded in an element: force `k (depth) n` pushes it
@@ -69,31 +87,52 @@ pub struct Dynamics {
     pub rotations: Vec<Matrix3<f64>>,
     force: Vec<Vec3>,
     b: Vec<Vec3>,
-    r: Vec<Vec3>,
-    z: Vec<Vec3>,
-    p: Vec<Vec3>,
     q: Vec<Vec3>,
-    diag: Vec<Vec3>,
+    /// The system's diagonal, per axis (the residual's metric).
+    diagonal: Vec<Vec3>,
+    /// Unknowns the solve moves: alive, not held.
+    active: Vec<bool>,
+    /// `A = (1 + hα) M + (h² + hβ) K_R + h² K_c`, assembled every step.
+    system: BlockMatrix<f32>,
+    /// An element's stiffness in the world frame (scratch).
+    rotated: Box<Planar24>,
+    scatter: Scatter,
+    /// The pattern must be rebuilt (a cut changed the elements or nodes).
+    stale_pattern: bool,
+    jacobi: BlockJacobi,
+    multigrid: Multigrid,
+    /// Scratch of the V-cycle.
+    vcycle_scratch: Vec<Vec3>,
+    pcg: Pcg,
     /// Δv of the last step: the next solve starts from it.
     pub dv: Vec<Vec3>,
-    pub last_iterations: u32,
-    pub last_residual: f64,
+    /// How the last solve went.
+    pub last: Convergence,
 }
 
 impl Dynamics {
     pub fn new(topo: &Topology) -> Self {
-        let mut d = Dynamics::default();
+        let mut d = Dynamics { stale_pattern: true, multigrid: Multigrid::new(), ..Dynamics::default() };
         d.resize(topo);
         d
     }
 
-    /// Grows the buffers to the topology's node and element counts.
+    /// Grows the buffers to the topology's node and element counts; the system's pattern
+    /// is rebuilt before the next step.
     pub fn resize(&mut self, topo: &Topology) {
         let n = topo.nodes.len();
-        for buffer in [&mut self.force, &mut self.b, &mut self.r, &mut self.z, &mut self.p, &mut self.q, &mut self.diag, &mut self.dv] {
+        for buffer in [&mut self.force, &mut self.b, &mut self.q, &mut self.diagonal, &mut self.dv] {
             buffer.resize(n, Vec3::zeros());
         }
+        self.active.resize(n, false);
         self.rotations.resize(topo.elements.len(), Matrix3::identity());
+        self.stale_pattern = true;
+        self.multigrid.topology_changed();
+    }
+
+    /// Forgets the warm start (after a contained blow-up).
+    pub fn reset_warm_start(&mut self) {
+        self.dv.iter_mut().for_each(|v| *v = Vec3::zeros());
     }
 
     /// Updates every element's rotation from its current corners.
@@ -109,20 +148,34 @@ impl Dynamics {
         }
     }
 
-    /// One implicit step with the given contacts. Returns the max |Δv| (not finite on a blow-up).
-    pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact]) -> f64 {
+    fn rebuild_pattern(&mut self, topo: &Topology) {
+        let live = (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]).map(|e| &topo.elements.nodes[e][..]);
+        let pattern = Pattern::from_elements(topo.nodes.len(), live);
+        self.scatter = Scatter::new(&pattern, &topo.elements.nodes, &topo.elements.alive);
+        self.system = BlockMatrix::zeros(pattern);
+        self.stale_pattern = false;
+    }
+
+    /// Step `step`, with the given contacts. Returns the max |Δv| (not finite on a blow-up).
+    pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) -> f64 {
+        if self.stale_pattern {
+            self.rebuild_pattern(topo);
+        }
         let h = settings.dt_s;
         let a_mass = 1.0 + h * settings.alpha_per_s;
         let a_stiff = h * settings.beta_s + h * h;
         let a_contact = h * h;
-        // One pass over the elements: rotations, f_el − (β + h) K_R v, and the stiffness
-        // part of the Jacobi preconditioner.
-        for n in 0..topo.nodes.len() {
-            self.force[n] = Vec3::zeros();
-            self.diag[n] = if settings.mass == MassModel::Lumped { Vec3::repeat(a_mass * topo.nodes.mass[n]) } else { Vec3::zeros() };
+        let n = topo.nodes.len();
+        for i in 0..n {
+            self.force[i] = Vec3::zeros();
+            self.active[i] = topo.nodes.alive[i] && !topo.nodes.fixed[i];
         }
+        self.system.clear();
+        // One pass over the elements: rotations, f_el − (β + h) K_R v, and the element's
+        // blocks of the system.
         let damping = settings.beta_s + h;
         let cell_m = topo.layout.cell_size_m();
+        let consistent = settings.mass == MassModel::Consistent;
         for e in 0..topo.elements.len() {
             if !topo.elements.alive[e] {
                 continue;
@@ -132,149 +185,102 @@ impl Dynamics {
                 self.rotations[e] = r;
             }
             let r = self.rotations[e];
-            let u = local_displacement(topo, e, &r, damping);
             let k = &topo.elements.stiffness_single[e];
-            let f = mat_vec_single(k, &u);
+            let d = world_displacement(topo, e, &r, damping);
+            let rf: [[f32; 3]; 3] = std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32));
+            let rotated = &mut *self.rotated;
+            let mut f = [0f32; 24];
+            rotate_and_multiply(k, &rf, &d, rotated, &mut f);
             for c in 0..8 {
-                let node = nodes[c] as usize;
-                self.force[node] -= r * f.fixed_rows::<3>(3 * c);
-                // Jacobi: a third of the diagonal block's trace on each axis — invariant
-                // under the rotation, so it needs no R B Rᵀ per corner (exact for the
-                // near-isotropic blocks of a hexahedron; any positive diagonal keeps CG correct).
-                let trace = f64::from(k[(3 * c, 3 * c)] + k[(3 * c + 1, 3 * c + 1)] + k[(3 * c + 2, 3 * c + 2)]);
-                self.diag[node] += Vec3::repeat(trace / 3.0 * a_stiff);
-                if settings.mass == MassModel::Consistent {
-                    self.diag[node] += Vec3::repeat(a_mass * topo.elements.mass[e][(c, c)]);
+                self.force[nodes[c] as usize] -= Vec3::new(f64::from(f[3 * c]), f64::from(f[3 * c + 1]), f64::from(f[3 * c + 2]));
+            }
+            let blocks = &self.scatter.blocks[e];
+            self.system.add_element(blocks, rotated, a_stiff as f32);
+            if consistent {
+                let m = &topo.elements.mass[e];
+                for i in 0..8 {
+                    for j in 0..8 {
+                        self.system.add_diagonal(blocks[8 * i + j] as usize, Vec3::repeat(a_mass * m[(i, j)]));
+                    }
                 }
             }
         }
+        if !consistent {
+            for i in 0..n {
+                let at = self.system.pattern.diag[i] as usize;
+                self.system.add_diagonal(at, Vec3::repeat(a_mass * topo.nodes.mass[i]));
+            }
+        }
         if let Some(g) = settings.gravity {
-            for n in 0..topo.nodes.len() {
-                self.force[n] += g * topo.nodes.mass[n];
+            for i in 0..n {
+                self.force[i] += g * topo.nodes.mass[i];
             }
         }
         for c in contacts {
             let nodes = &topo.elements.nodes[c.element as usize];
-            for k in 0..8 {
-                let w = c.weights[k];
-                self.force[nodes[k] as usize] += c.force * w;
-                self.diag[nodes[k] as usize] += c.normal.component_mul(&c.normal) * (a_contact * c.stiffness * w * w);
+            let blocks = &self.scatter.blocks[c.element as usize];
+            let nn = c.normal * c.normal.transpose() * (a_contact * c.stiffness);
+            for i in 0..8 {
+                self.force[nodes[i] as usize] += c.force * c.weights[i];
+                for j in 0..8 {
+                    self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
+                }
             }
         }
         // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.
         mass_times(topo, settings.mass, &topo.nodes.v, &mut self.q);
-        for n in 0..topo.nodes.len() {
-            self.b[n] = (self.force[n] - self.q[n] * settings.alpha_per_s) * h;
+        for i in 0..n {
+            self.b[i] = if self.active[i] { (self.force[i] - self.q[i] * settings.alpha_per_s) * h } else { Vec3::zeros() };
+            self.diagonal[i] = self.system.diagonal(i);
         }
-        let (iterations, residual) = self.conjugate_gradient(topo, settings, a_mass, a_stiff, a_contact, contacts);
-        self.last_iterations = iterations;
-        self.last_residual = residual;
+        self.jacobi.update(&self.system, &self.active);
+        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: VELOCITY_FLOOR };
+        let operator = Assembled { matrix: &self.system, active: &self.active };
+        let hierarchy = match settings.preconditioner {
+            Preconditioning::Multigrid => self.multigrid.prepare(step, topo, &self.active, &self.rotations, a_mass, a_stiff),
+            Preconditioning::Jacobi => None,
+        };
+
+        self.last = match hierarchy {
+            Some(hierarchy) => {
+                let vcycle = VCycle {
+                    hierarchy: std::cell::RefCell::new(hierarchy),
+                    matrix: &self.system,
+                    smoother: &self.jacobi,
+                    active: &self.active,
+                    scratch: std::cell::RefCell::new(&mut self.vcycle_scratch),
+                };
+                self.pcg.solve(&operator, &vcycle, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings)
+            }
+            None => self.pcg.solve(&operator, &self.jacobi, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
+        };
         let mut max_dv: f64 = 0.0;
-        for n in 0..topo.nodes.len() {
-            if !topo.nodes.alive[n] || topo.nodes.fixed[n] {
-                topo.nodes.v[n] = Vec3::zeros();
+        for i in 0..n {
+            if !self.active[i] {
+                topo.nodes.v[i] = Vec3::zeros();
                 continue;
             }
-            let dv = self.dv[n];
+            let dv = self.dv[i];
             max_dv = max_dv.max(dv.amax());
             if !dv.iter().all(|c| c.is_finite()) {
                 max_dv = f64::NAN;
             }
-            topo.nodes.v[n] += dv;
-            topo.nodes.x[n] += topo.nodes.v[n] * h;
+            topo.nodes.v[i] += dv;
+            topo.nodes.x[i] += topo.nodes.v[i] * h;
         }
         max_dv
     }
+}
 
-    /// Solves A Δv = b for the free nodes, starting from the last Δv.
-    fn conjugate_gradient(&mut self, topo: &Topology, settings: &SolverSettings, a_mass: f64, a_stiff: f64, a_contact: f64, contacts: &[PointContact]) -> (u32, f64) {
-        let n = topo.nodes.len();
-        let free = |i: usize| topo.nodes.alive[i] && !topo.nodes.fixed[i];
-        for i in 0..n {
-            if !free(i) || !self.dv[i].iter().all(|c| c.is_finite()) {
-                self.dv[i] = Vec3::zeros();
-            }
-        }
-        let apply = |x: &[Vec3], out: &mut [Vec3], scratch: &mut [Vec3]| {
-            mass_times(topo, settings.mass, x, out);
-            stiffness_times_single(topo, &self.rotations, x, scratch);
-            for i in 0..n {
-                out[i] = out[i] * a_mass + scratch[i] * a_stiff;
-            }
-            for c in contacts {
-                let nodes = &topo.elements.nodes[c.element as usize];
-                let mut along = 0.0;
-                for k in 0..8 {
-                    along += c.weights[k] * c.normal.dot(&x[nodes[k] as usize]);
-                }
-                let push = c.normal * (a_contact * c.stiffness * along);
-                for k in 0..8 {
-                    out[nodes[k] as usize] += push * c.weights[k];
-                }
-            }
-            for i in 0..n {
-                if !free(i) {
-                    out[i] = Vec3::zeros();
-                }
-            }
-        };
-        let mut scratch = std::mem::take(&mut self.force);
-        if self.dv.iter().any(|d| *d != Vec3::zeros()) {
-            apply(&self.dv, &mut self.q, &mut scratch);
-        } else {
-            self.q.iter_mut().for_each(|q| *q = Vec3::zeros());
-        }
-        // Norms in the Jacobi metric (bᵀD⁻¹b): every node counts by its own scale, so a
-        // node of tiny mass and stiffness (the far corner of an element holding a single
-        // voxel) is solved as accurately as the others instead of being lost in the sum.
-        let mut b_norm2 = 0.0;
-        for i in 0..n {
-            if !free(i) {
-                self.b[i] = Vec3::zeros();
-            }
-            let d = self.diag[i];
-            b_norm2 += safe_div(self.b[i].x * self.b[i].x, d.x) + safe_div(self.b[i].y * self.b[i].y, d.y) + safe_div(self.b[i].z * self.b[i].z, d.z);
-            self.r[i] = self.b[i] - self.q[i];
-        }
-        let precondition = |r: &[Vec3], diag: &[Vec3], z: &mut [Vec3]| {
-            for i in 0..n {
-                z[i] = if free(i) { Vec3::new(safe_div(r[i].x, diag[i].x), safe_div(r[i].y, diag[i].y), safe_div(r[i].z, diag[i].z)) } else { Vec3::zeros() };
-            }
-        };
-        precondition(&self.r, &self.diag, &mut self.z);
-        self.p.copy_from_slice(&self.z);
-        let mut rz: f64 = (0..n).map(|i| self.r[i].dot(&self.z[i])).sum();
-        let target2 = settings.cg_tolerance * settings.cg_tolerance * b_norm2;
-        let mut iterations = 0;
-        let mut r_norm2 = rz;
-        // Besides the relative test, stop when what is left would change no velocity by
-        // more than VELOCITY_FLOOR: a body at rest has round-off forces, not work to do.
-        let velocity_error = |z: &[Vec3]| z.iter().map(|v| v.amax()).fold(0.0, f64::max);
-        let mut dv_error = velocity_error(&self.z);
-        while iterations < settings.cg_max_iterations && r_norm2 > target2 && b_norm2 > 0.0 && dv_error > VELOCITY_FLOOR {
-            apply(&self.p, &mut self.q, &mut scratch);
-            let pq: f64 = (0..n).map(|i| self.p[i].dot(&self.q[i])).sum();
-            if !(pq > 0.0) {
-                break;
-            }
-            let alpha = rz / pq;
-            for i in 0..n {
-                self.dv[i] += self.p[i] * alpha;
-                self.r[i] -= self.q[i] * alpha;
-            }
-            precondition(&self.r, &self.diag, &mut self.z);
-            dv_error = velocity_error(&self.z);
-            let rz_next: f64 = (0..n).map(|i| self.r[i].dot(&self.z[i])).sum();
-            r_norm2 = rz_next;
-            let beta = rz_next / rz;
-            rz = rz_next;
-            for i in 0..n {
-                self.p[i] = self.z[i] + self.p[i] * beta;
-            }
-            iterations += 1;
-        }
-        self.force = scratch;
-        (iterations, if b_norm2 > 0.0 { (r_norm2 / b_norm2).sqrt() } else { 0.0 })
+/// The assembled system as the solver's operator.
+struct Assembled<'a> {
+    matrix: &'a BlockMatrix<f32>,
+    active: &'a [bool],
+}
+
+impl LinearOperator for Assembled<'_> {
+    fn apply(&self, x: &[Vec3], y: &mut [Vec3]) -> f64 {
+        self.matrix.multiply(x, y, self.active)
     }
 }
 
@@ -349,6 +355,23 @@ fn local_displacement(topo: &Topology, e: usize, r: &Matrix3<f64>, damping: f64)
     u
 }
 
+/// Element `e`'s displacement in the world frame from its rotated rest shape,
+/// `(x − x₀) − R(X − X₀)` per corner (corner 0 as the reference), plus `damping · v`
+/// (the step's (β + h) K_R v term): `K_R` times it is the elastic force (and that term).
+fn world_displacement(topo: &Topology, e: usize, r: &Matrix3<f64>, damping: f64) -> [f32; 24] {
+    let nodes = &topo.elements.nodes[e];
+    let (x0, rest0) = (topo.nodes.x[nodes[0] as usize], topo.nodes.rest[nodes[0] as usize]);
+    let mut d = [0f32; 24];
+    for c in 0..8 {
+        let node = nodes[c] as usize;
+        let w = (topo.nodes.x[node] - x0) - r * (topo.nodes.rest[node] - rest0) + topo.nodes.v[node] * damping;
+        d[3 * c] = w.x as f32;
+        d[3 * c + 1] = w.y as f32;
+        d[3 * c + 2] = w.z as f32;
+    }
+    d
+}
+
 /// Adds −R K (Rᵀ(x − x₀) − (X − X₀)) of every element (corner 0 as the reference), with
 /// the same kernel and rotations as the step.
 pub fn add_elastic_forces(topo: &Topology, rotations: &[Matrix3<f64>], force: &mut [Vec3]) {
@@ -402,28 +425,6 @@ fn mat_vec(k: &Mat24, u: &Vec24) -> Vec24 {
         }
     }
     f
-}
-
-/// `out = K_R x` as [`stiffness_times`], in single precision per element: the solve
-/// needs a relative accuracy of its tolerance (≥ 1e-6 in practice), far above f32's
-/// 6e-8, and reads half the bytes. Sums over elements stay in double precision.
-pub fn stiffness_times_single(topo: &Topology, rotations: &[Matrix3<f64>], x: &[Vec3], out: &mut [Vec3]) {
-    rotated_product(topo, rotations, x, out, |e, u| mat_vec_single(&topo.elements.stiffness_single[e], u));
-}
-
-/// `K u` with K in single precision: the products in single precision (4 lanes), the
-/// result back in double.
-fn mat_vec_single(k: &Mat24f, u: &Vec24) -> Vec24 {
-    let k = k.as_slice();
-    let mut f = [0f32; 24];
-    for j in 0..24 {
-        let uj = u[j] as f32;
-        let column = &k[24 * j..24 * j + 24];
-        for i in 0..24 {
-            f[i] += column[i] * uj;
-        }
-    }
-    Vec24::from_fn(|i, _| f64::from(f[i]))
 }
 
 /// out = M x (out is overwritten).

@@ -12,7 +12,8 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use super::condense::{CellVoxel, VoxelMatrices, condense_direct, voxel_contribution};
-use super::hex::{Mat8, Mat24, Mat24f, corner_bits};
+use super::hex::{Mat8, Mat24, corner_bits};
+use crate::solver::kernels::{Planar24, to_planar};
 use crate::union_find::UnionFind;
 use crate::math::Vec3;
 
@@ -110,9 +111,10 @@ pub struct Elements {
     /// What the solver uses: `stiffness` plus the ghost (see [`Topology::set_ghost`]),
     /// rounded to single precision — half the memory traffic of the double-precision
     /// matrices, which do not fit in cache on large scenes, at a relative precision
-    /// (6e-8) far below the solve's tolerance. At rest the strain is exactly zero, so
-    /// the rounding makes no force there.
-    pub stiffness_single: Vec<Mat24f>,
+    /// (6e-8) far below the solve's tolerance — in the planar layout the vectorized
+    /// kernels take (`solver::kernels::Planar24`). At rest the strain is exactly zero,
+    /// so the rounding makes no force there.
+    pub stiffness_single: Vec<Planar24>,
     /// Consistent scalar mass (the 3D matrix is this ⊗ I₃).
     pub mass: Vec<Mat8>,
     pub voxel_count: Vec<u32>,
@@ -135,13 +137,19 @@ impl Elements {
     fn push(&mut self, cell: u32, nodes: [u32; 8], k: Mat24, ghost: &Mat24, m: Mat8, voxels: u32) -> u32 {
         self.cell.push(cell);
         self.nodes.push(nodes);
-        self.stiffness_single.push((k + ghost).cast());
+        self.stiffness_single.push(single(&(k + ghost)));
         self.stiffness.push(k);
         self.mass.push(m);
         self.voxel_count.push(voxels);
         self.alive.push(true);
         (self.cell.len() - 1) as u32
     }
+}
+
+/// A stiffness as the solver stores it (single precision, planar).
+fn single(k: &Mat24) -> Planar24 {
+    let values: Vec<f32> = k.as_slice().iter().map(|&v| v as f32).collect();
+    to_planar(&values)
 }
 
 /// Nodes: grid point, rest position, state and lumped mass.
@@ -253,8 +261,13 @@ impl Topology {
     pub fn set_ghost(&mut self, ghost: Mat24) {
         self.ghost = ghost;
         for e in 0..self.elements.len() {
-            self.elements.stiffness_single[e] = (self.elements.stiffness[e] + ghost).cast();
+            self.elements.stiffness_single[e] = single(&(self.elements.stiffness[e] + ghost));
         }
+    }
+
+    /// The ghost stiffness added to every element in the solver.
+    pub fn ghost(&self) -> &Mat24 {
+        &self.ghost
     }
 
     pub fn voxel_matrices(&self) -> &VoxelMatrices {
@@ -516,7 +529,7 @@ impl Topology {
                 let e = self.voxel_element[v];
                 let (dk, dm) = voxel_contribution(self.cell_voxel(cell, v), self.layout.side as u32, &self.voxel_matrices);
                 self.elements.stiffness[e as usize] -= dk;
-                self.elements.stiffness_single[e as usize] = (self.elements.stiffness[e as usize] + self.ghost).cast();
+                self.elements.stiffness_single[e as usize] = single(&(self.elements.stiffness[e as usize] + self.ghost));
                 self.elements.mass[e as usize] -= dm;
                 self.elements.voxel_count[e as usize] -= 1;
                 self.material[v] = 0;

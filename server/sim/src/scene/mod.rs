@@ -553,12 +553,28 @@ pub struct GridSolverSpec {
     pub cg_max_iterations: CgIterations,
     #[serde(default = "default_grid_cg_tolerance")]
     pub cg_tolerance: CgTolerance,
+    /// What preconditions the conjugate gradient (docs/branched-grid.md).
+    #[serde(default)]
+    pub preconditioner: PreconditionerSpec,
 }
 
 impl Default for GridSolverSpec {
     fn default() -> Self {
-        Self { cg_max_iterations: default_grid_cg_iterations(), cg_tolerance: default_grid_cg_tolerance() }
+        Self { cg_max_iterations: default_grid_cg_iterations(), cg_tolerance: default_grid_cg_tolerance(), preconditioner: PreconditionerSpec::default() }
     }
+}
+
+/// The conjugate gradient's preconditioner (docs/branched-grid.md compares them).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum PreconditionerSpec {
+    /// The inverse of each node's 3×3 diagonal block: the cheapest iteration, the best
+    /// choice at coarse levels, where the mass dominates the system.
+    #[default]
+    Jacobi,
+    /// A V-cycle over the grid's coarser levels (block Gauss–Seidel smoothing): a few
+    /// iterations at any resolution, each costing about four of Jacobi's.
+    Multigrid,
 }
 
 fn default_grid_cg_iterations() -> CgIterations {

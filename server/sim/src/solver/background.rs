@@ -1,0 +1,114 @@
+//! Work that can wait, done on a thread of its own and swapped in at a step fixed in
+//! advance.
+//!
+//! A model submits a job at step `k` and takes its result at step `k + delay`, whatever
+//! the clock says: if the worker has not finished by then the step waits for it (the
+//! wait is counted), so that a run gives the same results — the same state hash —
+//! whether it runs in real time, in lockstep or as a replay, on a fast machine or a
+//! slow one. Jobs and results travel through bounded channels of one slot: submitting
+//! and taking allocate nothing.
+
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::time::{Duration, Instant};
+
+/// A worker thread running `work` on the jobs it is given, one at a time.
+pub struct Background<I: Send + 'static, O: Send + 'static> {
+    jobs: SyncSender<I>,
+    results: Receiver<O>,
+    /// The step at which the pending job's result is due.
+    due: Option<u64>,
+    /// Times a step had to wait for a result, and for how long in all.
+    pub waits: u64,
+    pub waited: Duration,
+    _thread: std::thread::JoinHandle<()>,
+}
+
+impl<I: Send + 'static, O: Send + 'static> Background<I, O> {
+    pub fn new(name: &str, mut work: impl FnMut(I) -> O + Send + 'static) -> std::io::Result<Self> {
+        let (jobs, job_rx) = sync_channel::<I>(1);
+        let (result_tx, results) = sync_channel::<O>(1);
+        let thread = std::thread::Builder::new().name(name.into()).spawn(move || {
+            while let Ok(job) = job_rx.recv() {
+                if result_tx.send(work(job)).is_err() {
+                    break;
+                }
+            }
+        })?;
+        Ok(Self { jobs, results, due: None, waits: 0, waited: Duration::ZERO, _thread: thread })
+    }
+
+    /// Whether a job is out.
+    pub fn busy(&self) -> bool {
+        self.due.is_some()
+    }
+
+    /// The step at which the pending job's result will be taken.
+    pub fn due(&self) -> Option<u64> {
+        self.due
+    }
+
+    /// Hands a job over; its result is taken at step `due`. Returns the job back when
+    /// one is already out (or the worker is gone).
+    pub fn submit(&mut self, job: I, due: u64) -> Result<(), I> {
+        if self.due.is_some() {
+            return Err(job);
+        }
+        self.jobs.send(job).map_err(|e| e.0)?;
+        self.due = Some(due);
+        Ok(())
+    }
+
+    /// At step `step`: the pending job's result if it is due now (waiting for it if the
+    /// worker has not finished), else None. None also when the worker died (its panic
+    /// is its own; the model goes on without the result).
+    pub fn take_if_due(&mut self, step: u64) -> Option<O> {
+        if self.due != Some(step) {
+            return None;
+        }
+        self.due = None;
+        match self.results.try_recv() {
+            Ok(result) => Some(result),
+            Err(std::sync::mpsc::TryRecvError::Empty) => {
+                let started = Instant::now();
+                let result = self.results.recv().ok();
+                self.waits += 1;
+                self.waited += started.elapsed();
+                result
+            }
+            Err(std::sync::mpsc::TryRecvError::Disconnected) => None,
+        }
+    }
+}
+
+impl<I: Send + 'static, O: Send + 'static> std::fmt::Debug for Background<I, O> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Background").field("due", &self.due).field("waits", &self.waits).finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_result_is_taken_exactly_at_its_step_however_long_it_takes() {
+        let mut worker = Background::new("test-worker", |x: u64| {
+            std::thread::sleep(Duration::from_millis(30));
+            x * 2
+        })
+        .unwrap();
+        worker.submit(21, 5).unwrap();
+        assert_eq!(worker.submit(1, 6), Err(1), "one job at a time");
+        for step in 0..5 {
+            assert_eq!(worker.take_if_due(step), None);
+        }
+        // Step 5 comes sooner than the 30 ms the job takes: the step waits for it.
+        assert_eq!(worker.take_if_due(5), Some(42));
+        assert_eq!(worker.waits, 1);
+        assert!(!worker.busy());
+        worker.submit(1, 7).unwrap();
+        std::thread::sleep(Duration::from_millis(60));
+        assert_eq!(worker.take_if_due(7), Some(2));
+        assert_eq!(worker.waits, 1, "a finished job is taken without a wait");
+    }
+}

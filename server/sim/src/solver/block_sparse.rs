@@ -1,0 +1,299 @@
+//! A sparse matrix of 3×3 blocks in block-compressed-row form (BSR): the system matrix
+//! of a tissue whose unknowns are 3-vectors per node.
+//!
+//! The pattern (which blocks exist) is built once per topology from the elements'
+//! node lists — every pair of nodes of an element is a block — and kept apart from the
+//! values, which are refreshed every step. [`Scatter`] maps each element's 8 × 8 corner
+//! pairs to their blocks once, so assembling an element is 64 block additions without
+//! a search.
+
+use crate::math::{Matrix3, Vec3};
+
+/// Which 3×3 blocks exist: for block row `i`, columns `cols[start[i]..start[i+1]]`,
+/// sorted, the diagonal among them.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Pattern {
+    pub start: Vec<u32>,
+    pub cols: Vec<u32>,
+    /// Index (into `cols`) of each row's diagonal block.
+    pub diag: Vec<u32>,
+}
+
+impl Pattern {
+    /// The pattern of `n` block rows coupling every pair of nodes that share an element.
+    /// Every row gets its diagonal block, coupled or not.
+    pub fn from_elements<'a>(n: usize, elements: impl Iterator<Item = &'a [u32]> + Clone) -> Pattern {
+        // Count neighbours (with repeats), then fill, sort and deduplicate per row.
+        let mut count = vec![1u32; n];
+        for nodes in elements.clone() {
+            for &a in nodes {
+                count[a as usize] += nodes.len() as u32;
+            }
+        }
+        let mut start = Vec::with_capacity(n + 1);
+        start.push(0u32);
+        for c in &count {
+            start.push(start.last().copied().unwrap_or(0) + c);
+        }
+        let mut fill = start[..n].to_vec();
+        let mut cols = vec![0u32; start[n] as usize];
+        for (i, f) in fill.iter_mut().enumerate() {
+            cols[*f as usize] = i as u32;
+            *f += 1;
+        }
+        for nodes in elements {
+            for &a in nodes {
+                for &b in nodes {
+                    cols[fill[a as usize] as usize] = b;
+                    fill[a as usize] += 1;
+                }
+            }
+        }
+        // Compact each row in place.
+        let mut out_start = Vec::with_capacity(n + 1);
+        out_start.push(0u32);
+        let mut write = 0usize;
+        for i in 0..n {
+            cols[start[i] as usize..start[i + 1] as usize].sort_unstable();
+            // Rows only move left (write ≤ start[i] ≤ j), so reading ahead is safe.
+            let mut last = u32::MAX;
+            for j in start[i] as usize..start[i + 1] as usize {
+                let c = cols[j];
+                if c != last {
+                    cols[write] = c;
+                    write += 1;
+                    last = c;
+                }
+            }
+            out_start.push(write as u32);
+        }
+        cols.truncate(write);
+        cols.shrink_to_fit();
+        let diag = (0..n)
+            .map(|i| {
+                let row = &cols[out_start[i] as usize..out_start[i + 1] as usize];
+                out_start[i] + row.binary_search(&(i as u32)).expect("every row has its diagonal") as u32
+            })
+            .collect();
+        Pattern { start: out_start, cols, diag }
+    }
+
+    pub fn rows(&self) -> usize {
+        self.start.len().saturating_sub(1)
+    }
+
+    pub fn blocks(&self) -> usize {
+        self.cols.len()
+    }
+
+    /// The index of block (row, col), if it exists.
+    pub fn find(&self, row: usize, col: usize) -> Option<usize> {
+        let (s, e) = (self.start[row] as usize, self.start[row + 1] as usize);
+        self.cols[s..e].binary_search(&(col as u32)).ok().map(|k| s + k)
+    }
+}
+
+/// Where each element's corner pairs live in the matrix: `blocks[e][8 i + j]` is block
+/// (node of corner i, node of corner j); `u32::MAX` for an element not in the pattern.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Scatter {
+    pub blocks: Vec<[u32; 64]>,
+}
+
+impl Scatter {
+    /// For the elements whose `included` flag is set (the others map nowhere).
+    pub fn new(pattern: &Pattern, elements: &[[u32; 8]], included: &[bool]) -> Scatter {
+        let blocks = elements
+            .iter()
+            .zip(included)
+            .map(|(nodes, &on)| {
+                std::array::from_fn(|k| {
+                    if !on {
+                        return u32::MAX;
+                    }
+                    pattern.find(nodes[k / 8] as usize, nodes[k % 8] as usize).expect("an element's pairs are in the pattern") as u32
+                })
+            })
+            .collect();
+        Scatter { blocks }
+    }
+}
+
+/// The number type of a matrix's values: f64 where precision matters (a factorization,
+/// coarse operators), f32 for the per-step system (half the memory traffic; its
+/// relative precision, 6e-8, is far below any solve's tolerance).
+pub trait Scalar: Copy + Default + PartialEq + std::fmt::Debug + Send + Sync + 'static {
+    fn to_f64(self) -> f64;
+    fn from_f64(v: f64) -> Self;
+}
+
+impl Scalar for f64 {
+    fn to_f64(self) -> f64 {
+        self
+    }
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+}
+
+impl Scalar for f32 {
+    fn to_f64(self) -> f64 {
+        f64::from(self)
+    }
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+}
+
+/// A block's 3×3 values, column-major, each column padded to 4 lanes (the fourth is
+/// always zero): a column is one vector register, so a block times a 3-vector is three
+/// vector multiply-adds.
+pub type Block<T> = [T; 12];
+
+/// The index of entry (row, column) in a [`Block`].
+#[inline]
+pub const fn at(row: usize, column: usize) -> usize {
+    4 * column + row
+}
+
+/// A block-sparse matrix: a pattern and a 3×3 value per block.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BlockMatrix<T: Scalar = f64> {
+    pub pattern: Pattern,
+    pub values: Vec<Block<T>>,
+}
+
+impl<T: Scalar> BlockMatrix<T> {
+    pub fn zeros(pattern: Pattern) -> Self {
+        let values = vec![[T::default(); 12]; pattern.blocks()];
+        BlockMatrix { pattern, values }
+    }
+
+    pub fn rows(&self) -> usize {
+        self.pattern.rows()
+    }
+
+    pub fn clear(&mut self) {
+        self.values.iter_mut().for_each(|v| *v = [T::default(); 12]);
+    }
+
+    pub fn block(&self, k: usize) -> Matrix3<f64> {
+        Matrix3::from_fn(|r, c| self.values[k][at(r, c)].to_f64())
+    }
+
+    /// The diagonal of row `i`'s diagonal block.
+    pub fn diagonal(&self, i: usize) -> Vec3 {
+        let v = &self.values[self.pattern.diag[i] as usize];
+        Vec3::new(v[at(0, 0)].to_f64(), v[at(1, 1)].to_f64(), v[at(2, 2)].to_f64())
+    }
+
+    /// Adds `m` to block `k`.
+    pub fn add(&mut self, k: usize, m: &Matrix3<f64>) {
+        let v = &mut self.values[k];
+        for r in 0..3 {
+            for c in 0..3 {
+                v[at(r, c)] = T::from_f64(v[at(r, c)].to_f64() + m[(r, c)]);
+            }
+        }
+    }
+
+    /// Adds `s` on block `k`'s diagonal.
+    pub fn add_diagonal(&mut self, k: usize, s: Vec3) {
+        let v = &mut self.values[k];
+        for (a, d) in [at(0, 0), at(1, 1), at(2, 2)].into_iter().zip([s.x, s.y, s.z]) {
+            v[a] = T::from_f64(v[a].to_f64() + d);
+        }
+    }
+
+    /// `y = A x` over the rows where `active` is true (other rows of y are zero; columns
+    /// of inactive nodes must hold zero in x). Returns `xᵀ y`. Values are widened to f64;
+    /// each row accumulates column by column in block order (vectorized, see kernels).
+    pub fn multiply(&self, x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64
+    where
+        T: super::kernels::RowProduct,
+    {
+        super::kernels::block_multiply(&self.pattern, &self.values, x, y, active)
+    }
+
+    /// `r_i − Σ_{j≠i} A_ij x_j`, row `i` (the Gauss–Seidel update's right-hand side).
+    #[inline]
+    pub fn off_diagonal_residual(&self, i: usize, r: &Vec3, x: &[Vec3], wide: bool) -> Vec3
+    where
+        T: super::kernels::RowProduct,
+    {
+        let s = T::row(&self.values, &self.pattern.cols, self.pattern.start[i] as usize..self.pattern.start[i + 1] as usize, x, i, wide);
+        Vec3::new(r.x - s[0], r.y - s[1], r.z - s[2])
+    }
+
+    /// The dense matrix (tests and small coarse problems).
+    pub fn to_dense(&self) -> nalgebra::DMatrix<f64> {
+        let n = self.rows();
+        let mut d = nalgebra::DMatrix::zeros(3 * n, 3 * n);
+        for i in 0..n {
+            for k in self.pattern.start[i] as usize..self.pattern.start[i + 1] as usize {
+                let j = self.pattern.cols[k] as usize;
+                for r in 0..3 {
+                    for c in 0..3 {
+                        d[(3 * i + r, 3 * j + c)] = self.values[k][at(r, c)].to_f64();
+                    }
+                }
+            }
+        }
+        d
+    }
+}
+
+impl BlockMatrix<f32> {
+    /// Adds `scale ·` a 24 × 24 element matrix in planar layout (see
+    /// `kernels::Planar24`) to the blocks its corners map to.
+    pub fn add_element(&mut self, blocks: &[u32; 64], m: &super::kernels::Planar24, scale: f32) {
+        for i in 0..8 {
+            for j in 0..8 {
+                let v = &mut self.values[blocks[8 * i + j] as usize];
+                for r in 0..3 {
+                    let row = &m[3 * i + r];
+                    for c in 0..3 {
+                        v[at(r, c)] += scale * row[c].0[j];
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pattern_couples_the_nodes_of_each_element_and_products_match_dense() {
+        // Two "elements" sharing node 2; node 5 belongs to none but still has a diagonal.
+        let elements: Vec<Vec<u32>> = vec![vec![0, 1, 2], vec![2, 3, 4]];
+        let pattern = Pattern::from_elements(6, elements.iter().map(|e| e.as_slice()));
+        assert_eq!(pattern.cols[pattern.start[2] as usize..pattern.start[3] as usize], [0, 1, 2, 3, 4]);
+        assert_eq!(pattern.cols[pattern.start[5] as usize..pattern.start[6] as usize], [5]);
+        assert_eq!(pattern.find(0, 4), None);
+        assert_eq!(pattern.blocks(), 3 * 3 * 2 - 1 + 1);
+        let mut a = BlockMatrix::<f64>::zeros(pattern);
+        for (k, v) in a.values.iter_mut().enumerate() {
+            for r in 0..3 {
+                for c in 0..3 {
+                    v[at(r, c)] = (k * 9 + 3 * r + c) as f64 * 0.1 - 1.0;
+                }
+            }
+        }
+        let x: Vec<Vec3> = (0..6).map(|i| Vec3::new(i as f64, 1.0 - i as f64, 0.5)).collect();
+        let mut y = vec![Vec3::zeros(); 6];
+        let active = [true, true, true, false, true, true];
+        let mut masked = x.clone();
+        masked[3] = Vec3::zeros();
+        let xy = a.multiply(&masked, &mut y, &active);
+        let dense = a.to_dense() * nalgebra::DVector::from_iterator(18, masked.iter().flat_map(|v| [v.x, v.y, v.z]));
+        for i in 0..6 {
+            let expected = if active[i] { Vec3::new(dense[3 * i], dense[3 * i + 1], dense[3 * i + 2]) } else { Vec3::zeros() };
+            assert!((y[i] - expected).norm() < 1e-12, "row {i}");
+        }
+        let expected_xy: f64 = (0..6).map(|i| masked[i].dot(&y[i])).sum();
+        assert!((xy - expected_xy).abs() < 1e-12);
+    }
+}

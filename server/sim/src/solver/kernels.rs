@@ -1,0 +1,262 @@
+//! The per-step kernels, written for the CPU's vector units.
+//!
+//! Every kernel here is a sequence of independent lane operations — each output value
+//! is accumulated in one fixed order, never reassociated across lanes — so the
+//! compiler's vectorized code gives the same bits at any vector width. Each kernel is
+//! compiled twice, for the baseline x86-64 (SSE2, 4 f32 lanes) and with AVX2 and FMA
+//! (8 lanes, fused multiply-adds), and the wider one is chosen at run time where the CPU
+//! has it. Multiply-adds are IEEE fused ones (`mul_add`: one rounding), which the FMA
+//! clone does in hardware and the baseline in software, to the same bits: a recording
+//! replays to the same state hash on any x86-64 machine, only slower without FMA.
+
+use super::block_sparse::{Pattern, Scalar};
+use crate::math::Vec3;
+
+/// 24 × 24 in single precision: an element's stiffness.
+pub type Block24 = [f32; 576];
+
+/// Whether the CPU runs the AVX2 and FMA clones (checked once).
+#[inline]
+pub fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::sync::OnceLock;
+        static AVX2: OnceLock<bool> = OnceLock::new();
+        *AVX2.get_or_init(|| std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma"))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Declares `$name` running `$body` compiled for the baseline and, on x86-64, for AVX2,
+/// dispatching at run time.
+macro_rules! dispatch {
+    ($(#[$meta:meta])* pub fn $name:ident($($arg:ident: $ty:ty),*) $(-> $ret:ty)? $body:block) => {
+        $(#[$meta])*
+        pub fn $name($($arg: $ty),*) $(-> $ret)? {
+            #[inline(always)]
+            fn body($($arg: $ty),*) $(-> $ret)? $body
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide($($arg: $ty),*) $(-> $ret)? {
+                body($($arg),*)
+            }
+            #[cfg(target_arch = "x86_64")]
+            if has_avx2() {
+                // SAFETY: the CPU was checked to have AVX2.
+                return unsafe { wide($($arg),*) };
+            }
+            body($($arg),*)
+        }
+    };
+}
+
+/// Eight f32 lanes: one AVX register (two SSE ones). Its operations are lane by lane.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[repr(C, align(32))]
+pub struct F8(pub [f32; 8]);
+
+impl F8 {
+    /// `self + a · x`, lane by lane, with one rounding (a fused multiply-add: IEEE's,
+    /// the same bits whether the CPU does it or the library does).
+    #[inline(always)]
+    fn plus(self, a: f32, x: F8) -> F8 {
+        let mut out = self.0;
+        for l in 0..8 {
+            out[l] = x.0[l].mul_add(a, out[l]);
+        }
+        F8(out)
+    }
+}
+
+/// An element matrix in planar layout: row r, plane l, lane b holds entry
+/// (r, 3b + l) of the 24 × 24 matrix.
+pub type Planar24 = [[F8; 3]; 24];
+
+/// A 24 × 24 matrix (column-major, as nalgebra stores it) in planar layout.
+pub fn to_planar(column_major: &[f32]) -> Planar24 {
+    let mut out = [[F8::default(); 3]; 24];
+    for c in 0..24 {
+        for r in 0..24 {
+            out[r][c % 3].0[c / 3] = column_major[24 * c + r];
+        }
+    }
+    out
+}
+
+dispatch! {
+    /// The element stiffness in the world frame, `K_R = (I₈ ⊗ R) K (I₈ ⊗ Rᵀ)`, both in
+    /// planar layout, and from it while it is in the cache `f = K_R d` (d and f corner-
+    /// major). Left-multiplying by I ⊗ R combines whole rows; right-multiplying by I ⊗ Rᵀ
+    /// combines a row's planes; `f` takes K_R's rows as its columns (K_R is symmetric):
+    /// all of it 8-lane operations, each output accumulated in one fixed order.
+    pub fn rotate_and_multiply(k: &Planar24, r: &[[f32; 3]; 3], d: &[f32; 24], out: &mut Planar24, f: &mut [f32; 24]) {
+        for a in 0..8 {
+            // V = (I ⊗ R) K for this corner's three rows: row p = Σ_k R[p][k] · row k.
+            let mut v = [[F8::default(); 3]; 3];
+            for (p, vp) in v.iter_mut().enumerate() {
+                for (kk, source) in k[3 * a..3 * a + 3].iter().enumerate() {
+                    for l in 0..3 {
+                        vp[l] = vp[l].plus(r[p][kk], source[l]);
+                    }
+                }
+            }
+            // K_R = V (I ⊗ Rᵀ): plane q of each row = Σ_l R[q][l] · plane l.
+            for (p, vp) in v.iter().enumerate() {
+                for q in 0..3 {
+                    let mut plane = F8::default();
+                    for l in 0..3 {
+                        plane = plane.plus(r[q][l], vp[l]);
+                    }
+                    out[3 * a + p][q] = plane;
+                }
+            }
+        }
+        // f = K_R d over the planes, then back to corner-major.
+        let mut fp = [F8::default(); 3];
+        for (c, row) in out.iter().enumerate() {
+            for l in 0..3 {
+                fp[l] = fp[l].plus(d[c], row[l]);
+            }
+        }
+        for b in 0..8 {
+            for l in 0..3 {
+                f[3 * b + l] = fp[l].0[b];
+            }
+        }
+    }
+}
+
+/// `Σ_k A_k x_{cols[k]}` over blocks `range` of a block row, skipping column `skip`
+/// (`usize::MAX`: none), accumulated in f64 column by column in block order: lane `r`
+/// of the result is row `r` (lane 3 is zero). `FUSED`: with fused multiply-adds (the
+/// f32 system's path, matching its AVX2 clone bit for bit); else a multiply and an add
+/// (f64 coarse levels, where a software fused multiply-add would only be slow).
+#[inline(always)]
+fn row_generic<T: Scalar, const FUSED: bool>(values: &[[T; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
+    let mut s = [0f64; 4];
+    for k in range {
+        let j = cols[k] as usize;
+        if j == skip {
+            continue;
+        }
+        let a = &values[k];
+        let xj = x[j];
+        for (c, xc) in [xj.x, xj.y, xj.z].into_iter().enumerate() {
+            for lane in 0..4 {
+                s[lane] = if FUSED { a[4 * c + lane].to_f64().mul_add(xc, s[lane]) } else { s[lane] + a[4 * c + lane].to_f64() * xc };
+            }
+        }
+    }
+    s
+}
+
+/// [`row_generic`] for single-precision blocks with AVX2 and FMA: each padded column is
+/// one register, widened to f64; the same fused operations in the same order, so the
+/// same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn row_f32_avx(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
+    use std::arch::x86_64::*;
+    let mut acc = _mm256_setzero_pd();
+    for k in range {
+        let j = cols[k] as usize;
+        if j == skip {
+            continue;
+        }
+        let a = values[k].as_ptr();
+        let xj = x[j];
+        // SAFETY: a block holds 12 floats: three loads of four.
+        let (c0, c1, c2) = unsafe { (_mm256_cvtps_pd(_mm_loadu_ps(a)), _mm256_cvtps_pd(_mm_loadu_ps(a.add(4))), _mm256_cvtps_pd(_mm_loadu_ps(a.add(8)))) };
+        acc = _mm256_fmadd_pd(c0, _mm256_set1_pd(xj.x), acc);
+        acc = _mm256_fmadd_pd(c1, _mm256_set1_pd(xj.y), acc);
+        acc = _mm256_fmadd_pd(c2, _mm256_set1_pd(xj.z), acc);
+    }
+    let mut out = [0f64; 4];
+    // SAFETY: four doubles into four doubles.
+    unsafe { _mm256_storeu_pd(out.as_mut_ptr(), acc) };
+    out
+}
+
+/// Block-row products for a matrix value type: vectorized for the f32 system.
+pub trait RowProduct: Scalar {
+    /// See [`row_generic`]; `wide`: the CPU has AVX2 and FMA (the caller checked).
+    fn row(values: &[[Self; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, wide: bool) -> [f64; 4];
+}
+
+impl RowProduct for f64 {
+    #[inline(always)]
+    fn row(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, _wide: bool) -> [f64; 4] {
+        row_generic::<f64, false>(values, cols, range, x, skip)
+    }
+}
+
+impl RowProduct for f32 {
+    #[inline(always)]
+    fn row(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, wide: bool) -> [f64; 4] {
+        #[cfg(target_arch = "x86_64")]
+        if wide {
+            // SAFETY: `wide` says the CPU has AVX2 and FMA.
+            return unsafe { row_f32_avx(values, cols, range, x, skip) };
+        }
+        let _ = wide;
+        row_generic::<f32, true>(values, cols, range, x, skip)
+    }
+}
+
+/// `y = A x` over the active rows of a block-sparse matrix (see
+/// `BlockMatrix::multiply`); returns `xᵀ y`.
+pub fn block_multiply<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+    let wide = has_avx2();
+    let mut xy = 0.0;
+    for i in 0..pattern.rows() {
+        if !active[i] {
+            y[i] = Vec3::zeros();
+            continue;
+        }
+        let s = T::row(values, &pattern.cols, pattern.start[i] as usize..pattern.start[i + 1] as usize, x, usize::MAX, wide);
+        let yi = Vec3::new(s[0], s[1], s[2]);
+        xy += x[i].dot(&yi);
+        y[i] = yi;
+    }
+    xy
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::Matrix3;
+
+    #[test]
+    fn the_rotated_stiffness_is_r_k_r_transposed_and_the_force_its_product() {
+        let k24 = crate::grid::hex::box_stiffness([0.003, 0.002, 0.004], 5e3, 0.4);
+        let k = to_planar(&k24.as_slice().iter().map(|&v| v as f32).collect::<Vec<f32>>());
+        let r = nalgebra::Rotation3::from_euler_angles(0.3, -0.7, 1.1).into_inner();
+        let rf: [[f32; 3]; 3] = std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32));
+        let d: [f32; 24] = std::array::from_fn(|i| (i as f32 * 0.37).sin() * 1e-3);
+        let (mut out, mut f) = ([[F8::default(); 3]; 24], [0f32; 24]);
+        rotate_and_multiply(&k, &rf, &d, &mut out, &mut f);
+        let rotated = {
+            let mut m = crate::grid::hex::Mat24::zeros();
+            for a in 0..8 {
+                for b in 0..8 {
+                    let kab = Matrix3::from_fn(|i, j| k24[(3 * a + i, 3 * b + j)]);
+                    m.fixed_view_mut::<3, 3>(3 * a, 3 * b).copy_from(&(r * kab * r.transpose()));
+                }
+            }
+            m
+        };
+        for row in 0..24 {
+            for column in 0..24 {
+                let got = f64::from(out[row][column % 3].0[column / 3]);
+                assert!((got - rotated[(row, column)]).abs() < 1e-4 * k24.amax(), "({row}, {column})");
+            }
+        }
+        let expected = rotated * nalgebra::SVector::<f64, 24>::from_fn(|i, _| f64::from(d[i]));
+        for i in 0..24 {
+            assert!((f64::from(f[i]) - expected[i]).abs() < 1e-4 * expected.amax(), "f[{i}]");
+        }
+    }
+}

@@ -1,0 +1,25 @@
+//! Linear solves for the tissue models.
+//!
+//! Both models take linearised implicit steps `A Δv = b` with `A = M + hC + h²K` over
+//! 3-vectors per node. This subsystem holds what they share:
+//!
+//! - [`block_sparse`]: the assembled system, a sparse matrix of 3×3 blocks whose pattern
+//!   is built once per topology and whose values are refreshed every step;
+//! - [`pcg`]: preconditioned conjugate gradient that reports, for every solve, its
+//!   iterations, the residual it reached and whether it hit its cap;
+//! - [`preconditioner`]: none and block Jacobi, the baselines;
+//! - [`multigrid`]: a V-cycle over coarser Galerkin levels, the preconditioner whose
+//!   iteration count does not grow with resolution;
+//! - [`kernels`]: the per-step element kernels, vectorized (same bits at every width);
+//! - [`background`]: a worker thread whose results are swapped in at steps fixed in
+//!   advance (deterministic in real time, lockstep and replay).
+//!
+//! The models assemble their own matrices (they know their elements); this module knows
+//! nothing of tissues.
+
+pub mod background;
+pub mod block_sparse;
+pub mod kernels;
+pub mod multigrid;
+pub mod pcg;
+pub mod preconditioner;
