@@ -16,23 +16,6 @@ use tonic_types::StatusExt;
 use crate::harness::*;
 use crate::haptics::open;
 
-fn inline(scene: &str, edit: impl FnOnce(&mut serde_json::Value)) -> String {
-    let mut value: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo(&format!("server/scenes/{scene}.json"))).unwrap()).unwrap();
-    edit(&mut value);
-    value.to_string()
-}
-
-async fn create_inline(server: &Server, json: String, mode: pb::SessionMode) -> Result<Created, tonic::Status> {
-    let r = server
-        .sessions()
-        .await
-        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(json)), mode: mode as i32, label: "faults".into() }))
-        .await?
-        .into_inner();
-    let info = r.session.unwrap();
-    Ok(Created { id: info.id.clone(), control: r.control_token, observe: r.observe_token, info })
-}
-
 async fn info(server: &Server, id: &str) -> Result<pb::SessionInfo, tonic::Status> {
     server.sessions().await.get_session(operator(pb::GetSessionRequest { session_id: id.into(), with_state_hash: false })).await.map(|r| r.into_inner())
 }

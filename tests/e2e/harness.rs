@@ -166,6 +166,25 @@ pub async fn create(server: &Server, scene: &str, mode: pb::SessionMode) -> Crea
     Created { id: info.id.clone(), control: r.control_token, observe: r.observe_token, info }
 }
 
+/// A bundled scene's JSON, edited.
+pub fn inline(scene: &str, edit: impl FnOnce(&mut serde_json::Value)) -> String {
+    let mut value: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo(&format!("server/scenes/{scene}.json"))).unwrap()).unwrap();
+    edit(&mut value);
+    value.to_string()
+}
+
+/// A session on an inline scene.
+pub async fn create_inline(server: &Server, json: String, mode: pb::SessionMode) -> Result<Created, tonic::Status> {
+    let r = server
+        .sessions()
+        .await
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(json)), mode: mode as i32, label: "e2e".into() }))
+        .await?
+        .into_inner();
+    let info = r.session.unwrap();
+    Ok(Created { id: info.id.clone(), control: r.control_token, observe: r.observe_token, info })
+}
+
 pub fn pose(x: f64, y: f64, z: f64) -> pb::Pose {
     pb::Pose { position_m: Some(pb::Vec3 { x, y, z }), orientation: Some(pb::Quaternion { w: 1.0, x: 0.0, y: 0.0, z: 0.0 }) }
 }

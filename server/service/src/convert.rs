@@ -80,6 +80,12 @@ pub fn counters(c: &TissueCounters, pieces: u64) -> pb::TissueCounters {
         force_clamps: c.force_clamps,
         rejected_poses: c.rejected_poses,
         pieces,
+        solves: c.solves,
+        solver_iterations: c.solver_iterations,
+        solver_cap_hits: c.solver_cap_hits,
+        solver_max_residual: c.solver_max_residual,
+        solver_last_residual: c.solver_last_residual,
+        solver_waits: c.solver_waits,
     }
 }
 

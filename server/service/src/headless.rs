@@ -114,6 +114,17 @@ fn print_report(r: &RunReport) {
     println!("scene            {} ({})", r.scene, r.model);
     println!("steps            {} ({:.3} s simulated, {:.3} s wall, {:.0} steps/s)", r.steps, r.simulated_time_s, r.wall_time_s, r.steps_per_second);
     println!("step time        p50 {:.1} µs, p99 {:.1} µs, max {:.1} µs", r.step_time_p50_us, r.step_time_p99_us, r.step_time_max_us);
+    let c = &r.counters;
+    if c.solves > 0 {
+        println!(
+            "solver           {:.1} iterations per solve, {} of {} solves at their cap, residual max {:.1e} (last {:.1e})",
+            c.solver_iterations as f64 / c.solves as f64,
+            c.solver_cap_hits,
+            c.solves,
+            c.solver_max_residual,
+            c.solver_last_residual
+        );
+    }
     println!("cuts             {} ({} updates, {} fallbacks)", r.cuts, r.cut_updates, r.reconstruction_fallbacks);
     println!("removed elements {}", r.removed_elements);
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);

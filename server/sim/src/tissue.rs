@@ -9,6 +9,7 @@ use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 
 /// Running totals a model keeps, for reports and the viewer's panel.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct TissueCounters {
     /// Simulation nodes (mass points or grid nodes) alive now.
     pub nodes: u64,
@@ -36,6 +37,31 @@ pub struct TissueCounters {
     pub force_clamps: u64,
     /// Tool commands ignored because their pose was not finite.
     pub rejected_poses: u64,
+    /// Implicit solves taken (one per step of an implicit model), and the
+    /// conjugate-gradient iterations they used in all.
+    pub solves: u64,
+    pub solver_iterations: u64,
+    /// Solves that stopped at their iteration cap above their tolerance: their step is
+    /// less accurate than the scene asks (and, far off, not stable).
+    pub solver_cap_hits: u64,
+    /// The largest relative residual a solve ended with, and the last one's (in the
+    /// metric of the system's diagonal: see `solver::pcg`).
+    pub solver_max_residual: f64,
+    pub solver_last_residual: f64,
+    /// Steps that waited for the solver's background work (a preconditioner rebuilt
+    /// after a cut) to arrive at its appointed step.
+    pub solver_waits: u64,
+}
+
+impl TissueCounters {
+    /// Counts one solve.
+    pub fn count_solve(&mut self, convergence: &crate::solver::pcg::Convergence) {
+        self.solves += 1;
+        self.solver_iterations += u64::from(convergence.iterations);
+        self.solver_cap_hits += u64::from(convergence.cap_hit);
+        self.solver_max_residual = self.solver_max_residual.max(convergence.residual);
+        self.solver_last_residual = convergence.residual;
+    }
 }
 
 /// A tissue model behind the session: mass-spring skin or branched grid.

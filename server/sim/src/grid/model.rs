@@ -177,6 +177,8 @@ impl BranchedGrid {
         self.backup_x.copy_from_slice(&self.topo.nodes.x);
         self.backup_v.copy_from_slice(&self.topo.nodes.v);
         let max_dv = self.dynamics.step(&mut self.topo, &self.settings, &self.contacts, self.step_index);
+        self.counters.count_solve(&self.dynamics.last);
+        self.counters.solver_waits = self.dynamics.waits();
         if !max_dv.is_finite() {
             // Contain: back to the last good state, at rest, and say so.
             self.topo.nodes.x.copy_from_slice(&self.backup_x);
@@ -419,6 +421,11 @@ impl BranchedGrid {
     /// re-smoothing moved.
     pub fn last_update(&self) -> Option<&LastUpdate> {
         self.last_update.as_ref()
+    }
+
+    /// How the last step's solve went.
+    pub fn last_convergence(&self) -> crate::solver::pcg::Convergence {
+        self.dynamics.last
     }
 
     /// CG iterations and relative residual of the last step.

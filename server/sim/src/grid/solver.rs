@@ -130,6 +130,11 @@ impl Dynamics {
         self.multigrid.topology_changed();
     }
 
+    /// Steps that waited for the multigrid's rebuilt hierarchy.
+    pub fn waits(&self) -> u64 {
+        self.multigrid.waits
+    }
+
     /// Forgets the warm start (after a contained blow-up).
     pub fn reset_warm_start(&mut self) {
         self.dv.iter_mut().for_each(|v| *v = Vec3::zeros());

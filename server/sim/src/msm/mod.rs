@@ -188,14 +188,10 @@ impl MassSpring {
 
     fn implicit_step(&mut self) -> f64 {
         let Integrator::ImplicitEuler(solver) = &mut self.integrator else { unreachable!() };
-        solver.step(
-            &mut self.nodes,
-            &self.springs.list,
-            &self.contacts,
-            self.dt_s,
-            self.mass_damping_per_s,
-            self.spring_damping_s,
-        )
+        let check = solver.step(&mut self.nodes, &self.springs.list, &self.contacts, self.dt_s, self.mass_damping_per_s, self.spring_damping_s);
+        let cap_hit = solver.last_iterations >= solver.max_iterations && solver.last_residual > solver.tolerance;
+        self.counters.count_solve(&crate::solver::pcg::Convergence { iterations: solver.last_iterations, residual: solver.last_residual, cap_hit });
+        check
     }
 
     /// A non-finite state was produced: put every broken node back where it was made,

@@ -578,7 +578,7 @@ pub enum PreconditionerSpec {
 }
 
 fn default_grid_cg_iterations() -> CgIterations {
-    CgIterations(30)
+    CgIterations(60)
 }
 
 fn default_grid_cg_tolerance() -> CgTolerance {
