@@ -4,9 +4,17 @@
 Reads the reference problems that `accuracy-speed export-problems DIR` writes (the
 level-0 voxel mesh of each problem: nodes, hexahedra, materials, fixed nodes, the load,
 the sample points) and solves linear elasticity on the same mesh with scikit-fem:
-trilinear hexahedra (ElementHex1) always, triquadratic ones (ElementHex2) for the small
-bodies, and the lowest eigenfrequency (consistent mass) where asked. Writes one JSON
-result per problem: the displacement at every sample point.
+
+- hex1: trilinear hexahedra (ElementHex1), fully integrated, always;
+- hex1p0: trilinear hexahedra with one constant pressure per hexahedron (the mixed
+  Hex1–Hex0 pair with the pressure eliminated: the mean-dilatation or B-bar element),
+  always;
+- hex2: triquadratic hexahedra (ElementHex2) for the small bodies;
+- mixed: Taylor–Hood hexahedra (ElementHex2 displacement, ElementHex1 pressure, the
+  saddle-point system solved as it is), which do not lock as ν → 0.5, where asked;
+
+and the lowest eigenfrequency (consistent mass) where asked. Writes one JSON result per
+problem: the displacement at every sample point.
 
     python solve.py PROBLEM_DIR RESULT_DIR [NAME ...]
 
@@ -24,8 +32,9 @@ import numpy as np
 import scipy
 import scipy.sparse.linalg as spla
 import skfem
-from skfem import Basis, BilinearForm, ElementHex1, ElementHex2, ElementVector, FacetBasis, LinearForm, MeshHex, asm
-from skfem.helpers import ddot, dot, eye, sym_grad, trace
+import scipy.sparse as sp
+from skfem import Basis, BilinearForm, ElementHex0, ElementHex1, ElementHex2, ElementVector, FacetBasis, LinearForm, MeshHex, asm
+from skfem.helpers import ddot, div, dot, eye, sym_grad, trace
 
 # Our corner n sits at (n & 1, n >> 1 & 1, n >> 2 & 1); scikit-fem's hexahedron numbers
 # its vertices (0,0,0), (0,0,1), (0,1,0), (1,0,0), (0,1,1), (1,0,1), (1,1,0), (1,1,1).
@@ -45,6 +54,16 @@ def stiffness(u, v, w):
 @BilinearForm
 def mass(u, v, w):
     return w.rho * dot(u, v)
+
+
+@BilinearForm
+def divergence(u, q, w):
+    return div(u) * q
+
+
+@BilinearForm
+def compliance(p, q, w):
+    return p * q / w.kappa
 
 
 def element_field(basis, values):
@@ -69,7 +88,10 @@ def fixed_dofs(basis, mesh, fixed_nodes):
     return np.unique(np.concatenate(dofs))
 
 
-def solve_one(problem, mesh, element):
+def solve_one(problem, mesh, element, pressure=None):
+    """Displacements in `element`; with `pressure` (an element for it) the volumetric
+    part is carried by that pressure field: eliminated where it is piecewise constant
+    (Hex0: the mean-dilatation element), else solved together with the displacement."""
     started = time.perf_counter()
     basis = Basis(mesh, ElementVector(element()), intorder=4 if element is ElementHex2 else 2)
     materials = problem["materials"]
@@ -79,7 +101,15 @@ def solve_one(problem, mesh, element):
     density = np.array([m["density_kg_per_m3"] for m in materials])[material]
     lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
     mu = young / (2.0 * (1.0 + poisson))
-    K = asm(stiffness, basis, lam=element_field(basis, lam), mu=element_field(basis, mu))
+    kappa = lam + 2.0 * mu / 3.0
+    if pressure is None:
+        K = asm(stiffness, basis, lam=element_field(basis, lam), mu=element_field(basis, mu))
+    else:
+        # The deviatoric part (bulk modulus λ + 2μ/3 zero at every point) plus the pressure's.
+        K = asm(stiffness, basis, lam=element_field(basis, -2.0 * mu / 3.0), mu=element_field(basis, mu))
+        pressure_basis = basis.with_element(pressure())
+        B = asm(divergence, basis, pressure_basis)
+        C = asm(compliance, pressure_basis, kappa=element_field(pressure_basis, kappa))
     f = np.zeros(basis.N)
     if problem["gravity_m_per_s2"] is not None:
         g = problem["gravity_m_per_s2"]
@@ -105,10 +135,22 @@ def solve_one(problem, mesh, element):
         f += asm(surface, facet_basis)
     D = fixed_dofs(basis, mesh, np.asarray(problem["fixed"], dtype=np.int64))
     free = np.setdiff1d(np.arange(basis.N), D)
+    if pressure is ElementHex0:
+        # C is diagonal (a volume per hexahedron over κ): p = C⁻¹ B u, K += Bᵀ C⁻¹ B.
+        K = K + B.T @ sp.diags(1.0 / C.diagonal()) @ B
     K_ff = K[free][:, free].tocsc()
     u = np.zeros(basis.N)
     factor = None
-    if len(free) <= DIRECT_LIMIT:
+    if pressure is not None and pressure is not ElementHex0:
+        # [K_dev Bᵀ; B −C] [u; p] = [f; 0]: symmetric, indefinite, solved directly.
+        B_f = B[:, free]
+        system = sp.bmat([[K_ff, B_f.T], [B_f, -C]], format="csc")
+        rhs = np.concatenate([f[free], np.zeros(pressure_basis.N)])
+        solution = spla.splu(system).solve(rhs)
+        u[free] = solution[: len(free)]
+        residual = np.linalg.norm(system @ solution - rhs) / np.linalg.norm(rhs)
+        how = "direct (SuperLU), saddle point"
+    elif len(free) <= DIRECT_LIMIT:
         # SuperLU's default ordering (COLAMD): minimum degree on AᵀA + A took 9 times longer.
         factor = spla.splu(K_ff)
         u[free] = factor.solve(f[free])
@@ -121,7 +163,8 @@ def solve_one(problem, mesh, element):
             raise SystemExit(f"{problem['name']}: conjugate gradient did not converge (info {info})")
         u[free] = x
         how = "conjugate gradient (Jacobi), relative residual 1e-12"
-    residual = np.linalg.norm(K_ff @ u[free] - f[free]) / np.linalg.norm(f[free])
+    if pressure is None or pressure is ElementHex0:
+        residual = np.linalg.norm(K_ff @ u[free] - f[free]) / np.linalg.norm(f[free])
     sample_nodes = np.asarray(problem["sample_nodes"], dtype=np.int64)
     displacement = u[basis.nodal_dofs[:, sample_nodes]].T
     out = {
@@ -130,7 +173,7 @@ def solve_one(problem, mesh, element):
         "solver": how,
         "relative_residual": float(residual),
     }
-    if problem["frequency"]:
+    if problem["frequency"] and (pressure is None or pressure is ElementHex0):
         M = asm(mass, basis, rho=element_field(basis, density))
         M_ff = M[free][:, free].tocsc()
         inverse = spla.LinearOperator(K_ff.shape, matvec=factor.solve) if factor is not None else None
@@ -167,6 +210,11 @@ def main():
         print(f"{problem['name']}: {hexes.shape[1]} hexahedra, Hex1 ...", flush=True)
         result["hex1"] = solve_one(problem, mesh, ElementHex1)
         print(f"  Hex1: {result['hex1']['dofs']} unknowns, {result['hex1']['seconds']:.1f} s", flush=True)
+        result["hex1p0"] = solve_one(problem, mesh, ElementHex1, pressure=ElementHex0)
+        print(f"  Hex1 with a constant pressure per hexahedron: {result['hex1p0']['seconds']:.1f} s", flush=True)
+        if problem.get("mixed"):
+            result["mixed"] = solve_one(problem, mesh, ElementHex2, pressure=ElementHex1)
+            print(f"  Taylor–Hood (Hex2–Hex1): {result['mixed']['dofs']} unknowns, {result['mixed']['seconds']:.1f} s", flush=True)
         if problem["quadratic"]:
             result["hex2"] = solve_one(problem, mesh, ElementHex2)
             print(f"  Hex2: {result['hex2']['dofs']} unknowns, {result['hex2']['seconds']:.1f} s", flush=True)

@@ -2,7 +2,7 @@
 //! Euler–Bernoulli/Timoshenko and its convergence under refinement, the patch test,
 //! corotation under a large rigid rotation, and branching (a U-tube's arms).
 
-use cutsim_sim::grid::condense::VoxelMatrices;
+use cutsim_sim::grid::condense::{Volumetric, VoxelMatrices};
 use cutsim_sim::grid::solver::{Dynamics, add_elastic_forces, solve_static};
 use cutsim_sim::grid::topology::{Layout, Topology};
 use cutsim_sim::math::{Matrix3, Quat, Vec3};
@@ -10,18 +10,27 @@ use cutsim_sim::volume::LabelVolume;
 use cutsim_sim::volume::procedural::{UTube, ellipsoid, solid_box, u_tube};
 
 fn build(volume: &LabelVolume, levels: u32, young: f64, poisson: f64) -> Topology {
+    build_with(volume, levels, young, poisson, Volumetric::MeanDilatation)
+}
+
+fn build_with(volume: &LabelVolume, levels: u32, young: f64, poisson: f64, volumetric: Volumetric) -> Topology {
     let layout = Layout::new(volume.dims, levels, volume.spacing_m);
     let material = volume.labels.iter().map(|&l| u16::from(l != 0)).collect();
-    Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(young, poisson, 1000.0)]))
+    Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(young, poisson, 1000.0)], volumetric))
 }
 
 /// Tip deflection of a clamped square beam (side a, length 10 a) under a tip load F,
-/// with n voxels through the thickness, at level 0.
+/// with n voxels through the thickness, at `levels`.
 fn cantilever_tip(n: usize, young: f64, poisson: f64, force: f64) -> f64 {
+    cantilever_tip_with(n, 0, young, poisson, force, Volumetric::MeanDilatation)
+}
+
+fn cantilever_tip_with(n: usize, levels: u32, young: f64, poisson: f64, force: f64, volumetric: Volumetric) -> f64 {
     let a = 0.008;
     let h = a / n as f64;
     let v = solid_box([10.0 * a, a, a], h, 1);
-    let mut t = build(&v, 0, young, poisson);
+    let mut t = build_with(&v, levels, young, poisson, volumetric);
+    let n = n >> levels;
     let length = 10.0 * a;
     let mut loads = vec![Vec3::zeros(); t.nodes.len()];
     for i in 0..t.nodes.len() {
@@ -59,6 +68,31 @@ fn a_level0_cantilever_matches_beam_theory_and_converges() {
     assert!(errors[2] < 0.05, "8 voxels through the thickness: within 5 % of Timoshenko, got {:.2} %", 100.0 * errors[2]);
     // The shear correction is what separates the two theories here.
     assert!((deflections[2] - euler_bernoulli).abs() < (shear + 0.05 * timoshenko));
+}
+
+/// Timoshenko's tip deflection of the beam of [`cantilever_tip`].
+fn timoshenko(young: f64, poisson: f64, force: f64) -> f64 {
+    let a: f64 = 0.008;
+    let length = 10.0 * a;
+    force * length.powi(3) / (3.0 * young * a.powi(4) / 12.0) + force * length / (5.0 / 6.0 * young / (2.0 * (1.0 + poisson)) * a * a)
+}
+
+#[test]
+fn mean_dilatation_elements_do_not_lock_near_incompressibility() {
+    // ν = 0.49: the fully integrated trilinear hexahedron resists the volume change its
+    // bending modes make at every Gauss point and locks; one pressure per element does
+    // not. (A full coarse cell condenses to exactly the hexahedron of its size, so the
+    // coarse levels of this beam are the level-0 beams with fewer voxels; the liver's
+    // partly filled coarse elements are measured in docs/accuracy-speed.md.)
+    let (young, force) = (1e4, 1e-3);
+    let reference = timoshenko(young, 0.49, force);
+    for (n, levels) in [(4, 0), (8, 0)] {
+        let free = cantilever_tip_with(n, levels, young, 0.49, force, Volumetric::MeanDilatation) / reference - 1.0;
+        let locked = cantilever_tip_with(n, levels, young, 0.49, force, Volumetric::Full) / reference - 1.0;
+        eprintln!("{n} voxels through, level {levels}: mean dilatation {:+.2} %, fully integrated {:+.2} %", 100.0 * free, 100.0 * locked);
+        assert!(free.abs() < 0.05, "{n} voxels, level {levels}: mean dilatation {:+.2} % off Timoshenko", 100.0 * free);
+        assert!(locked < free - 0.05, "{n} voxels, level {levels}: fully integrated {:+.2} % (locking expected)", 100.0 * locked);
+    }
 }
 
 #[test]

@@ -42,6 +42,9 @@ pub struct Problem {
     pub frequency: bool,
     /// The reference also solves with triquadratic hexahedra (a small body only).
     pub quadratic: bool,
+    /// The reference also solves with Taylor–Hood hexahedra (a small body only): the
+    /// non-locking reference for nearly incompressible material.
+    pub mixed: bool,
     /// Keep every n-th node as a sample point (1: all).
     pub sample_stride: usize,
 }
@@ -51,6 +54,11 @@ pub struct Problem {
 /// it by about 1 % of its length (the linear regime), soft tissue's order of magnitude.
 pub fn cantilever_scene(name: &str) -> Scene {
     block_scene(name, [0.04, 0.01, 0.01], 1e6, 0.3, "-x")
+}
+
+/// The cantilever block at ν = 0.49 (nearly incompressible soft tissue).
+pub fn incompressible_cantilever_scene(name: &str) -> Scene {
+    block_scene(name, [0.04, 0.01, 0.01], 1e6, 0.49, "-x")
 }
 
 /// The cube the compression problem uses: 10 mm of 1.25 mm voxels (8³), held at z = 0,
@@ -103,6 +111,17 @@ pub fn problems() -> Result<Vec<Problem>, SceneError> {
             load: Load::Gravity,
             frequency: true,
             quadratic: true,
+            mixed: false,
+            sample_stride: 1,
+        },
+        Problem {
+            name: "cantilever-incompressible",
+            summary: "the same block at ν = 0.49 under its own weight",
+            scene: incompressible_cantilever_scene("cantilever-incompressible"),
+            load: Load::Gravity,
+            frequency: false,
+            quadratic: false,
+            mixed: true,
             sample_stride: 1,
         },
         Problem {
@@ -112,6 +131,7 @@ pub fn problems() -> Result<Vec<Problem>, SceneError> {
             load: Load::Traction { axis: 0, traction_pa: Vec3::new(0.0, 0.0, -100.0) },
             frequency: false,
             quadratic: true,
+            mixed: false,
             sample_stride: 1,
         },
         Problem {
@@ -121,6 +141,7 @@ pub fn problems() -> Result<Vec<Problem>, SceneError> {
             load: Load::Traction { axis: 2, traction_pa: Vec3::new(0.0, 0.0, -1000.0) },
             frequency: false,
             quadratic: true,
+            mixed: false,
             sample_stride: 1,
         },
         Problem {
@@ -130,12 +151,22 @@ pub fn problems() -> Result<Vec<Problem>, SceneError> {
             load: Load::Gravity,
             frequency: false,
             quadratic: false,
+            mixed: false,
             sample_stride: 16,
         },
     ])
 }
 
 impl Problem {
+    /// The same problem with elements that resist volume change as `volumetric` says.
+    pub fn with_volumetric(&self, volumetric: crate::scene::VolumetricSpec) -> Problem {
+        let mut problem = self.clone();
+        if let ModelSpec::BranchedGrid(spec) = &mut problem.scene.model {
+            spec.volumetric = volumetric;
+        }
+        problem
+    }
+
     /// The grid at coarsening level `level`, with its fixed nodes.
     pub fn parts(&self, level: u32) -> Result<GridParts, SceneError> {
         let scene = self.scene.with_grid_level(level);
@@ -261,6 +292,7 @@ impl Problem {
             "traction": traction,
             "frequency": self.frequency,
             "quadratic": self.quadratic,
+            "mixed": self.mixed,
             "samples": samples,
             "sample_nodes": sample_nodes,
         }))

@@ -84,7 +84,7 @@ fn bundled_problem(name: &'static str) -> Result<Problem, String> {
     if scene.gravity_m_per_s2.is_none() {
         scene = with_gravity_down(&scene, G);
     }
-    Ok(Problem { name, summary: "", scene, load: Load::Gravity, frequency: false, quadratic: false, sample_stride: 16 })
+    Ok(Problem { name, summary: "", scene, load: Load::Gravity, frequency: false, quadratic: false, mixed: false, sample_stride: 16 })
 }
 
 fn bundled_scene(name: &str) -> Result<Scene, String> {

@@ -2,22 +2,27 @@
 //! keep the labels that have a material, build the coarse grid, fix nodes, extract the
 //! surface. Errors name the scene path and say what was found and what is allowed.
 
-use super::condense::VoxelMatrices;
+use super::condense::{Volumetric, VoxelMatrices};
 use super::model::{BranchedGrid, Frame, GridMaterial};
 use super::solver::{MassModel, Preconditioning, SolverSettings};
 use super::surface::GridSurface;
 use super::topology::{Layout, Topology};
 use crate::math::Vec3;
-use crate::scene::{BranchedGridSpec, FidelitySpec, GridFixedSpec, MassSpec, PreconditionerSpec, Scene, SceneError, VolumeSource};
+use crate::scene::{BranchedGridSpec, FidelitySpec, GridFixedSpec, MassSpec, PreconditionerSpec, Scene, SceneError, VolumeSource, VolumetricSpec};
 use crate::volume::procedural::{UTube, ellipsoid, solid_box, u_tube};
 use crate::volume::{LabelVolume, nifti, voxelize, vti};
 
-/// The largest Poisson ratio a branched-grid material may have. Nearer 0.5, trilinear
-/// hexahedra lock and the corotated step, whose rotations are frozen over the step,
-/// pumps energy into large deformations: in the stability sweep (docs/stability.md)
-/// ν = 0.499 gained energy in every scenario without damping (and some with), and
-/// ν = 0.49 in one-voxel fragments of soft tissue (100 Pa–1 kPa); ν ≤ 0.45 never did.
-pub const MAX_POISSON: f64 = 0.45;
+/// The largest Poisson ratio a branched-grid material may have with fully integrated
+/// elements. Nearer 0.5 they lock, and the corotated step, whose rotations are frozen
+/// over the step, pumps energy into large deformations: in the stability sweep
+/// (docs/stability.md) ν = 0.499 gained energy in every scenario without damping (and
+/// some with), and ν = 0.49 in one-voxel fragments of soft tissue (100 Pa–1 kPa);
+/// ν ≤ 0.45 never did.
+pub const MAX_POISSON_FULL: f64 = 0.45;
+
+/// The largest Poisson ratio with mean-dilatation elements (the default): they do not
+/// lock, and the stability sweep stays bounded up to here (docs/stability.md).
+pub const MAX_POISSON: f64 = 0.49;
 
 /// Material voxels a scene may build (about 4 times the paper's largest scene).
 pub const MAX_MATERIAL_VOXELS: usize = 2_000_000;
@@ -101,17 +106,10 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
     if count > MAX_MATERIAL_VOXELS {
         return Err(at("volume", format!("{count} voxels have a material; at most {MAX_MATERIAL_VOXELS} are allowed (crop, select fewer labels or use larger voxels)")));
     }
-    for (i, m) in spec.materials.iter().enumerate() {
-        if m.poisson.get() > MAX_POISSON {
-            return Err(at(
-                &format!("materials[{i}].poisson"),
-                format!(
-                    "a Poisson ratio of {} is too close to 0.5 for the branched grid: its hexahedra lock and large deformations become unstable; use at most {MAX_POISSON} (10 % strain then changes the volume by 1 %)",
-                    m.poisson.get()
-                ),
-            ));
-        }
-    }
+    let volumetric = match spec.volumetric {
+        VolumetricSpec::MeanDilatation => Volumetric::MeanDilatation,
+        VolumetricSpec::Full => Volumetric::Full,
+    };
     let materials: Vec<GridMaterial> = spec
         .materials
         .iter()
@@ -125,10 +123,15 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
         .collect();
     let constants: Vec<(f64, f64, f64)> = materials.iter().map(|m| (m.young_pa, m.poisson, m.density_kg_per_m3)).collect();
     let layout = Layout::new(volume.dims, spec.level.get(), volume.spacing_m);
-    let mut topo = Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &constants));
+    let mut topo = Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &constants, volumetric));
     let softest = materials.iter().min_by(|a, b| a.young_pa.total_cmp(&b.young_pa)).expect("a material");
     let cell_m = topo.layout.cell_size_m();
-    topo.set_ghost(super::hex::box_stiffness([cell_m.x, cell_m.y, cell_m.z], softest.young_pa * GHOST_STIFFNESS, softest.poisson));
+    let cell = [cell_m.x, cell_m.y, cell_m.z];
+    let (ghost_young, ghost_poisson) = (softest.young_pa * GHOST_STIFFNESS, softest.poisson);
+    topo.set_ghost(match volumetric {
+        Volumetric::Full => super::hex::box_stiffness(cell, ghost_young, ghost_poisson),
+        Volumetric::MeanDilatation => super::hex::box_mean_dilatation_stiffness(cell, ghost_young, ghost_poisson),
+    });
 
     // The grid's frame: voxel (0, 0, 0) spans [0, spacing] locally, its centre is the
     // volume's origin in the world.
@@ -170,6 +173,7 @@ pub fn build_from_scene(scene: &Scene, spec: &BranchedGridSpec) -> Result<Branch
 
 /// Builds the model at the scene's `level`.
 pub fn build_fixed(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
+    check_poisson(scene, spec)?;
     let GridParts { topo, frame, materials, settings, volume } = build_parts(scene, spec)?;
     let surface = GridSurface::build(&topo, spec.surface.smoothing_iterations.get());
     let tools = crate::tool::tool_shapes(scene);
@@ -264,6 +268,29 @@ fn check_cutting_radii(scene: &Scene, tools: &[crate::tool::ToolShape], volume: 
                     tool.name,
                     half_voxel * 1e3
                 ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Refuses Poisson ratios the dynamics cannot run with the scene's elements (a linear
+/// static solve, as the accuracy study's, takes any below 0.5).
+fn check_poisson(scene: &Scene, spec: &BranchedGridSpec) -> Result<(), SceneError> {
+    let max_poisson = match spec.volumetric {
+        VolumetricSpec::MeanDilatation => MAX_POISSON,
+        VolumetricSpec::Full => MAX_POISSON_FULL,
+    };
+    for (i, m) in spec.materials.iter().enumerate() {
+        if m.poisson.get() > max_poisson {
+            let advice = match spec.volumetric {
+                VolumetricSpec::Full => format!("with \"volumetric\": \"full\" use at most {MAX_POISSON_FULL}, or \"mean-dilatation\" (the default) up to {MAX_POISSON}"),
+                VolumetricSpec::MeanDilatation => format!("use at most {MAX_POISSON} (10 % strain then changes the volume by 0.2 %)"),
+            };
+            return Err(SceneError::new(
+                &scene.origin,
+                format!("model.branched-grid.materials[{i}].poisson"),
+                format!("a Poisson ratio of {} is too close to 0.5 for the branched grid: large deformations become unstable; {advice}", m.poisson.get()),
             ));
         }
     }

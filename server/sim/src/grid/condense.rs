@@ -12,8 +12,107 @@
 //!   and each is condensed in one step with `K_l = 2^l K_0`, `M_l = 8^l M_0` (Eq. 2–4).
 //!
 //! Removing a voxel subtracts its own contribution (Eq. 5): [`voxel_contribution`].
+//!
+//! **Volume change.** With [`Volumetric::MeanDilatation`] (the default) a voxel's
+//! matrix is only its deviatoric (shape-changing) stiffness, and the volumetric
+//! stiffness is added once per element and material on the element's mean volume
+//! change: `κ g gᵀ / V`, where `g = Σ Hᵀ g_voxel` is the gradient of the material's
+//! volume with respect to the element's nodes and `V` its volume — a constant pressure
+//! per element and material (B-bar / Q1P0 in linear elasticity). `g` and `V` are sums
+//! over voxels like the stiffness, so the direct and incremental condensation carry
+//! over (a full sub-cube of level l contributes `4^l g_0` and `8^l V_0`). Condensing the
+//! fully integrated voxels instead ([`Volumetric::Full`], the paper's element) keeps a
+//! volume constraint per voxel: a coarse element then resists volume change at every
+//! voxel while only 24 degrees of freedom move it, and locks — stiff in bending, and
+//! the more so the nearer ν is to 0.5.
 
-use super::hex::{Mat8, Mat24, box_mass, box_stiffness, corner_bits, trilinear};
+use super::hex::{Mat8, Mat24, Vec24, box_deviatoric_stiffness, box_dilatation, box_mass, box_stiffness, bulk_modulus, corner_bits, trilinear};
+
+/// How an element resists volume change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Volumetric {
+    /// At every voxel's Gauss points (the fully integrated trilinear hexahedron).
+    Full,
+    /// On the mean volume change of each material in each element (B-bar, Q1P0).
+    MeanDilatation,
+}
+
+/// One material's volume inside an element, as a function of the element's node
+/// displacements: the volume changes by `gradientᵀ u`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dilatation {
+    pub material: u16,
+    pub gradient: Vec24,
+    pub volume_m3: f64,
+}
+
+/// What a set of voxels condenses to: the stiffness (with the volumetric part of
+/// `dilatations` already added, see [`volumetric_stiffness`]), the scalar mass, and per
+/// material the volume gradient (empty with [`Volumetric::Full`]).
+#[derive(Debug, Clone)]
+pub struct Condensed {
+    pub stiffness: Mat24,
+    pub mass: Mat8,
+    pub dilatations: Vec<Dilatation>,
+}
+
+impl Condensed {
+    fn zero() -> Self {
+        Condensed { stiffness: Mat24::zeros(), mass: Mat8::zeros(), dilatations: Vec::new() }
+    }
+
+    /// Adds `scale` times a gradient of `material` (volume `volume_m3`) to the element's.
+    fn add_dilatation(&mut self, material: u16, gradient: Vec24, volume_m3: f64) {
+        match self.dilatations.iter_mut().find(|d| d.material == material) {
+            Some(d) => {
+                d.gradient += gradient;
+                d.volume_m3 += volume_m3;
+            }
+            None => self.dilatations.push(Dilatation { material, gradient, volume_m3 }),
+        }
+    }
+
+    /// Eq. 5: takes a voxel's contribution ([`voxel_contribution`]) out of this element.
+    pub fn remove(&mut self, voxel_part: &Condensed, voxel: &VoxelMatrices) {
+        remove_contribution(&mut self.stiffness, &mut self.mass, &mut self.dilatations, voxel_part, voxel);
+    }
+
+    /// Adds the volumetric stiffness of every material's mean dilatation.
+    fn finish(mut self, voxel: &VoxelMatrices) -> Self {
+        self.dilatations.sort_by_key(|d| d.material);
+        for d in &self.dilatations {
+            self.stiffness += volumetric_stiffness(d, voxel);
+        }
+        self
+    }
+}
+
+/// Eq. 5 on an element's parts: subtracts a voxel's deviatoric stiffness and mass, and
+/// replaces the volumetric stiffness of the voxel's material by that of what is left of it.
+pub fn remove_contribution(stiffness: &mut Mat24, mass: &mut Mat8, dilatations: &mut Vec<Dilatation>, voxel_part: &Condensed, voxel: &VoxelMatrices) {
+    *stiffness -= voxel_part.stiffness;
+    *mass -= voxel_part.mass;
+    for removed in &voxel_part.dilatations {
+        let Some(i) = dilatations.iter().position(|d| d.material == removed.material) else { continue };
+        *stiffness -= volumetric_stiffness(&dilatations[i], voxel);
+        dilatations[i].gradient -= removed.gradient;
+        dilatations[i].volume_m3 -= removed.volume_m3;
+        // The last voxel of the material left (volumes are sums of equal voxel volumes).
+        if dilatations[i].volume_m3 < 0.5 * voxel.volume_m3 {
+            dilatations.remove(i);
+        } else {
+            *stiffness += volumetric_stiffness(&dilatations[i], voxel);
+        }
+    }
+}
+
+/// `κ g gᵀ / V`: the stiffness of a material's constant pressure in an element.
+pub fn volumetric_stiffness(d: &Dilatation, voxel: &VoxelMatrices) -> Mat24 {
+    if d.volume_m3 <= 0.0 {
+        return Mat24::zeros();
+    }
+    d.gradient * d.gradient.transpose() * (voxel.bulk[d.material as usize] / d.volume_m3)
+}
 
 /// One voxel inside a cell: its position in voxels from the cell's corner, and its material.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -25,19 +124,54 @@ pub struct CellVoxel {
 /// The stiffness and (scalar) mass of one voxel of each material.
 #[derive(Debug, Clone)]
 pub struct VoxelMatrices {
+    pub volumetric: Volumetric,
+    /// Per material: the full stiffness, or with [`Volumetric::MeanDilatation`] only its
+    /// deviatoric part.
     pub stiffness: Vec<Mat24>,
     pub mass: Vec<Mat8>,
+    /// Per material: the bulk modulus κ, Pa.
+    pub bulk: Vec<f64>,
+    /// A voxel's volume gradient (m²) and volume (m³).
+    pub dilatation: Vec24,
+    pub volume_m3: f64,
 }
 
 impl VoxelMatrices {
     /// `materials`: (E in Pa, ν, ρ in kg/m³) per material index.
-    pub fn new(voxel_m: [f64; 3], materials: &[(f64, f64, f64)]) -> Self {
+    pub fn new(voxel_m: [f64; 3], materials: &[(f64, f64, f64)], volumetric: Volumetric) -> Self {
         let volume = voxel_m[0] * voxel_m[1] * voxel_m[2];
+        let stiffness = |e, nu| match volumetric {
+            Volumetric::Full => box_stiffness(voxel_m, e, nu),
+            Volumetric::MeanDilatation => box_deviatoric_stiffness(voxel_m, e, nu),
+        };
         Self {
-            stiffness: materials.iter().map(|&(e, nu, _)| box_stiffness(voxel_m, e, nu)).collect(),
+            volumetric,
+            stiffness: materials.iter().map(|&(e, nu, _)| stiffness(e, nu)).collect(),
             mass: materials.iter().map(|&(_, _, rho)| box_mass(volume, rho)).collect(),
+            bulk: materials.iter().map(|&(e, nu, _)| bulk_modulus(e, nu)).collect(),
+            dilatation: box_dilatation(voxel_m),
+            volume_m3: volume,
         }
     }
+
+    /// A sub-cube of `8^level` voxels of `material` at interpolation `w` into `out`.
+    fn add_subcube(&self, out: &mut Condensed, material: u16, level: u32, w: &Mat8) {
+        add_projected_stiffness(&mut out.stiffness, &self.stiffness[material as usize], w, f64::from(1u32 << level));
+        add_projected_mass(&mut out.mass, &self.mass[material as usize], w, f64::from(1u32 << (3 * level)));
+        if self.volumetric == Volumetric::MeanDilatation {
+            // The cube's gradient is 4^l a voxel's at its own corners; Hᵀ takes it to the cell's.
+            let gradient = project_vector(&self.dilatation, w) * f64::from(1u32 << (2 * level));
+            out.add_dilatation(material, gradient, self.volume_m3 * f64::from(1u32 << (3 * level)));
+        }
+    }
+}
+
+/// `(W ⊗ I₃)ᵀ g`: a vector over a sub-cube's corners taken to the cell's nodes.
+fn project_vector(g: &Vec24, w: &Mat8) -> Vec24 {
+    Vec24::from_fn(|r, _| {
+        let (m, axis) = (r / 3, r % 3);
+        (0..8).map(|i| w[(i, m)] * g[3 * i + axis]).sum()
+    })
 }
 
 /// The Morton (octree) index of a position inside a cell of `levels` levels (Eq. 6).
@@ -106,48 +240,47 @@ pub fn add_projected_mass(m: &mut Mat8, a: &Mat8, w: &Mat8, s: f64) {
     *m += (w.transpose() * a * w) * s;
 }
 
-/// One voxel's contribution to its cell (what Eq. 5 subtracts when it is removed).
-pub fn voxel_contribution(v: CellVoxel, cell: u32, voxel: &VoxelMatrices) -> (Mat24, Mat8) {
-    let w = interpolation(v.at, 1, cell);
-    let (mut k, mut m) = (Mat24::zeros(), Mat8::zeros());
-    add_projected_stiffness(&mut k, &voxel.stiffness[v.material as usize], &w, 1.0);
-    add_projected_mass(&mut m, &voxel.mass[v.material as usize], &w, 1.0);
-    (k, m)
+/// One voxel's contribution to its cell (what Eq. 5 subtracts when it is removed),
+/// without the volumetric stiffness: its dilatation is in `dilatations`.
+pub fn voxel_contribution(v: CellVoxel, cell: u32, voxel: &VoxelMatrices) -> Condensed {
+    let mut out = Condensed::zero();
+    voxel.add_subcube(&mut out, v.material, 0, &interpolation(v.at, 1, cell));
+    out
 }
 
 /// Every voxel straight onto the cell.
-pub fn condense_brute(voxels: &[CellVoxel], levels: u32, voxel: &VoxelMatrices) -> (Mat24, Mat8) {
+pub fn condense_brute(voxels: &[CellVoxel], levels: u32, voxel: &VoxelMatrices) -> Condensed {
     let cell = 1u32 << levels;
-    let (mut k, mut m) = (Mat24::zeros(), Mat8::zeros());
+    let mut out = Condensed::zero();
     for v in voxels {
-        let (dk, dm) = voxel_contribution(*v, cell, voxel);
-        k += dk;
-        m += dm;
+        voxel.add_subcube(&mut out, v.material, 0, &interpolation(v.at, 1, cell));
     }
-    (k, m)
+    out.finish(voxel)
 }
 
 /// Level by level, 8 children → 1 parent, from the voxels up to the cell.
-pub fn condense_recursive(voxels: &[CellVoxel], levels: u32, voxel: &VoxelMatrices) -> (Mat24, Mat8) {
+pub fn condense_recursive(voxels: &[CellVoxel], levels: u32, voxel: &VoxelMatrices) -> Condensed {
     // Octree nodes of the current level by Morton index; a child's interpolation in its parent.
     let child_w: Vec<Mat8> = (0..8).map(|c| interpolation(demorton(c as u32, 1), 1, 2)).collect();
-    let mut current: std::collections::BTreeMap<u32, (Mat24, Mat8)> = std::collections::BTreeMap::new();
+    let mut current: std::collections::BTreeMap<u32, Condensed> = std::collections::BTreeMap::new();
+    let identity = Mat8::identity();
     for v in voxels {
-        let e = current.entry(morton(v.at, levels)).or_insert((Mat24::zeros(), Mat8::zeros()));
-        e.0 += voxel.stiffness[v.material as usize];
-        e.1 += voxel.mass[v.material as usize];
+        voxel.add_subcube(current.entry(morton(v.at, levels)).or_insert_with(Condensed::zero), v.material, 0, &identity);
     }
     for _ in 0..levels {
-        let mut parents: std::collections::BTreeMap<u32, (Mat24, Mat8)> = std::collections::BTreeMap::new();
-        for (index, (k, m)) in current {
-            let parent = parents.entry(index >> 3).or_insert((Mat24::zeros(), Mat8::zeros()));
+        let mut parents: std::collections::BTreeMap<u32, Condensed> = std::collections::BTreeMap::new();
+        for (index, child) in current {
+            let parent = parents.entry(index >> 3).or_insert_with(Condensed::zero);
             let w = &child_w[(index & 7) as usize];
-            add_projected_stiffness(&mut parent.0, &k, w, 1.0);
-            add_projected_mass(&mut parent.1, &m, w, 1.0);
+            add_projected_stiffness(&mut parent.stiffness, &child.stiffness, w, 1.0);
+            add_projected_mass(&mut parent.mass, &child.mass, w, 1.0);
+            for d in child.dilatations {
+                parent.add_dilatation(d.material, project_vector(&d.gradient, w), d.volume_m3);
+            }
         }
         current = parents;
     }
-    current.remove(&0).unwrap_or((Mat24::zeros(), Mat8::zeros()))
+    current.remove(&0).unwrap_or_else(Condensed::zero).finish(voxel)
 }
 
 /// The full one-material octree sub-cubes of a cell's voxels: (Morton start, level,
@@ -180,15 +313,13 @@ pub fn full_subcubes(voxels: &[CellVoxel], levels: u32) -> Vec<(u32, u32, u16)> 
 }
 
 /// The paper's direct condensation: one step per full sub-cube.
-pub fn condense_direct(voxels: &[CellVoxel], levels: u32, voxel: &VoxelMatrices) -> (Mat24, Mat8) {
+pub fn condense_direct(voxels: &[CellVoxel], levels: u32, voxel: &VoxelMatrices) -> Condensed {
     let cell = 1u32 << levels;
-    let (mut k, mut m) = (Mat24::zeros(), Mat8::zeros());
+    let mut out = Condensed::zero();
     for (start, level, material) in full_subcubes(voxels, levels) {
-        let w = interpolation(demorton(start, levels), 1 << level, cell);
-        add_projected_stiffness(&mut k, &voxel.stiffness[material as usize], &w, f64::from(1u32 << level));
-        add_projected_mass(&mut m, &voxel.mass[material as usize], &w, f64::from(1u32 << (3 * level)));
+        voxel.add_subcube(&mut out, material, level, &interpolation(demorton(start, levels), 1 << level, cell));
     }
-    (k, m)
+    out.finish(voxel)
 }
 
 #[cfg(test)]
@@ -232,47 +363,65 @@ mod tests {
 
     #[test]
     fn direct_recursive_and_brute_force_agree() {
-        let voxel = VoxelMatrices::new([0.003, 0.003, 0.0025], &[(5e3, 0.45, 1060.0), (40e3, 0.3, 1100.0)]);
-        for levels in 1..=4 {
-            let voxels = pattern(levels);
-            let brute = condense_brute(&voxels, levels, &voxel);
-            let recursive = condense_recursive(&voxels, levels, &voxel);
-            let direct = condense_direct(&voxels, levels, &voxel);
-            assert!(relative(&brute.0, &recursive.0) < 1e-10, "level {levels}");
-            assert!(relative(&brute.0, &direct.0) < 1e-10, "level {levels}");
-            assert!((brute.1 - direct.1).norm() / brute.1.norm() < 1e-10);
-            assert!((brute.1 - recursive.1).norm() / brute.1.norm() < 1e-10);
-            // Direct condensation takes far fewer steps than voxels.
-            let blocks = full_subcubes(&voxels, levels);
-            let covered: usize = blocks.iter().map(|b| 1usize << (3 * b.1)).sum();
-            assert_eq!(covered, voxels.len());
-            // The full one-material octant is a single block.
-            assert!(blocks.contains(&(0, levels - 1, 0)), "{blocks:?}");
-            assert!(levels == 1 || blocks.len() < voxels.len());
-            // K annihilates rigid translations; the mass is the voxels' mass.
-            let t = nalgebra::SMatrix::<f64, 24, 1>::from_fn(|r, _| [0.3, -1.0, 2.0][r % 3]);
-            assert!((direct.0 * t).norm() < 1e-10 * direct.0.norm());
-            let voxel_mass: f64 = voxels.iter().map(|v| voxel.mass[v.material as usize].sum()).sum();
-            assert!((direct.1.sum() - voxel_mass).abs() < 1e-12 * voxel_mass);
+        for volumetric in [Volumetric::Full, Volumetric::MeanDilatation] {
+            let voxel = VoxelMatrices::new([0.003, 0.003, 0.0025], &[(5e3, 0.45, 1060.0), (40e3, 0.3, 1100.0)], volumetric);
+            for levels in 1..=4 {
+                let voxels = pattern(levels);
+                let brute = condense_brute(&voxels, levels, &voxel);
+                let recursive = condense_recursive(&voxels, levels, &voxel);
+                let direct = condense_direct(&voxels, levels, &voxel);
+                assert!(relative(&brute.stiffness, &recursive.stiffness) < 1e-10, "level {levels}");
+                assert!(relative(&brute.stiffness, &direct.stiffness) < 1e-10, "level {levels}");
+                assert!((brute.mass - direct.mass).norm() / brute.mass.norm() < 1e-10);
+                assert!((brute.mass - recursive.mass).norm() / brute.mass.norm() < 1e-10);
+                assert_eq!(direct.dilatations.len(), if volumetric == Volumetric::Full { 0 } else { 2 });
+                for (a, b) in brute.dilatations.iter().zip(&direct.dilatations) {
+                    assert_eq!(a.material, b.material);
+                    assert!((a.gradient - b.gradient).norm() < 1e-10 * a.gradient.norm());
+                    assert!((a.volume_m3 - b.volume_m3).abs() < 1e-12 * a.volume_m3);
+                }
+                // Direct condensation takes far fewer steps than voxels.
+                let blocks = full_subcubes(&voxels, levels);
+                let covered: usize = blocks.iter().map(|b| 1usize << (3 * b.1)).sum();
+                assert_eq!(covered, voxels.len());
+                // The full one-material octant is a single block.
+                assert!(blocks.contains(&(0, levels - 1, 0)), "{blocks:?}");
+                assert!(levels == 1 || blocks.len() < voxels.len());
+                // K annihilates rigid translations; the mass is the voxels' mass.
+                let t = nalgebra::SMatrix::<f64, 24, 1>::from_fn(|r, _| [0.3, -1.0, 2.0][r % 3]);
+                assert!((direct.stiffness * t).norm() < 1e-10 * direct.stiffness.norm());
+                let voxel_mass: f64 = voxels.iter().map(|v| voxel.mass[v.material as usize].sum()).sum();
+                assert!((direct.mass.sum() - voxel_mass).abs() < 1e-12 * voxel_mass);
+                // A material's volume gradient: a uniform expansion changes its volume by 3εV.
+                let cell = 0.003 * f64::from(1u32 << levels);
+                let expand = nalgebra::SMatrix::<f64, 24, 1>::from_fn(|r, _| corner_bits(r / 3)[r % 3] * [cell, cell, cell * 2.5 / 3.0][r % 3] * 0.01);
+                for d in &direct.dilatations {
+                    assert!(((d.gradient.transpose() * expand)[0] - 0.03 * d.volume_m3).abs() < 1e-9 * d.volume_m3);
+                }
+            }
         }
     }
 
     #[test]
     fn a_full_cell_is_one_block_and_removal_subtracts_exactly() {
-        let voxel = VoxelMatrices::new([0.002; 3], &[(1e4, 0.4, 1000.0)]);
-        let full: Vec<CellVoxel> = (0..64u32).map(|m| CellVoxel { at: demorton(m, 2), material: 0 }).collect();
-        assert_eq!(full_subcubes(&full, 2), vec![(0, 2, 0)]);
-        // A full cell of 4³ voxels equals one hexahedron of the cell's size.
-        let big = box_stiffness([0.008; 3], 1e4, 0.4);
-        assert!(relative(&condense_direct(&full, 2, &voxel).0, &big) < 1e-12);
-        let (mut k, mut m) = condense_direct(&full, 2, &voxel);
-        let removed = full[21];
-        let (dk, dm) = voxel_contribution(removed, 4, &voxel);
-        k -= dk;
-        m -= dm;
-        let rest: Vec<CellVoxel> = full.iter().copied().filter(|v| *v != removed).collect();
-        let rebuilt = condense_brute(&rest, 2, &voxel);
-        assert!(relative(&k, &rebuilt.0) < 1e-12);
-        assert!((m - rebuilt.1).norm() < 1e-12 * m.norm());
+        for volumetric in [Volumetric::Full, Volumetric::MeanDilatation] {
+            let voxel = VoxelMatrices::new([0.002; 3], &[(1e4, 0.4, 1000.0)], volumetric);
+            let full: Vec<CellVoxel> = (0..64u32).map(|m| CellVoxel { at: demorton(m, 2), material: 0 }).collect();
+            assert_eq!(full_subcubes(&full, 2), vec![(0, 2, 0)]);
+            // A full cell of 4³ voxels equals one hexahedron of the cell's size.
+            let big = match volumetric {
+                Volumetric::Full => box_stiffness([0.008; 3], 1e4, 0.4),
+                Volumetric::MeanDilatation => crate::grid::hex::box_mean_dilatation_stiffness([0.008; 3], 1e4, 0.4),
+            };
+            let mut element = condense_direct(&full, 2, &voxel);
+            assert!(relative(&element.stiffness, &big) < 1e-12);
+            let removed = full[21];
+            let dk = voxel_contribution(removed, 4, &voxel);
+            element.remove(&dk, &voxel);
+            let rest: Vec<CellVoxel> = full.iter().copied().filter(|v| *v != removed).collect();
+            let rebuilt = condense_brute(&rest, 2, &voxel);
+            assert!(relative(&element.stiffness, &rebuilt.stiffness) < 1e-12);
+            assert!((element.mass - rebuilt.mass).norm() < 1e-12 * element.mass.norm());
+        }
     }
 }

@@ -30,10 +30,55 @@ pub fn trilinear_weights(p: [f64; 3]) -> [f64; 8] {
     std::array::from_fn(|n| trilinear(n, p))
 }
 
-/// Stiffness of a box of sides `size_m` made of an isotropic linear material.
+/// 24: a vector over one hexahedron's degrees of freedom.
+pub type Vec24 = SMatrix<f64, 24, 1>;
+
+/// Lamé's constants (λ, μ) of Young's modulus and Poisson's ratio.
+pub fn lame(young_pa: f64, poisson: f64) -> (f64, f64) {
+    (young_pa * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson)), young_pa / (2.0 * (1.0 + poisson)))
+}
+
+/// The bulk modulus κ = λ + 2μ/3 = E / (3 (1 − 2ν)), Pa.
+pub fn bulk_modulus(young_pa: f64, poisson: f64) -> f64 {
+    young_pa / (3.0 * (1.0 - 2.0 * poisson))
+}
+
+/// Stiffness of a box of sides `size_m` made of an isotropic linear material, fully
+/// integrated (the volumetric term at every Gauss point: locks as ν → 0.5).
 pub fn box_stiffness(size_m: [f64; 3], young_pa: f64, poisson: f64) -> Mat24 {
-    let lambda = young_pa * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson));
-    let mu = young_pa / (2.0 * (1.0 + poisson));
+    let (lambda, mu) = lame(young_pa, poisson);
+    box_stiffness_lame(size_m, lambda, mu)
+}
+
+/// The deviatoric part of a box's stiffness: the full integration with λ = −2μ/3, so
+/// that the bulk modulus λ + 2μ/3 is zero at every Gauss point. The mean-dilatation
+/// element (B-bar, Q1P0) adds the volumetric part once per element, on its mean
+/// volume change ([`box_dilatation`]).
+pub fn box_deviatoric_stiffness(size_m: [f64; 3], young_pa: f64, poisson: f64) -> Mat24 {
+    let (_, mu) = lame(young_pa, poisson);
+    box_stiffness_lame(size_m, -2.0 * mu / 3.0, mu)
+}
+
+/// The gradient of a box's volume change with respect to its corners' displacements,
+/// ∫ ∇N dV (m²): the box's volume changes by `gᵀ u` under small displacements u. For an
+/// axis-aligned box it is V · s / (4 · side) per axis, s = ±1 the corner's side.
+pub fn box_dilatation(size_m: [f64; 3]) -> Vec24 {
+    let volume = size_m[0] * size_m[1] * size_m[2];
+    Vec24::from_fn(|r, _| {
+        let (n, axis) = (r / 3, r % 3);
+        let s = 2.0 * corner_bits(n)[axis] - 1.0;
+        volume * s / (4.0 * size_m[axis])
+    })
+}
+
+/// The mean-dilatation (B-bar) stiffness of a box: deviatoric part plus `κ g gᵀ / V`.
+pub fn box_mean_dilatation_stiffness(size_m: [f64; 3], young_pa: f64, poisson: f64) -> Mat24 {
+    let g = box_dilatation(size_m);
+    box_deviatoric_stiffness(size_m, young_pa, poisson) + g * g.transpose() * (bulk_modulus(young_pa, poisson) / (size_m[0] * size_m[1] * size_m[2]))
+}
+
+/// Stiffness of a box with Lamé constants λ, μ (2×2×2 Gauss points).
+fn box_stiffness_lame(size_m: [f64; 3], lambda: f64, mu: f64) -> Mat24 {
     let g = 1.0 / 3f64.sqrt();
     let jacobian = size_m[0] * size_m[1] * size_m[2] / 8.0;
     let mut k = Mat24::zeros();
@@ -106,6 +151,35 @@ mod tests {
         let f = k * u;
         let face: f64 = (0..8).filter(|n| n & 1 == 1).map(|n| f[3 * n]).sum();
         assert!((face - e * eps).abs() < 1e-9, "{face}");
+    }
+
+    #[test]
+    fn deviatoric_plus_mean_dilatation_is_the_full_stiffness_on_uniform_strain() {
+        // On a uniform strain the dilatation is the same at every Gauss point, so the
+        // mean-dilatation element and the fully integrated one agree exactly; on a
+        // bending mode (dilatation varying over the element) the former is softer.
+        let (size, e, nu) = ([0.003, 0.002, 0.004], 5e3, 0.49);
+        let full = box_stiffness(size, e, nu);
+        let g = box_dilatation(size);
+        let volume = size[0] * size[1] * size[2];
+        let bbar = box_mean_dilatation_stiffness(size, e, nu);
+        let uniform = SMatrix::<f64, 24, 1>::from_fn(|r, _| {
+            let b = corner_bits(r / 3);
+            let x = [b[0] * size[0], b[1] * size[1], b[2] * size[2]];
+            [0.01 * x[0] + 0.002 * x[1], -0.003 * x[2], 0.004 * x[2] + 0.001 * x[0]][r % 3]
+        });
+        assert!((full * uniform - bbar * uniform).norm() < 1e-9 * (full * uniform).norm());
+        // The volume gradient: a uniform expansion ε changes the volume by 3εV.
+        let expand = SMatrix::<f64, 24, 1>::from_fn(|r, _| corner_bits(r / 3)[r % 3] * size[r % 3] * 0.01);
+        assert!(((g.transpose() * expand)[0] - 0.03 * volume).abs() < 1e-15);
+        // Bending (u_x = x·z): no mean volume change, so B-bar leaves only shear.
+        let bend = SMatrix::<f64, 24, 1>::from_fn(|r, _| {
+            let b = corner_bits(r / 3);
+            if r % 3 == 0 { (b[0] - 0.5) * (b[2] - 0.5) } else { 0.0 }
+        });
+        let (energy_full, energy_bbar) = ((bend.transpose() * full * bend)[0], (bend.transpose() * bbar * bend)[0]);
+        assert!(energy_bbar < 0.1 * energy_full, "{energy_bbar} against {energy_full}");
+        assert!((bbar - bbar.transpose()).norm() < 1e-12 * bbar.norm());
     }
 
     #[test]

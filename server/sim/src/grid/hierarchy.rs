@@ -131,7 +131,7 @@ mod tests {
     fn topology(volume: &crate::volume::LabelVolume, levels: u32) -> Topology {
         let layout = Layout::new(volume.dims, levels, volume.spacing_m);
         let material = volume.labels.iter().map(|&l| u16::from(l != 0)).collect();
-        Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(1e4, 0.4, 1000.0)]))
+        Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(1e4, 0.4, 1000.0)], crate::grid::condense::Volumetric::MeanDilatation))
     }
 
     #[test]

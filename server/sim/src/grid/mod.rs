@@ -12,5 +12,5 @@ pub mod solver;
 pub mod surface;
 pub mod topology;
 
-pub use build::{GridParts, MAX_MATERIAL_VOXELS, build_from_scene, build_parts, load_volume};
+pub use build::{GridParts, MAX_MATERIAL_VOXELS, MAX_POISSON, MAX_POISSON_FULL, build_from_scene, build_parts, load_volume};
 pub use model::{BranchedGrid, Frame, GridMaterial};

@@ -11,7 +11,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
-use super::condense::{CellVoxel, VoxelMatrices, condense_direct, voxel_contribution};
+use super::condense::{CellVoxel, Condensed, Dilatation, VoxelMatrices, condense_direct, remove_contribution, voxel_contribution};
 use super::hex::{Mat8, Mat24, corner_bits};
 use crate::solver::kernels::{Planar24, to_planar};
 use crate::union_find::UnionFind;
@@ -117,6 +117,9 @@ pub struct Elements {
     pub stiffness_single: Vec<Planar24>,
     /// Consistent scalar mass (the 3D matrix is this ⊗ I₃).
     pub mass: Vec<Mat8>,
+    /// Per material present, its volume as a function of the nodes (mean-dilatation
+    /// elements; empty with fully integrated ones).
+    pub dilatations: Vec<Vec<Dilatation>>,
     pub voxel_count: Vec<u32>,
     pub alive: Vec<bool>,
 }
@@ -134,12 +137,13 @@ impl Elements {
         self.alive.iter().filter(|&&a| a).count()
     }
 
-    fn push(&mut self, cell: u32, nodes: [u32; 8], k: Mat24, ghost: &Mat24, m: Mat8, voxels: u32) -> u32 {
+    fn push(&mut self, cell: u32, nodes: [u32; 8], condensed: Condensed, ghost: &Mat24, voxels: u32) -> u32 {
         self.cell.push(cell);
         self.nodes.push(nodes);
-        self.stiffness_single.push(single(&(k + ghost)));
-        self.stiffness.push(k);
-        self.mass.push(m);
+        self.stiffness_single.push(single(&(condensed.stiffness + ghost)));
+        self.stiffness.push(condensed.stiffness);
+        self.mass.push(condensed.mass);
+        self.dilatations.push(condensed.dilatations);
         self.voxel_count.push(voxels);
         self.alive.push(true);
         (self.cell.len() - 1) as u32
@@ -350,8 +354,8 @@ impl Topology {
     /// Adds an element for a component, condensed directly; its nodes start as `nodes`.
     fn add_element(&mut self, cell: usize, voxels: &[usize], nodes: Option<[u32; 8]>) -> u32 {
         let cell_voxels: Vec<CellVoxel> = voxels.iter().map(|&v| self.cell_voxel(cell, v)).collect();
-        let (k, m) = condense_direct(&cell_voxels, self.layout.levels, &self.voxel_matrices);
-        let e = self.elements.push(cell as u32, nodes.unwrap_or([NONE; 8]), k, &self.ghost, m, voxels.len() as u32);
+        let condensed = condense_direct(&cell_voxels, self.layout.levels, &self.voxel_matrices);
+        let e = self.elements.push(cell as u32, nodes.unwrap_or([NONE; 8]), condensed, &self.ghost, voxels.len() as u32);
         for &v in voxels {
             self.voxel_element[v] = e;
         }
@@ -527,10 +531,12 @@ impl Topology {
         for (&cell, voxels) in &by_cell {
             for &v in voxels {
                 let e = self.voxel_element[v];
-                let (dk, dm) = voxel_contribution(self.cell_voxel(cell, v), self.layout.side as u32, &self.voxel_matrices);
-                self.elements.stiffness[e as usize] -= dk;
-                self.elements.stiffness_single[e as usize] = single(&(self.elements.stiffness[e as usize] + self.ghost));
-                self.elements.mass[e as usize] -= dm;
+                let part = voxel_contribution(self.cell_voxel(cell, v), self.layout.side as u32, &self.voxel_matrices);
+                let e = e as usize;
+                let elements = &mut self.elements;
+                remove_contribution(&mut elements.stiffness[e], &mut elements.mass[e], &mut elements.dilatations[e], &part, &self.voxel_matrices);
+                elements.stiffness_single[e] = single(&(elements.stiffness[e] + self.ghost));
+                let e = e as u32;
                 self.elements.voxel_count[e as usize] -= 1;
                 self.material[v] = 0;
                 self.voxel_element[v] = NONE;
@@ -700,7 +706,7 @@ mod tests {
     fn topology(volume: &LabelVolume, levels: u32) -> Topology {
         let layout = Layout::new(volume.dims, levels, volume.spacing_m);
         let material = volume.labels.iter().map(|&l| u16::from(l != 0)).collect();
-        Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(1e4, 0.4, 1000.0)]))
+        Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(1e4, 0.4, 1000.0)], crate::grid::condense::Volumetric::MeanDilatation))
     }
 
     #[test]

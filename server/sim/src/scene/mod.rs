@@ -383,6 +383,9 @@ pub struct BranchedGridSpec {
     pub step_budget_ms: StepBudgetMs,
     #[serde(default)]
     pub mass: MassSpec,
+    /// How elements resist volume change (docs/branched-grid.md, "Volume change").
+    #[serde(default)]
+    pub volumetric: VolumetricSpec,
     #[serde(default)]
     pub damping: RayleighSpec,
     #[serde(default)]
@@ -562,6 +565,20 @@ impl Default for GridSolverSpec {
     fn default() -> Self {
         Self { cg_max_iterations: default_grid_cg_iterations(), cg_tolerance: default_grid_cg_tolerance(), preconditioner: PreconditionerSpec::default() }
     }
+}
+
+/// How the branched grid's elements resist volume change.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum VolumetricSpec {
+    /// A constant pressure per element and material on its mean volume change (B-bar,
+    /// Q1P0): no volumetric locking, at any level; Poisson ratios up to 0.49.
+    #[default]
+    MeanDilatation,
+    /// At every voxel's Gauss points (the paper's fully integrated hexahedron): locks as
+    /// ν nears 0.5, and coarse elements inherit every voxel's volume constraint;
+    /// Poisson ratios up to 0.45.
+    Full,
 }
 
 /// The conjugate gradient's preconditioner (docs/branched-grid.md compares them).
