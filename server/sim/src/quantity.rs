@@ -85,6 +85,25 @@ bounded!(/// Mass-proportional damping coefficient α (force −α·m·v).
     DampingPerS: f64, "number", what = "damping", unit = "1/s", range = [0.0, 1e4]);
 bounded!(/// Stiffness-proportional spring damping β (force β·k·relative speed).
     SpringDampingS: f64, "number", what = "spring damping", unit = "s", range = [0.0, 1.0]);
+bounded!(/// Stiffness of an elastic foundation per unit area (Winkler modulus: pressure per
+    /// unit deflection), e.g. Young's modulus of the layer under the skin over its thickness.
+    FoundationStiffnessPaPerM: f64, "number", what = "foundation stiffness", unit = "Pa/m", range = [0.0, 1e10]);
+bounded!(/// Viscous drag of a foundation per unit area (pressure per unit speed).
+    FoundationDampingPaSPerM: f64, "number", what = "foundation damping", unit = "Pa·s/m", range = [0.0, 1e9]);
+bounded!(/// Fracture toughness: the work a cut needs per unit area of new crack.
+    FractureToughnessJPerM2: f64, "number", what = "fracture toughness", unit = "J/m²", range = [0.0, 1e6]);
+impl Default for FoundationDampingPaSPerM {
+    fn default() -> Self {
+        Self(0.0)
+    }
+}
+
+impl Default for FractureToughnessJPerM2 {
+    fn default() -> Self {
+        Self(0.0)
+    }
+}
+
 bounded!(/// Physics time step.
     TimeStepS: f64, "number", what = "time step", unit = "s", range = [1e-6, 0.1]);
 bounded!(/// Explicit substeps per physics step.

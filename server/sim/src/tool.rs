@@ -19,6 +19,8 @@ pub struct ToolShape {
     /// Branched grid: the inner (cutting) capsule, (radius, length) in m; the tool's own
     /// shape repels. None: half the radius and the full length for a cutting tool.
     pub cutting_shape: Option<(f64, f64)>,
+    /// The direction a blade's edge faces, in the tool's frame (unit, across its +z axis).
+    pub edge_local: Vec3,
 }
 
 impl ToolShape {
@@ -95,6 +97,7 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                 can_cut: t.can_cut,
                 max_force_n: t.max_force_n.get(),
                 cutting_shape: t.cutting_shape.as_ref().map(|crate::scene::ToolShapeSpec::Cylinder { radius_m, length_m }| (radius_m.get(), length_m.get())),
+                edge_local: t.edge.local(),
             }
         })
         .collect()

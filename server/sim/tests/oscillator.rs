@@ -19,6 +19,8 @@ fn oscillator(integrator: IntegratorChoice, damping_per_s: f64) -> MassSpring {
         gravity_m_per_s2: None,
         integrator,
         cutting: None,
+        foundation: None,
+        fracture_toughness_j_per_m2: 0.0,
     };
     // Node 0 is held; node 1 starts stretched by AMPLITUDE and at rest.
     let positions = [Vec3::zeros(), Vec3::new(L0 + AMPLITUDE, 0.0, 0.0)];

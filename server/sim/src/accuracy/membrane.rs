@@ -109,7 +109,13 @@ pub fn uniaxial_stretch() -> Result<Stretch, String> {
 /// update into a 10 × 8 cm patch with residual strain `residual_strain`, sampled every
 /// step for `steps` steps from the moment the lips are made.
 pub fn shrinking_gap_curve(residual_strain: f64, steps: usize) -> Result<Vec<f64>, String> {
-    let text = patch_scene([0.1, 0.08], [40, 37], residual_strain, "");
+    shrinking_gap_curve_with(residual_strain, steps, "")
+}
+
+/// [`shrinking_gap_curve`] with more keys in the patch's `msm` object (`msm_extra`
+/// starts with a comma), e.g. a foundation under the skin.
+pub fn shrinking_gap_curve_with(residual_strain: f64, steps: usize, msm_extra: &str) -> Result<Vec<f64>, String> {
+    let text = patch_scene([0.1, 0.08], [40, 37], residual_strain, msm_extra);
     let mut m = build(&text)?;
     let (from, to) = (Vec3::new(-0.02, 0.0, 0.0), Vec3::new(0.02, 0.0, 0.0));
     // A vertical blade 5 mm deep, in at one end and across in one step.

@@ -10,7 +10,7 @@ use crate::grid::topology::Topology;
 use crate::grid::{BranchedGrid, build_from_scene};
 use crate::math::Vec3;
 use crate::quantity::{CgIterations, DampingPerS, SpringDampingS, TimeStepS};
-use crate::scene::{MassSpec, ModelSpec, Scene};
+use crate::scene::{MassSpec, ModelSpec, PreconditionerSpec, Scene};
 use crate::tool::{ToolCommand, ToolFeedback};
 
 /// One point of the sweep.
@@ -20,15 +20,27 @@ pub struct Setting {
     pub mass: MassSpec,
     pub cg_max_iterations: u32,
     pub dt_s: f64,
+    pub preconditioner: PreconditionerSpec,
 }
 
 impl Setting {
+    /// Block Jacobi, the default preconditioner.
+    pub fn new(level: u32, mass: MassSpec, cg_max_iterations: u32, dt_s: f64) -> Self {
+        Setting { level, mass, cg_max_iterations, dt_s, preconditioner: PreconditionerSpec::Jacobi }
+    }
+
+    /// The same setting with the multigrid preconditioner.
+    pub fn multigrid(self) -> Self {
+        Setting { preconditioner: PreconditionerSpec::Multigrid, ..self }
+    }
+
     pub fn label(&self) -> String {
         let mass = match self.mass {
             MassSpec::Lumped => "lumped",
             MassSpec::Consistent => "consistent",
         };
-        format!("L{} {mass} CG≤{} dt {} ms", self.level, self.cg_max_iterations, self.dt_s * 1e3)
+        let multigrid = if self.preconditioner == PreconditionerSpec::Multigrid { " multigrid" } else { "" };
+        format!("L{} {mass} CG≤{}{multigrid} dt {} ms", self.level, self.cg_max_iterations, self.dt_s * 1e3)
     }
 
     /// The scene with this setting.
@@ -38,6 +50,7 @@ impl Setting {
         if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
             spec.mass = self.mass;
             spec.solver.cg_max_iterations = CgIterations::new(self.cg_max_iterations).unwrap_or_else(|e| panic!("{e}"));
+            spec.solver.preconditioner = self.preconditioner;
         }
         scene
     }
@@ -63,6 +76,35 @@ pub fn own_reference(problem: &Problem, level: u32, samples: &[(usize, usize)]) 
 pub fn static_error(problem: &Problem, level: u32, weighting: Weighting, samples: &[(usize, usize)], reference: &[Vec3]) -> Result<f64, String> {
     let (parts, _, _) = solve_linear(problem, level, weighting, 1e-10)?;
     Ok(field_error(&sample_displacements(&parts.topo, samples), reference).rms)
+}
+
+/// What a session computes for `problem` at `setting`: the grid built as a session
+/// builds it (ghost material, the setting's cap, the scene's tolerance), settled under
+/// the problem's gravity by its own dynamics — the mass damping set to 30/s (near
+/// critical for soft organs; Rayleigh damping does not move the equilibrium), until no
+/// node moves faster than 10 µm/s or `max_duration_s` has passed — against `reference`
+/// at the sample points (relative rms).
+pub fn session_error(problem: &Problem, setting: &Setting, samples: &[(usize, usize)], reference: &[Vec3], max_duration_s: f64) -> Result<f64, String> {
+    let mut scene = setting.apply(&problem.scene);
+    if let ModelSpec::BranchedGrid(spec) = &mut scene.model {
+        spec.damping.mass_per_s = DampingPerS::new(30.0).map_err(|e| e.to_string())?;
+    }
+    let mut grid = build_grid(&scene)?;
+    let n = crate::tissue::Tissue::tools(&grid).len();
+    let (commands, mut feedback) = (vec![Default::default(); n], vec![Default::default(); n]);
+    let steps = (max_duration_s / setting.dt_s).round() as usize;
+    let check_every = (0.05 / setting.dt_s).round().max(1.0) as usize;
+    for step in 1..=steps {
+        grid.step(&commands, &mut feedback);
+        if step % check_every == 0 && step as f64 * setting.dt_s >= 0.5 {
+            let topo = grid.topology();
+            let fastest = (0..topo.nodes.len()).filter(|&i| topo.nodes.alive[i]).map(|i| topo.nodes.v[i].norm()).fold(0.0, f64::max);
+            if fastest < 1e-5 {
+                break;
+            }
+        }
+    }
+    Ok(field_error(&sample_displacements(grid.topology(), samples), reference).rms)
 }
 
 /// The live nodes at the cantilever's free end (the largest rest x).

@@ -141,6 +141,9 @@ impl MassSpring {
         if let Integrator::ImplicitEuler(solver) = &mut self.integrator {
             solver.reserve(n, self.springs.len());
         }
+        if let Some(foundation) = &mut self.foundation {
+            foundation.refresh(&self.nodes, &self.topo);
+        }
         self.keep_explicit_stable(&touched_nodes);
     }
 

@@ -3,6 +3,7 @@
 use super::calibration::MembraneMaterial;
 use super::cut::{CuttingParams, Cutter};
 use super::explicit::{StabilityBound, bound_over};
+use super::foundation::{Foundation, FoundationParams};
 use super::implicit::ImplicitSolver;
 use super::state::{Nodes, Spring, SpringSet, Topology};
 use super::{Integrator, MassSpring};
@@ -39,6 +40,10 @@ pub struct MsmParams {
     pub integrator: IntegratorChoice,
     /// `None`: the model cannot be cut. Inside, `None` values take their defaults.
     pub cutting: Option<(Option<f64>, Option<f64>)>,
+    /// The tissue under the skin; `None`: the membrane spans empty space.
+    pub foundation: Option<FoundationParams>,
+    /// The work a cut needs per unit area, J/m² (0: cutting needs no force).
+    pub fracture_toughness_j_per_m2: f64,
 }
 
 /// Why a model could not be built.
@@ -157,7 +162,10 @@ impl MassSpring {
                 }
             }
         }
-        let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max);
+        let foundation = params.foundation.map(|f| Foundation::new(f, &nodes, &topo));
+        // A tool's contact and the foundation's spring may act on one node together.
+        let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max)
+            + foundation.as_ref().map_or(0.0, Foundation::max_node_stiffness);
         let stability = bound_over(&nodes, &springs.list, None, max_contact_stiffness, params.spring_damping_s);
         let integrator = match params.integrator {
             IntegratorChoice::SymplecticEuler { substeps } => {
@@ -193,8 +201,12 @@ impl MassSpring {
             mass_damping_per_s: params.mass_damping_per_s,
             spring_damping_s: params.spring_damping_s,
             gravity: params.gravity_m_per_s2,
+            foundation,
+            fracture_toughness_j_per_m2: params.fracture_toughness_j_per_m2,
             integrator,
             placed: vec![None::<PlacedTool>; tools.len()],
+            previous_placed: vec![None::<PlacedTool>; tools.len()],
+            cut_reactions: Vec::with_capacity(64 * tools.len()),
             contacts: Vec::with_capacity(n),
             tools,
             nodes,
@@ -346,6 +358,12 @@ pub fn build_from_scene(scene: &Scene, spec: &MsmSpec) -> Result<MassSpring, Sce
             },
         },
         cutting: spec.cutting.as_ref().map(|c| (c.sweep_radius_m.map(|r| r.get()), c.min_advance_m.map(|a| a.get()))),
+        foundation: spec.foundation.as_ref().map(|f| FoundationParams {
+            stiffness_pa_per_m: f.stiffness_pa_per_m.get(),
+            normal_damping_pa_s_per_m: f.normal_damping_pa_s_per_m.get(),
+            shear_damping_pa_s_per_m: f.shear_damping_pa_s_per_m.get(),
+        }),
+        fracture_toughness_j_per_m2: spec.material.fracture_toughness_j_per_m2.get(),
     };
     MassSpring::new(mesh, free, &params, tools).map_err(|e| match e {
         MsmBuildError::Unstable { .. } => err("model.msm.integrator.symplectic-euler.substeps", e.to_string()),

@@ -1,7 +1,8 @@
 //! Symplectic (semi-implicit) Euler with substeps, and its stability bound.
 //!
 //! v ← (v + h·F/m) / (1 + h·α),  x ← x + h·v.  The mass damping α is taken implicitly
-//! (the division), so it never limits h; the springs do. For an undamped oscillator of
+//! (the division), so it never limits h, and so is the foundation's drag
+//! ([`super::foundation`]); the springs limit h. For an undamped oscillator of
 //! frequency ω the scheme is stable for h < 2/ω; with explicit spring damping β the
 //! highest mode adds c = β·ω² and the bound becomes h < (√(c² + 4ω²) − c)/ω².
 //! ω_max is bounded from above with a block Gershgorin estimate of M⁻¹K, so the bound
@@ -9,6 +10,7 @@
 
 use nalgebra::Matrix3;
 
+use super::foundation::Foundation;
 use super::state::{Nodes, Spring};
 use crate::broad_phase::PointGrid;
 use crate::math::Vec3;
@@ -16,12 +18,19 @@ use crate::math::Vec3;
 /// One substep for every node. Returns a sum of all coordinates, which is finite
 /// exactly when the whole state is (a NaN check at no extra pass). The broad phase is
 /// refreshed once per step, not here.
-pub(crate) fn substep(nodes: &mut Nodes, h: f64, mass_damping_per_s: f64) -> f64 {
-    let damp = 1.0 / (1.0 + h * mass_damping_per_s);
+pub(crate) fn substep(nodes: &mut Nodes, h: f64, mass_damping_per_s: f64, foundation: Option<&Foundation>) -> f64 {
+    let mass_coef = 1.0 + h * mass_damping_per_s;
+    let damp = 1.0 / mass_coef;
     let mut check = 0.0;
     let Nodes { x, v, f, inv_mass, free, .. } = nodes;
     for i in 0..x.len() {
-        let vi = (v[i] + f[i] * (h * inv_mass[i])).component_mul(&free[i]) * damp;
+        let w = v[i] + f[i] * (h * inv_mass[i]);
+        let damped = match foundation {
+            // The drag against the underlying tissue, implicitly like the mass damping.
+            Some(foundation) => foundation.damped_velocity(i, w, h, inv_mass[i], mass_coef),
+            None => w * damp,
+        };
+        let vi = damped.component_mul(&free[i]);
         v[i] = vi;
         x[i] += vi * h;
         check += x[i].x + x[i].y + x[i].z + vi.x + vi.y + vi.z;

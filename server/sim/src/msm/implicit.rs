@@ -1,13 +1,14 @@
 //! Linearised backward Euler (Baraff & Witkin 1998) solved by preconditioned conjugate
 //! gradient, warm-started with the previous step's solution.
 //!
-//! (M(1 + hα) + (h² + hβ)K) Δv = h(F − αMv) − h(h + β)K v,  v ← v + Δv,  x ← x + h·v,
-//! with K = −∂F/∂x of the springs and contacts. Each spring's tangent is
+//! (M(1 + hα) + hC + (h² + hβ)K) Δv = h(F − αMv − Cv) − h(h + β)K v,  v ← v + Δv,  x ← x + h·v,
+//! with K = −∂F/∂x of the springs, contacts and foundation, and C the foundation's drag. Each spring's tangent is
 //! k[n nᵀ + max(0, 1 − L0/L)(I − n nᵀ)]: the geometric part is clamped at zero in
 //! compression so that K stays positive semi-definite and CG applies. Fixed axes are
 //! filtered out of the system. Matrix-free: nothing is assembled, nothing allocated.
 
 use super::contact::Contact;
+use super::foundation::Foundation;
 use super::state::{Nodes, Spring};
 use crate::math::Vec3;
 
@@ -58,6 +59,7 @@ impl ImplicitSolver {
         nodes: &mut Nodes,
         springs: &[Spring],
         contacts: &[Contact],
+        foundation: Option<&Foundation>,
         h: f64,
         mass_damping_per_s: f64,
         spring_damping_s: f64,
@@ -77,8 +79,16 @@ impl ImplicitSolver {
             };
         }
 
-        // Right-hand side: h(F − αMv) − h(h + β)Kv, using q as scratch for Kv.
-        apply_stiffness(&self.tangents, springs, contacts, &nodes.v, &mut self.q);
+        // Right-hand side: h(F − αMv − Cv) − h(h + β)Kv, using q as scratch for Kv (and
+        // z for Cv).
+        apply_stiffness(&self.tangents, springs, contacts, foundation, &nodes.v, &mut self.q);
+        if let Some(foundation) = foundation {
+            self.z.iter_mut().for_each(|x| *x = Vec3::zeros());
+            foundation.add_damping_product(&nodes.v, &mut self.z, 1.0);
+            for i in 0..n {
+                nodes.f[i] -= self.z[i];
+            }
+        }
         for i in 0..n {
             let rhs = (nodes.f[i] - nodes.v[i] * (mass_damping_per_s * nodes.mass[i])) * h
                 - self.q[i] * (h * (h + spring_damping_s));
@@ -97,6 +107,11 @@ impl ImplicitSolver {
         for c in contacts {
             self.inv_diag[c.node as usize] += c.normal.component_mul(&c.normal) * (c.stiffness * stiff_coef);
         }
+        if let Some(foundation) = foundation {
+            for i in 0..n {
+                self.inv_diag[i] += foundation.diagonal(i, stiff_coef, h);
+            }
+        }
         for i in 0..n {
             let d = self.inv_diag[i];
             self.inv_diag[i] = Vec3::new(inv_or_zero(d.x), inv_or_zero(d.y), inv_or_zero(d.z)).component_mul(&nodes.free[i]);
@@ -107,8 +122,8 @@ impl ImplicitSolver {
         for i in 0..n {
             self.dv[i] = self.dv[i].component_mul(&nodes.free[i]);
         }
-        let coefficients = Coefficients { mass: mass_coef, stiffness: stiff_coef };
-        apply_a(&self.tangents, springs, contacts, nodes, coefficients, &self.dv, &mut self.q);
+        let coefficients = Coefficients { mass: mass_coef, stiffness: stiff_coef, drag: h };
+        apply_a(&self.tangents, springs, contacts, foundation, nodes, coefficients, &self.dv, &mut self.q);
         let b_norm = dot(&self.b, &self.b).sqrt();
         let mut rz = 0.0;
         let mut rr = 0.0;
@@ -127,7 +142,7 @@ impl ImplicitSolver {
             self.dv.iter_mut().for_each(|x| *x = Vec3::zeros());
         }
         while b_norm > 0.0 && residual > self.tolerance && iterations < self.max_iterations {
-            let pq = apply_a(&self.tangents, springs, contacts, nodes, coefficients, &self.p, &mut self.q);
+            let pq = apply_a(&self.tangents, springs, contacts, foundation, nodes, coefficients, &self.p, &mut self.q);
             if pq <= 0.0 || !pq.is_finite() {
                 break;
             }
@@ -183,19 +198,27 @@ struct Coefficients {
     mass: f64,
     /// h² + hβ: multiplies the stiffness.
     stiffness: f64,
+    /// h: multiplies the foundation's drag.
+    drag: f64,
 }
 
-/// out = A·p = (M(1 + hα) + (h² + hβ)K)·p on free axes; returns p·out.
+/// out = A·p = (M(1 + hα) + hC + (h² + hβ)K)·p on free axes; returns p·out.
+#[allow(clippy::too_many_arguments)]
 fn apply_a(
     tangents: &[SpringTangent],
     springs: &[Spring],
     contacts: &[Contact],
+    foundation: Option<&Foundation>,
     nodes: &Nodes,
     c: Coefficients,
     p: &[Vec3],
     out: &mut [Vec3],
 ) -> f64 {
-    apply_stiffness(tangents, springs, contacts, p, out);
+    apply_stiffness(tangents, springs, contacts, foundation, p, out);
+    if let Some(foundation) = foundation {
+        // (h² + hβ)K p + hC p = (h² + hβ)(K p + h/(h² + hβ) C p).
+        foundation.add_damping_product(p, out, c.drag / c.stiffness);
+    }
     let mut p_dot_out = 0.0;
     for i in 0..p.len() {
         let a = (out[i] * c.stiffness + p[i] * (nodes.mass[i] * c.mass)).component_mul(&nodes.free[i]);
@@ -205,9 +228,9 @@ fn apply_a(
     p_dot_out
 }
 
-/// out = K·p for the springs and contacts. As in the force pass, the product on each
-/// spring's first node is summed in a register over runs of springs sharing it.
-fn apply_stiffness(tangents: &[SpringTangent], springs: &[Spring], contacts: &[Contact], p: &[Vec3], out: &mut [Vec3]) {
+/// out = K·p for the springs, contacts and foundation. As in the force pass, the product
+/// on each spring's first node is summed in a register over runs of springs sharing it.
+fn apply_stiffness(tangents: &[SpringTangent], springs: &[Spring], contacts: &[Contact], foundation: Option<&Foundation>, p: &[Vec3], out: &mut [Vec3]) {
     out.iter_mut().for_each(|x| *x = Vec3::zeros());
     let mut current = u32::MAX;
     let mut on_current = Vec3::zeros();
@@ -231,5 +254,8 @@ fn apply_stiffness(tangents: &[SpringTangent], springs: &[Spring], contacts: &[C
     for c in contacts {
         let i = c.node as usize;
         out[i] += c.normal * (c.stiffness * c.normal.dot(&p[i]));
+    }
+    if let Some(foundation) = foundation {
+        foundation.add_stiffness_product(p, out);
     }
 }

@@ -17,12 +17,15 @@ pub mod contact;
 pub mod cut;
 pub mod explicit;
 pub(crate) mod forces;
+pub mod foundation;
+pub mod resistance;
 pub(crate) mod implicit;
 pub(crate) mod state;
 
 pub use build::{IntegratorChoice, MsmParams, build_from_scene};
 pub use cut::{CuttingParams, Incision};
 pub use explicit::StabilityBound;
+pub use foundation::FoundationParams;
 
 use std::time::Instant;
 
@@ -55,6 +58,23 @@ pub struct StageTimes {
     pub steps: u64,
 }
 
+/// The cutting force's reaction spreads over the skin nodes within this many mean edge
+/// lengths of the crossing.
+const REACTION_REACH_EDGES: f64 = 2.0;
+
+/// How a blade moves through the skin at its crossing `hit` this step: its velocity there
+/// (from its pose last step) against the tissue beneath, which holds still. Measured
+/// against the skin's own nodes instead, the cut would feed back on itself: the skin the
+/// blade drags would change the very motion that decides whether it cuts.
+fn blade_motion(blade: &PlacedTool, before: &PlacedTool, hit: &cut::Crossing, edge: Vec3, nodes: &state::Nodes, topo: &Topology, dt_s: f64) -> resistance::BladeMotion {
+    let along = hit.blade_t * blade.length_m;
+    let then = before.tip + before.axis * along;
+    let [a, b, c] = topo.tris[hit.triangle as usize].map(|v| nodes.x[v as usize]);
+    let normal = (b - a).cross(&(c - a));
+    let normal = if normal.norm() > 0.0 { normal.normalize() } else { blade.axis };
+    resistance::BladeMotion { relative_velocity: (blade.tip + blade.axis * along - then) / dt_s, normal, edge, axis: blade.axis }
+}
+
 /// The mass-spring skin.
 #[derive(Debug, Clone)]
 pub struct MassSpring {
@@ -64,6 +84,8 @@ pub struct MassSpring {
     mass_damping_per_s: f64,
     spring_damping_s: f64,
     gravity: Option<Vec3>,
+    foundation: Option<foundation::Foundation>,
+    fracture_toughness_j_per_m2: f64,
     integrator: Integrator,
     pub(crate) nodes: Nodes,
     pub(crate) springs: SpringSet,
@@ -71,6 +93,10 @@ pub struct MassSpring {
     grid: PointGrid,
     tools: Vec<ToolShape>,
     placed: Vec<Option<PlacedTool>>,
+    /// Where each tool was last step (the blade's velocity through the skin).
+    previous_placed: Vec<Option<PlacedTool>>,
+    /// The skin's share of the cutting resistance: forces on nodes, applied next step.
+    cut_reactions: Vec<(u32, Vec3)>,
     contacts: Vec<Contact>,
     cutter: Option<Cutter>,
     deltas: Vec<TopologyDelta>,
@@ -104,7 +130,7 @@ impl MassSpring {
                     self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                     self.timed(|s| s.add_contacts(commands, feedback, weight), |t, ns| t.contacts_ns += ns);
                     check = self.timed(
-                        |s| explicit::substep(&mut s.nodes, h, s.mass_damping_per_s),
+                        |s| explicit::substep(&mut s.nodes, h, s.mass_damping_per_s, s.foundation.as_ref()),
                         |t, ns| t.integrate_ns += ns,
                     );
                 }
@@ -124,6 +150,7 @@ impl MassSpring {
             self.timed(|s| s.cut(commands, feedback), |t, ns| t.cut_ns += ns);
         }
         self.finish_feedback(feedback);
+        self.previous_placed.copy_from_slice(&self.placed);
         self.step_index += 1;
         if let Some(p) = self.profile.as_mut() {
             p.steps += 1;
@@ -161,6 +188,9 @@ impl MassSpring {
     fn accumulate_forces(&mut self) {
         let beta = if matches!(self.integrator, Integrator::ImplicitEuler(_)) { 0.0 } else { self.spring_damping_s };
         forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta, &mut self.spring_scratch);
+        if let Some(foundation) = &self.foundation {
+            foundation.add_forces(&mut self.nodes);
+        }
     }
 
     fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
@@ -184,11 +214,14 @@ impl MassSpring {
                 margin,
             );
         }
+        for &(node, force) in &self.cut_reactions {
+            self.nodes.f[node as usize] += force;
+        }
     }
 
     fn implicit_step(&mut self) -> f64 {
         let Integrator::ImplicitEuler(solver) = &mut self.integrator else { unreachable!() };
-        let check = solver.step(&mut self.nodes, &self.springs.list, &self.contacts, self.dt_s, self.mass_damping_per_s, self.spring_damping_s);
+        let check = solver.step(&mut self.nodes, &self.springs.list, &self.contacts, self.foundation.as_ref(), self.dt_s, self.mass_damping_per_s, self.spring_damping_s);
         let cap_hit = solver.last_iterations >= solver.max_iterations && solver.last_residual > solver.tolerance;
         self.counters.count_solve(&crate::solver::pcg::Convergence { iterations: solver.last_iterations, residual: solver.last_residual, cap_hit });
         check
@@ -218,6 +251,7 @@ impl MassSpring {
     }
 
     fn cut(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        self.cut_reactions.clear();
         for tool in 0..self.tools.len() {
             let wants_cut = self.tools[tool].can_cut && commands[tool].cut;
             let cutter = self.cutter.as_mut().expect("cut stage runs only with a cutter");
@@ -231,12 +265,46 @@ impl MassSpring {
             };
             let next_id = self.nodes.len() as u32;
             let plan = match self.placed[tool].filter(|_| wants_cut) {
-                Some(blade) => cutter.update(tool, &blade, &view, next_id),
+                Some(blade) => {
+                    let hit = cutter.crossing(&blade, &view);
+                    // The skin resists a blade already through it (a stroke under way).
+                    let resisted = match (hit, self.previous_placed[tool]) {
+                        (Some(hit), Some(before)) if cutter.in_stroke(tool) && self.fracture_toughness_j_per_m2 > 0.0 => {
+                            let edge = commands[tool].pose.orientation * self.tools[tool].edge_local;
+                            let motion = blade_motion(&blade, &before, &hit, edge, &self.nodes, &self.topo, self.dt_s);
+                            Some((hit, resistance::resistance(&motion, self.fracture_toughness_j_per_m2, self.material.thickness_m)))
+                        }
+                        _ => None,
+                    };
+                    // Without a fracture toughness every crossing cuts (the paper's rule).
+                    let advance = resisted.is_none_or(|(_, r)| r.cuts) || self.fracture_toughness_j_per_m2 <= 0.0;
+                    let plan = cutter.update(tool, &blade, hit, advance, &view, next_id);
+                    if let Some((hit, r)) = resisted.filter(|(_, r)| r.cuts) {
+                        feedback[tool].force_n += r.force_n;
+                        feedback[tool].torque_nm += (hit.point - blade.tip).cross(&r.force_n);
+                        // The opposite force drags the skin the blade cuts through, spread
+                        // over the nodes around the crossing (one triangle's nodes weigh
+                        // too little to take it alone within a step).
+                        let reach = REACTION_REACH_EDGES * self.mean_edge_m;
+                        let first = self.cut_reactions.len();
+                        let (reactions, x) = (&mut self.cut_reactions, &self.nodes.x);
+                        self.grid.query_box(&(hit.point - Vec3::repeat(reach)), &(hit.point + Vec3::repeat(reach)), |v| {
+                            if reactions.len() < reactions.capacity() && (x[v as usize] - hit.point).norm() <= reach {
+                                reactions.push((v, Vec3::zeros()));
+                            }
+                        });
+                        let share = -r.force_n / (self.cut_reactions.len() - first).max(1) as f64;
+                        self.cut_reactions[first..].iter_mut().for_each(|(_, f)| *f = share);
+                    }
+                    plan
+                }
                 None => cutter.end_stroke(tool, &view, next_id),
             };
             if let Some(plan) = plan {
                 feedback[tool].cutting = true;
                 self.apply_cut(plan);
+                // Node ids of the crossed triangle may have gone with the cut.
+                self.cut_reactions.retain(|&(v, _)| self.nodes.alive[v as usize]);
             }
         }
     }

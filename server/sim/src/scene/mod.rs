@@ -97,9 +97,31 @@ pub struct MsmSpec {
     #[serde(default)]
     pub fixed: Vec<FixedSpec>,
     pub integrator: IntegratorSpec,
+    /// The tissue under the skin (docs/tool-tissue.md). Absent: the membrane spans empty
+    /// space, as in the paper.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub foundation: Option<FoundationSpec>,
     /// Cutting settings. Absent: the scene cannot be cut and no cutting machinery is built.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cutting: Option<CuttingSpec>,
+}
+
+/// An elastic, viscous foundation under the skin (the subcutaneous layer): per unit area,
+/// a normal stiffness pulling each node back to its reference position along the
+/// surface's reference normal, and drag against the underlying tissue, normal and
+/// tangential.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FoundationSpec {
+    /// Normal stiffness per unit area (pressure per deflection), Pa/m.
+    pub stiffness_pa_per_m: FoundationStiffnessPaPerM,
+    /// Normal drag per unit area, Pa·s/m.
+    #[serde(default)]
+    pub normal_damping_pa_s_per_m: FoundationDampingPaSPerM,
+    /// Tangential drag per unit area against the fascia, Pa·s/m: sets how fast a wound
+    /// retracts under the residual stress.
+    #[serde(default)]
+    pub shear_damping_pa_s_per_m: FoundationDampingPaSPerM,
 }
 
 fn default_residual_strain() -> ResidualStrain {
@@ -165,6 +187,10 @@ pub struct MembraneMaterialSpec {
     pub poisson: Poisson,
     pub thickness_m: ThicknessM,
     pub density_kg_per_m3: DensityKgPerM3,
+    /// The work a blade needs per unit area of cut, J/m² (docs/tool-tissue.md has the
+    /// published values). 0: cutting needs no force.
+    #[serde(default)]
+    pub fracture_toughness_j_per_m2: FractureToughnessJPerM2,
 }
 
 fn one_third() -> Poisson {
@@ -337,6 +363,37 @@ pub struct ToolSpec {
     /// Default for a cutting tool: half the radius, the full length.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cutting_shape: Option<ToolShapeSpec>,
+    /// A blade's edge: the direction it faces in the tool's frame, across the tool's +z
+    /// axis. Where the skin has a fracture toughness, only motion within 60° of it cuts.
+    #[serde(default)]
+    pub edge: EdgeSpec,
+}
+
+/// The direction a blade's edge faces, in the tool's frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub enum EdgeSpec {
+    #[default]
+    #[serde(rename = "+x")]
+    PlusX,
+    #[serde(rename = "-x")]
+    MinusX,
+    #[serde(rename = "+y")]
+    PlusY,
+    #[serde(rename = "-y")]
+    MinusY,
+}
+
+impl EdgeSpec {
+    /// The unit vector in the tool's frame.
+    pub fn local(self) -> crate::math::Vec3 {
+        use crate::math::Vec3;
+        match self {
+            EdgeSpec::PlusX => Vec3::x(),
+            EdgeSpec::MinusX => -Vec3::x(),
+            EdgeSpec::PlusY => Vec3::y(),
+            EdgeSpec::MinusY => -Vec3::y(),
+        }
+    }
 }
 
 fn default_contact_stiffness() -> StiffnessNPerM {

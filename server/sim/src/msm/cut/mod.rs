@@ -106,6 +106,8 @@ pub(crate) struct Crossing {
     pub point: Vec3,
     /// Parameter along the blade from its tip, [0, 1].
     pub blade_t: f64,
+    /// The live triangle crossed.
+    pub triangle: u32,
 }
 
 #[derive(Debug, Clone)]
@@ -140,9 +142,17 @@ impl Cutter {
         plan
     }
 
-    /// Follows the blade for one step; returns a topology change when the incision grows.
-    pub fn update(&mut self, tool: usize, blade: &PlacedTool, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
-        let Some(hit) = self.find_crossing(blade, view) else {
+    /// Whether the tool has a stroke under way (its blade has crossed the skin).
+    pub fn in_stroke(&self, tool: usize) -> bool {
+        self.strokes[tool].is_some()
+    }
+
+    /// Follows the blade for one step, given where it crosses the skin
+    /// ([`Self::crossing`]); returns a topology change when the incision grows. With
+    /// `advance` false (the blade is not cutting: its edge does not lead) the stroke is
+    /// kept but the incision neither grows nor records the crossing.
+    pub fn update(&mut self, tool: usize, blade: &PlacedTool, hit: Option<Crossing>, advance: bool, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
+        let Some(hit) = hit else {
             return self.end_stroke(tool, view, next_vertex_id);
         };
         let near = self.blade_near_surface(blade, hit.blade_t, view);
@@ -150,6 +160,9 @@ impl Cutter {
             self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None, last_crossing: None });
             return None;
         };
+        if !advance {
+            return None;
+        }
         stroke.last_crossing = Some((hit.point, near));
         let anchor_point = anchor_position(&stroke.anchor, view);
         if (hit.point - anchor_point).norm() < self.params.min_advance_m {
@@ -261,7 +274,7 @@ impl Cutter {
     }
 
     /// The first point (from the tip) where the blade's axis crosses a live triangle.
-    fn find_crossing(&mut self, blade: &PlacedTool, view: &CutView) -> Option<Crossing> {
+    pub fn crossing(&mut self, blade: &PlacedTool, view: &CutView) -> Option<Crossing> {
         let (min, max) = blade.bounds(view.max_edge_m);
         self.candidates.clear();
         let candidates = &mut self.candidates;
@@ -273,7 +286,7 @@ impl Cutter {
             let [a, b, c] = view.topo.tris[t as usize].map(|v| view.x[v as usize]);
             if let Some(s) = segment_triangle_intersection(&blade.tip, &blade.top, &a, &b, &c) {
                 if best.is_none_or(|h| s < h.blade_t) {
-                    best = Some(Crossing { point: blade.tip + (blade.top - blade.tip) * s, blade_t: s });
+                    best = Some(Crossing { point: blade.tip + (blade.top - blade.tip) * s, blade_t: s, triangle: t });
                 }
             }
         }

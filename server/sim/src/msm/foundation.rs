@@ -1,0 +1,142 @@
+//! The tissue under the skin: an elastic, viscous (Winkler) foundation
+//! (docs/tool-tissue.md).
+//!
+//! Per unit area, a normal stiffness k pulls each node back toward its reference
+//! position along the surface's reference normal n, and drag resists the node's
+//! velocity against the underlying tissue, c_n along n and c_t across it:
+//!
+//!   f_i = −A_i k ((x_i − x_ref,i)·n_i) n_i − A_i (c_n (v_i·n_i) n_i + c_t (v_i − (v_i·n_i) n_i)),
+//!
+//! with A_i the node's share of the reference area (a third of each live triangle it
+//! belongs to). A pressure p on a patch far from its border therefore sinks it by p/k.
+//! The drag is integrated implicitly, like the mass damping, so it never limits the time
+//! step: a wound retracts under the residual stress against c_t over a time the
+//! scene sets, not as elastic ringing. The stiffness enters the implicit system's matrix
+//! and the explicit stability bound.
+
+use super::state::{Nodes, Topology};
+use crate::math::Vec3;
+
+/// The foundation's constants.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FoundationParams {
+    /// k, Pa/m.
+    pub stiffness_pa_per_m: f64,
+    /// c_n, Pa·s/m.
+    pub normal_damping_pa_s_per_m: f64,
+    /// c_t, Pa·s/m.
+    pub shear_damping_pa_s_per_m: f64,
+}
+
+/// The foundation under each node: its area share and reference normal.
+#[derive(Debug, Clone)]
+pub(crate) struct Foundation {
+    pub params: FoundationParams,
+    area: Vec<f64>,
+    normal: Vec<Vec3>,
+}
+
+impl Foundation {
+    pub fn new(params: FoundationParams, nodes: &Nodes, topo: &Topology) -> Self {
+        let mut foundation = Foundation { params, area: Vec::new(), normal: Vec::new() };
+        foundation.refresh(nodes, topo);
+        foundation
+    }
+
+    /// Recomputes every node's area share and normal from the live triangles at their
+    /// reference positions (at build and after a cut; allocates only when nodes were added).
+    pub fn refresh(&mut self, nodes: &Nodes, topo: &Topology) {
+        let n = nodes.len();
+        self.area.clear();
+        self.area.resize(n, 0.0);
+        self.normal.clear();
+        self.normal.resize(n, Vec3::zeros());
+        for (t, tri) in topo.tris.iter().enumerate() {
+            if !topo.tri_alive[t] {
+                continue;
+            }
+            let [a, b, c] = tri.map(|v| nodes.x_ref[v as usize]);
+            // |cross| / 2 is the area; its direction the normal.
+            let area_normal = (b - a).cross(&(c - a)) * 0.5;
+            let third = topo.tri_area_ref[t] / 3.0;
+            for &v in tri {
+                self.area[v as usize] += third;
+                self.normal[v as usize] += area_normal;
+            }
+        }
+        for i in 0..n {
+            let len = self.normal[i].norm();
+            if nodes.alive[i] && len > 0.0 {
+                self.normal[i] /= len;
+            } else {
+                self.area[i] = 0.0;
+                self.normal[i] = Vec3::zeros();
+            }
+        }
+    }
+
+    /// The largest node spring, N/m (for the explicit stability bound).
+    pub fn max_node_stiffness(&self) -> f64 {
+        self.area.iter().fold(0.0f64, |m, &a| m.max(a)) * self.params.stiffness_pa_per_m
+    }
+
+    /// Adds the elastic part to the force accumulators.
+    pub fn add_forces(&self, nodes: &mut Nodes) {
+        let k = self.params.stiffness_pa_per_m;
+        for i in 0..nodes.len() {
+            let a = self.area[i];
+            if a > 0.0 {
+                let n = self.normal[i];
+                nodes.f[i] -= n * (k * a * (nodes.x[i] - nodes.x_ref[i]).dot(&n));
+            }
+        }
+    }
+
+    /// The velocity after the drag, integrated implicitly over `h`: `w` is the velocity
+    /// the other forces would give, `mass_coef` the mass damping's 1 + hα.
+    pub fn damped_velocity(&self, i: usize, w: Vec3, h: f64, inv_mass: f64, mass_coef: f64) -> Vec3 {
+        let (a, n) = (self.area[i], self.normal[i]);
+        let along = n * w.dot(&n);
+        let across = w - along;
+        along / (mass_coef + h * a * self.params.normal_damping_pa_s_per_m * inv_mass)
+            + across / (mass_coef + h * a * self.params.shear_damping_pa_s_per_m * inv_mass)
+    }
+
+    /// out += K_f p (the normal springs).
+    pub fn add_stiffness_product(&self, p: &[Vec3], out: &mut [Vec3]) {
+        let k = self.params.stiffness_pa_per_m;
+        for i in 0..p.len() {
+            let a = self.area[i];
+            if a > 0.0 {
+                let n = self.normal[i];
+                out[i] += n * (k * a * n.dot(&p[i]));
+            }
+        }
+    }
+
+    /// out += scale · C_f p (the drag).
+    pub fn add_damping_product(&self, p: &[Vec3], out: &mut [Vec3], scale: f64) {
+        let (cn, ct) = (self.params.normal_damping_pa_s_per_m, self.params.shear_damping_pa_s_per_m);
+        for i in 0..p.len() {
+            let a = self.area[i];
+            if a > 0.0 {
+                let n = self.normal[i];
+                let along = n * n.dot(&p[i]);
+                out[i] += (along * cn + (p[i] - along) * ct) * (a * scale);
+            }
+        }
+    }
+
+    /// The diagonal of `stiff_coef · K_f + damp_coef · C_f` at node `i`, per axis (the
+    /// Jacobi preconditioner's share).
+    pub fn diagonal(&self, i: usize, stiff_coef: f64, damp_coef: f64) -> Vec3 {
+        let a = self.area[i];
+        if a <= 0.0 {
+            return Vec3::zeros();
+        }
+        let nn = self.normal[i].component_mul(&self.normal[i]);
+        let p = &self.params;
+        nn * (a * (stiff_coef * p.stiffness_pa_per_m + damp_coef * p.normal_damping_pa_s_per_m))
+            + (Vec3::repeat(1.0) - nn) * (a * damp_coef * p.shear_damping_pa_s_per_m)
+    }
+}

@@ -1,0 +1,118 @@
+//! What the trainee feels (docs/tool-tissue.md): the skin on its foundation against the
+//! analytic answer, a blade that cuts only with its edge leading, the cutting force of
+//! the default scene's scripted incision against the fracture estimate J·t, and a
+//! wound that retracts over time rather than ringing.
+
+use cutsim_sim::accuracy::membrane::{peak_and_plateau, shrinking_gap_curve, shrinking_gap_curve_with};
+use cutsim_sim::math::{Quat, Vec3};
+use cutsim_sim::scene::{ModelSpec, Scene};
+use cutsim_sim::script::CutScript;
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+
+fn root() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn default_scene() -> Scene {
+    Scene::load(&root().join("server/scenes/skin-patch.json")).unwrap()
+}
+
+fn edit(scene: &Scene, change: impl FnOnce(&mut serde_json::Value)) -> Scene {
+    let mut json = serde_json::to_value(scene).unwrap();
+    change(&mut json);
+    Scene::from_json_str(&json.to_string(), "edited skin-patch", None).unwrap()
+}
+
+/// Runs the straight incision script with the scalpel turned by `turn` about its axis:
+/// (force magnitude per step, cutting flag per step, cut updates, incision length m).
+fn scripted_cut(scene: &Scene, turn: Quat) -> (Vec<f64>, Vec<bool>, u64, f64) {
+    let script = CutScript::load(&root().join("clients/cut-bot/examples/skin-patch-straight.json")).unwrap();
+    let mut tissue = cutsim_sim::build_tissue(scene).unwrap();
+    let compiled = script.compile(tissue.tools(), scene.time_step_s.get(), "straight").unwrap();
+    let n = tissue.tools().len();
+    let (mut commands, mut feedback) = (vec![ToolCommand::default(); n], vec![ToolFeedback::default(); n]);
+    let (mut forces, mut cutting) = (Vec::new(), Vec::new());
+    for step in 0..compiled.steps {
+        compiled.commands_at(step, &mut commands);
+        commands[0].pose.orientation = commands[0].pose.orientation * turn;
+        tissue.step(&commands, &mut feedback);
+        forces.push(feedback[0].force_n.norm());
+        cutting.push(feedback[0].cutting);
+    }
+    let c = tissue.counters();
+    (forces, cutting, c.cut_updates, c.incision_length_m)
+}
+
+fn toughness_times_thickness(scene: &Scene) -> f64 {
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    spec.material.fracture_toughness_j_per_m2.get() * spec.material.thickness_m.get()
+}
+
+#[test]
+fn skin_pressed_uniformly_sinks_into_its_foundation_by_pressure_over_stiffness() {
+    // A uniform load p on a membrane over a Winkler foundation of modulus k: far from
+    // the held border (more than a few √(T/k) ≈ 5 mm) it sinks by exactly p/k.
+    let g = 500.0;
+    let scene = edit(&default_scene(), |s| s["gravity_m_per_s2"] = serde_json::json!([0.0, 0.0, -g]));
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    let (rho, t, k) = (spec.material.density_kg_per_m3.get(), spec.material.thickness_m.get(), spec.foundation.as_ref().unwrap().stiffness_pa_per_m.get());
+    let mut skin = cutsim_sim::msm::build_from_scene(&scene, spec).unwrap();
+    let rest: Vec<Vec3> = skin.positions().to_vec();
+    let centre = (0..rest.len()).min_by(|&a, &b| rest[a].norm().total_cmp(&rest[b].norm())).unwrap();
+    skin.step_holding(None, false, 400);
+    let sink = rest[centre].z - skin.positions()[centre].z;
+    let expected = rho * t * g / k;
+    println!("centre sinks {:.4} mm; p/k = {:.4} mm", sink * 1e3, expected * 1e3);
+    assert!((sink / expected - 1.0).abs() < 0.02, "sinks {:.4} mm, p/k is {:.4} mm", sink * 1e3, expected * 1e3);
+    // Without the foundation the same load sags the drumhead far more.
+    let drum = edit(&scene, |s| s["model"]["msm"].as_object_mut().unwrap().remove("foundation").map(|_| ()).unwrap());
+    let ModelSpec::Msm(drum_spec) = &drum.model else { unreachable!() };
+    let mut drum_skin = cutsim_sim::msm::build_from_scene(&drum, drum_spec).unwrap();
+    drum_skin.step_holding(None, false, 400);
+    assert!(rest[centre].z - drum_skin.positions()[centre].z > 3.0 * sink);
+}
+
+#[test]
+fn the_default_scripted_cut_resists_with_toughness_times_thickness() {
+    let scene = default_scene();
+    let (forces, cutting, cuts, length) = scripted_cut(&scene, Quat::identity());
+    let estimate = toughness_times_thickness(&scene);
+    let cut_steps: Vec<usize> = (0..cutting.len()).filter(|&i| cutting[i]).collect();
+    let (first, last) = (cut_steps[0], *cut_steps.last().unwrap());
+    let middle = &forces[first + (last - first) / 4..=first + 3 * (last - first) / 4];
+    let mean = middle.iter().sum::<f64>() / middle.len() as f64;
+    let peak = forces.iter().copied().fold(0.0, f64::max);
+    println!("{cuts} cut updates, incision {:.1} mm; steady force {mean:.2} N (J·t = {estimate:.2} N), peak {peak:.2} N", length * 1e3);
+    assert!(cuts >= 1 && (length - 0.04).abs() < 0.006, "{cuts} updates, {:.1} mm", length * 1e3);
+    assert!(mean > 0.5 * estimate && mean < 2.0 * estimate, "steady force {mean:.2} N against J·t = {estimate:.2} N");
+    assert!((0.3..=3.0).contains(&mean), "a force a hand feels, below a desktop device's limit: {mean:.2} N");
+}
+
+#[test]
+fn a_blade_drawn_sideways_does_not_cut_and_without_toughness_it_would() {
+    let sideways = Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
+    let (_, _, cuts, length) = scripted_cut(&default_scene(), sideways);
+    assert_eq!((cuts, length), (0, 0.0), "the flat of the blade leading must not cut");
+    // The paper's rule (no fracture toughness): any crossing cuts, whatever the edge.
+    let paper = edit(&default_scene(), |s| s["model"]["msm"]["material"]["fracture_toughness_j_per_m2"] = serde_json::json!(0));
+    let (forces, _, cuts, _) = scripted_cut(&paper, sideways);
+    assert!(cuts >= 1);
+    let estimate = toughness_times_thickness(&default_scene());
+    assert!(forces.iter().copied().fold(0.0, f64::max) < 0.25 * estimate, "without toughness the blade passes nearly free");
+}
+
+#[test]
+fn on_its_foundation_a_wound_retracts_over_time_instead_of_ringing() {
+    let foundation = r#", "foundation": { "stiffness_pa_per_m": 1300000, "normal_damping_pa_s_per_m": 3000, "shear_damping_pa_s_per_m": 200000 }"#;
+    let drum = shrinking_gap_curve(0.1, 1500).unwrap();
+    let skin = shrinking_gap_curve_with(0.1, 1500, foundation).unwrap();
+    let ((drum_peak_at, drum_peak), _) = peak_and_plateau(&drum);
+    let ((_, skin_peak), skin_plateau) = peak_and_plateau(&skin);
+    let rise = |curve: &[f64], fraction: f64, level: f64| curve.iter().position(|&g| g >= fraction * level).unwrap_or(curve.len());
+    let (t10, t90) = (rise(&skin, 0.1, skin_plateau), rise(&skin, 0.9, skin_plateau));
+    println!("membrane alone: peak {:.3} mm at {drum_peak_at} ms; on its foundation: 10 % at {t10} ms, 90 % at {t90} ms, plateau {:.3} mm", drum_peak * 1e3, skin_plateau * 1e3);
+    assert!(drum_peak_at < 30, "the bare membrane rings: peak at {drum_peak_at} ms");
+    assert!(t90 > 100 && t90 < 1500, "on the foundation the wound opens over a time the drag sets: 90 % at {t90} ms");
+    assert!(skin_peak < 1.05 * skin_plateau, "and without overshoot: peak {:.3} mm, plateau {:.3} mm", skin_peak * 1e3, skin_plateau * 1e3);
+    assert!(skin_plateau > 1e-3, "the wound still gapes: {:.3} mm", skin_plateau * 1e3);
+}
