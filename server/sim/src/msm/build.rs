@@ -360,6 +360,7 @@ pub fn build_from_scene(scene: &Scene, spec: &MsmSpec) -> Result<MassSpring, Sce
         cutting: spec.cutting.as_ref().map(|c| (c.sweep_radius_m.map(|r| r.get()), c.min_advance_m.map(|a| a.get()))),
         foundation: spec.foundation.as_ref().map(|f| FoundationParams {
             stiffness_pa_per_m: f.stiffness_pa_per_m.get(),
+            shear_stiffness_pa_per_m: f.shear_stiffness_pa_per_m.get(),
             normal_damping_pa_s_per_m: f.normal_damping_pa_s_per_m.get(),
             shear_damping_pa_s_per_m: f.shear_damping_pa_s_per_m.get(),
         }),

@@ -2,10 +2,12 @@
 //! (docs/tool-tissue.md).
 //!
 //! Per unit area, a normal stiffness k pulls each node back toward its reference
-//! position along the surface's reference normal n, and drag resists the node's
-//! velocity against the underlying tissue, c_n along n and c_t across it:
+//! position along the surface's reference normal n, a shear stiffness k_t across it (the
+//! subcutaneous layer anchoring the skin in its plane), and drag resists the node's
+//! velocity against the underlying tissue, c_n along n and c_t across it. With
+//! d_i = x_i − x_ref,i and P_n = n nᵀ:
 //!
-//!   f_i = −A_i k ((x_i − x_ref,i)·n_i) n_i − A_i (c_n (v_i·n_i) n_i + c_t (v_i − (v_i·n_i) n_i)),
+//!   f_i = −A_i (k P_n + k_t (I − P_n)) d_i − A_i (c_n P_n + c_t (I − P_n)) v_i,
 //!
 //! with A_i the node's share of the reference area (a third of each live triangle it
 //! belongs to). A pressure p on a patch far from its border therefore sinks it by p/k.
@@ -22,6 +24,8 @@ use crate::math::Vec3;
 pub struct FoundationParams {
     /// k, Pa/m.
     pub stiffness_pa_per_m: f64,
+    /// k_t, Pa/m.
+    pub shear_stiffness_pa_per_m: f64,
     /// c_n, Pa·s/m.
     pub normal_damping_pa_s_per_m: f64,
     /// c_t, Pa·s/m.
@@ -77,17 +81,22 @@ impl Foundation {
 
     /// The largest node spring, N/m (for the explicit stability bound).
     pub fn max_node_stiffness(&self) -> f64 {
-        self.area.iter().fold(0.0f64, |m, &a| m.max(a)) * self.params.stiffness_pa_per_m
+        self.area.iter().fold(0.0f64, |m, &a| m.max(a)) * self.params.stiffness_pa_per_m.max(self.params.shear_stiffness_pa_per_m)
+    }
+
+    /// (k P_n + k_t (I − P_n)) d at node `i`, per unit area.
+    fn spring(&self, i: usize, d: Vec3) -> Vec3 {
+        let n = self.normal[i];
+        let along = n * n.dot(&d);
+        along * self.params.stiffness_pa_per_m + (d - along) * self.params.shear_stiffness_pa_per_m
     }
 
     /// Adds the elastic part to the force accumulators.
     pub fn add_forces(&self, nodes: &mut Nodes) {
-        let k = self.params.stiffness_pa_per_m;
         for i in 0..nodes.len() {
             let a = self.area[i];
             if a > 0.0 {
-                let n = self.normal[i];
-                nodes.f[i] -= n * (k * a * (nodes.x[i] - nodes.x_ref[i]).dot(&n));
+                nodes.f[i] -= self.spring(i, nodes.x[i] - nodes.x_ref[i]) * a;
             }
         }
     }
@@ -102,14 +111,12 @@ impl Foundation {
             + across / (mass_coef + h * a * self.params.shear_damping_pa_s_per_m * inv_mass)
     }
 
-    /// out += K_f p (the normal springs).
+    /// out += K_f p (the springs).
     pub fn add_stiffness_product(&self, p: &[Vec3], out: &mut [Vec3]) {
-        let k = self.params.stiffness_pa_per_m;
         for i in 0..p.len() {
             let a = self.area[i];
             if a > 0.0 {
-                let n = self.normal[i];
-                out[i] += n * (k * a * n.dot(&p[i]));
+                out[i] += self.spring(i, p[i]) * a;
             }
         }
     }
@@ -137,6 +144,6 @@ impl Foundation {
         let nn = self.normal[i].component_mul(&self.normal[i]);
         let p = &self.params;
         nn * (a * (stiff_coef * p.stiffness_pa_per_m + damp_coef * p.normal_damping_pa_s_per_m))
-            + (Vec3::repeat(1.0) - nn) * (a * damp_coef * p.shear_damping_pa_s_per_m)
+            + (Vec3::repeat(1.0) - nn) * (a * (stiff_coef * p.shear_stiffness_pa_per_m + damp_coef * p.shear_damping_pa_s_per_m))
     }
 }

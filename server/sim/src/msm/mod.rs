@@ -60,7 +60,7 @@ pub struct StageTimes {
 
 /// The cutting force's reaction spreads over the skin nodes within this many mean edge
 /// lengths of the crossing.
-const REACTION_REACH_EDGES: f64 = 2.0;
+const REACTION_REACH_EDGES: f64 = 3.0;
 
 /// How a blade moves through the skin at its crossing `hit` this step: its velocity there
 /// (from its pose last step) against the tissue beneath, which holds still. Measured

@@ -115,6 +115,11 @@ pub struct MsmSpec {
 pub struct FoundationSpec {
     /// Normal stiffness per unit area (pressure per deflection), Pa/m.
     pub stiffness_pa_per_m: FoundationStiffnessPaPerM,
+    /// Tangential stiffness per unit area (the subcutaneous layer's shear modulus over its
+    /// thickness), Pa/m: anchors the skin in its plane against the drag of a cut. 0 (the
+    /// default): the skin slides freely, held by drag only.
+    #[serde(default)]
+    pub shear_stiffness_pa_per_m: FoundationStiffnessPaPerM,
     /// Normal drag per unit area, Pa·s/m.
     #[serde(default)]
     pub normal_damping_pa_s_per_m: FoundationDampingPaSPerM,
