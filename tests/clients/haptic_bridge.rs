@@ -217,7 +217,6 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
         .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
-    eprintln!("bridge report: {report}");
     let max_force = report["max_force_n"].as_f64().unwrap();
     assert!((0.3..=3.3 + 1e-12).contains(&max_force), "the largest force sent to the device: {max_force} N\n{report}");
     // While the blade moves through the middle of the patch (1–3.5 s), the device renders
@@ -226,4 +225,11 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
     let cutting: Vec<_> = rows.iter().filter(|r| r.0 > 1.0 && r.0 < 3.5).collect();
     let felt = cutting.iter().filter(|r| r.1 > 0.3).count();
     assert!(felt as f64 > 0.8 * cutting.len() as f64, "{felt} of {} ms above 0.3 N (largest {max_force} N)", cutting.len());
+    // Steady, near the skin's J·t (2.2 N), and smooth: the coupling integrates the
+    // resistance like friction, so the proxy does not stick and slip at the loop rate
+    // (before it did, and the rate limit cut in on nine steps in ten).
+    let mean = cutting.iter().map(|r| r.1).sum::<f64>() / cutting.len() as f64;
+    assert!(mean > 1.1 && mean < 3.3, "mean force while cutting {mean} N (J·t = 2.2 N)");
+    let rate_limited = report["rate_limited"].as_u64().unwrap();
+    assert!((rate_limited as f64) < 0.1 * report["device_steps"].as_u64().unwrap() as f64, "the rate limit cut in on {rate_limited} steps: {report}");
 }

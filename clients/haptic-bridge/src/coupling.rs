@@ -41,16 +41,19 @@ impl Coupling {
     }
 
     /// One step of `dt_s`: the device at `device` moving at `device_velocity` (scene
-    /// frame), the tissue pushing the tool with `tissue_force`. Returns the force to
-    /// render on the device (scene frame), N.
-    pub fn step(&mut self, dt_s: f64, device: V3, device_velocity: V3, tissue_force: V3) -> V3 {
+    /// frame), the tissue pushing the tool with `tissue_force`, of which `resistance` is
+    /// dissipative (the cutting resistance: it may stop the proxy, never drive it).
+    /// Returns the force to render on the device (scene frame), N.
+    pub fn step(&mut self, dt_s: f64, device: V3, device_velocity: V3, tissue_force: V3, resistance: V3) -> V3 {
         if !self.started {
             self.proxy = device;
             self.started = true;
         }
         let p = &self.params;
         let coupling = (device - self.proxy) * p.stiffness_n_per_m + (device_velocity - self.proxy_velocity) * p.damping_n_s_per_m;
-        self.proxy_velocity = self.proxy_velocity + (coupling + tissue_force) * (dt_s / p.proxy_mass_kg);
+        let dt_per_kg = dt_s / p.proxy_mass_kg;
+        let elastic = tissue_force - resistance;
+        self.proxy_velocity = proxy_velocity_after(self.proxy_velocity + (coupling + elastic) * dt_per_kg, resistance, dt_per_kg);
         self.proxy = self.proxy + self.proxy_velocity * dt_s;
         if !(self.proxy.is_finite() && self.proxy_velocity.is_finite()) {
             // Never let a broken state reach the device: start over at the device.
@@ -62,9 +65,64 @@ impl Coupling {
     }
 }
 
+/// The proxy's velocity after the dissipative `resistance` acts for one step on the
+/// velocity `v` the other forces gave it (`dt_per_kg` = dt / m). Its share against the
+/// motion may stop the proxy but never reverse it, as with Coulomb friction integrated
+/// implicitly: a cutting force of 2 N on a 10 g proxy, applied explicitly, would throw it
+/// back and forth every millisecond (stick–slip at the loop rate, felt as a buzz). It
+/// only takes energy out, so the coupling stays passive.
+fn proxy_velocity_after(v: V3, resistance: V3, dt_per_kg: f64) -> V3 {
+    let speed = v.norm();
+    if speed == 0.0 {
+        return v;
+    }
+    let direction = v * (1.0 / speed);
+    let along = resistance.dot(direction).min(0.0);
+    let slowed = (speed + along * dt_per_kg).max(0.0);
+    direction * slowed
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_force_against_the_motion_stops_the_proxy_but_never_throws_it_back() {
+        // 0.1 m/s, 10 g, 1 ms: 1 N takes 0.1 m/s off; 5 N would reverse it, and stops it.
+        let v = V3(0.1, 0.0, 0.0);
+        assert!((proxy_velocity_after(v, V3(-0.5, 0.0, 0.0), 0.1) - V3(0.05, 0.0, 0.0)).norm() < 1e-12);
+        assert_eq!(proxy_velocity_after(v, V3(-5.0, 0.0, 0.0), 0.1), V3(0.0, 0.0, 0.0));
+        // A resistance never drives: not from rest, not along the motion, not across it.
+        assert_eq!(proxy_velocity_after(V3::default(), V3(-5.0, 0.0, 0.0), 0.1), V3::default());
+        assert_eq!(proxy_velocity_after(v, V3(1.0, 0.0, 0.0), 0.1), v);
+        assert_eq!(proxy_velocity_after(v, V3(0.0, 3.0, 0.0), 0.1), v);
+    }
+
+    #[test]
+    fn a_steady_resistance_dragged_at_constant_speed_is_felt_smoothly() {
+        // A resistance of 2 N against motion, fading to zero below 2 mm/s of the velocity
+        // smoothed over 10 ms, answered one step late (as the server does); the device
+        // moves at 10 mm/s. The rendered force settles near 2 N and stops changing by
+        // more than a few mN per millisecond.
+        let mut c = Coupling::new(CouplingParams::default());
+        let (mut last_x, mut tissue, mut smoothed) = (V3::default(), V3::default(), V3::default());
+        let mut forces = Vec::new();
+        for i in 0..3000 {
+            let device = V3(0.01 * i as f64 * 0.001, 0.0, 0.0);
+            let f = c.step(0.001, device, V3(0.01, 0.0, 0.0), tissue, tissue);
+            forces.push(f.0);
+            let v = (c.proxy - last_x) * 1000.0;
+            last_x = c.proxy;
+            smoothed = smoothed + (v - smoothed) * (1.0 / 11.0);
+            let speed = smoothed.norm();
+            tissue = if speed > 0.0 { smoothed * (-2.0 * (speed / 0.002).min(1.0) / speed) } else { V3::default() };
+        }
+        let tail = &forces[2000..];
+        let steps = tail.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
+        let mean = tail.iter().sum::<f64>() / tail.len() as f64;
+        assert!((mean + 2.0).abs() < 0.1, "the device feels the resistance: {mean} N");
+        assert!(steps < 0.02, "and smoothly: largest change {steps} N per ms");
+    }
 
     #[test]
     fn at_rest_the_device_feels_the_tissue_force() {
@@ -72,7 +130,7 @@ mod tests {
         let tissue = V3(0.0, 0.0, 0.5);
         let mut f = V3::default();
         for _ in 0..3000 {
-            f = c.step(0.001, V3(0.0, 0.0, -0.002), V3::default(), tissue);
+            f = c.step(0.001, V3(0.0, 0.0, -0.002), V3::default(), tissue, V3::default());
         }
         assert!((f - tissue).norm() < 1e-6, "{f:?}");
     }
@@ -82,7 +140,7 @@ mod tests {
         let mut c = Coupling::new(CouplingParams::default());
         let mut f = V3(1.0, 1.0, 1.0);
         for _ in 0..2000 {
-            f = c.step(0.001, V3(0.01, 0.02, 0.03), V3::default(), V3::default());
+            f = c.step(0.001, V3(0.01, 0.02, 0.03), V3::default(), V3::default(), V3::default());
         }
         assert!(f.norm() < 1e-9);
     }

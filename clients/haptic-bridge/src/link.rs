@@ -19,6 +19,8 @@ use crate::vec::V3;
 pub struct Answer {
     /// Force of the tissue on the tool, scene frame, N.
     pub force: V3,
+    /// The dissipative share of `force` (the cutting resistance), N.
+    pub resistance: V3,
     pub received: Instant,
 }
 
@@ -126,7 +128,8 @@ async fn run(
                 Ok(Ok(Some(f))) if f.tool == target.tool => {
                     let now = Instant::now();
                     let force = f.force_n.map_or(V3::default(), |v| V3(v.x, v.y, v.z));
-                    answer.store(Some(Arc::new(Answer { force, received: now })));
+                    let resistance = f.resistance_n.map_or(V3::default(), |v| V3(v.x, v.y, v.z));
+                    answer.store(Some(Arc::new(Answer { force, resistance, received: now })));
                     if f.echo_client_time_ns != 0 && f.echo_client_time_ns != last_echo {
                         last_echo = f.echo_client_time_ns;
                         let rtt = (now.duration_since(origin).as_nanos() as u64).saturating_sub(f.echo_client_time_ns) / 1000;

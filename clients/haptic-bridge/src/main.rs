@@ -232,8 +232,8 @@ fn run(args: &Args) -> anyhow::Result<()> {
         let fresh = ramping_out_until.is_none()
             && connected
             && answer.as_ref().is_some_and(|a| now.duration_since(a.received).as_secs_f64() * 1e3 <= config.limits.stale_ms);
-        let tissue = if fresh { answer.map_or(V3::default(), |a| a.force) } else { V3::default() };
-        let wanted = if state.present { coupling.step(dt_s, position, velocity, tissue) } else { V3::default() };
+        let (tissue, resistance) = if fresh { answer.map_or_else(Default::default, |a| (a.force, a.resistance)) } else { Default::default() };
+        let wanted = if state.present { coupling.step(dt_s, position, velocity, tissue, resistance) } else { V3::default() };
         let force = limiter.apply(config.workspace.force_to_device(wanted), fresh, dt_s);
         device.write_force(force, fresh);
 

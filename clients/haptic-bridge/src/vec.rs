@@ -9,6 +9,9 @@ impl V3 {
     pub fn norm(self) -> f64 {
         (self.0 * self.0 + self.1 * self.1 + self.2 * self.2).sqrt()
     }
+    pub fn dot(self, o: V3) -> f64 {
+        self.0 * o.0 + self.1 * o.1 + self.2 * o.2
+    }
     pub fn is_finite(self) -> bool {
         self.0.is_finite() && self.1.is_finite() && self.2.is_finite()
     }

@@ -197,6 +197,7 @@ impl Stream for FeedbackStream {
                     server_latency_us: r.server_latency_ns as f64 / 1e3,
                     step_time_us: r.step_time_ns as f64 / 1e3,
                     tool: tool as u32,
+                    resistance_n: Some(convert::vec3(&r.feedback.resistance_n)),
                 });
             }
         }

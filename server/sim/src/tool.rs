@@ -55,6 +55,10 @@ pub struct ToolFeedback {
     pub cutting: bool,
     /// True when the force was above the tool's limit and was clamped.
     pub force_clamped: bool,
+    /// The dissipative share of `force_n`, N: the cutting resistance, which opposes the
+    /// blade's motion and may stop it but never drives it. A haptic coupling integrates
+    /// it like friction (docs/haptic-bridge.md); the rest of the force is elastic.
+    pub resistance_n: Vec3,
 }
 
 /// A tool placed in space for one step: the segment from `tip` to `top`.
@@ -111,6 +115,7 @@ impl ToolFeedback {
             let scale = max_force_n / magnitude;
             self.force_n *= scale;
             self.torque_nm *= scale;
+            self.resistance_n *= scale;
             self.force_clamped = true;
         }
     }

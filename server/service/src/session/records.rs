@@ -62,12 +62,13 @@ pub struct FeedbackRecord {
     pub step_time_ns: u64,
 }
 
-pub const FEEDBACK_WORDS: usize = 12;
+pub const FEEDBACK_WORDS: usize = 15;
 
 impl FeedbackRecord {
     pub fn to_words(&self) -> [u64; FEEDBACK_WORDS] {
         let f = self.feedback.force_n;
         let t = self.feedback.torque_nm;
+        let r = self.feedback.resistance_n;
         let flags = u64::from(self.feedback.contacts)
             | (u64::from(self.feedback.cutting) << 32)
             | (u64::from(self.feedback.force_clamped) << 33);
@@ -83,6 +84,9 @@ impl FeedbackRecord {
             self.echo_client_time_ns,
             self.server_latency_ns,
             self.step_time_ns,
+            r.x.to_bits(),
+            r.y.to_bits(),
+            r.z.to_bits(),
             0,
         ]
     }
@@ -97,6 +101,7 @@ impl FeedbackRecord {
                 contacts: w[7] as u32,
                 cutting: (w[7] >> 32) & 1 == 1,
                 force_clamped: (w[7] >> 33) & 1 == 1,
+                resistance_n: Vec3::new(f(11), f(12), f(13)),
             },
             echo_client_time_ns: w[8],
             server_latency_ns: w[9],
@@ -134,6 +139,7 @@ mod tests {
                 contacts: 7,
                 cutting: true,
                 force_clamped: false,
+                resistance_n: Vec3::new(-0.5, 0.25, 0.0),
             },
             echo_client_time_ns: 11,
             server_latency_ns: 12,

@@ -206,6 +206,7 @@ impl MassSpring {
             integrator,
             placed: vec![None::<PlacedTool>; tools.len()],
             previous_placed: vec![None::<PlacedTool>; tools.len()],
+            blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(64 * tools.len()),
             contacts: Vec::with_capacity(n),
             tools,

@@ -62,6 +62,13 @@ pub struct StageTimes {
 /// lengths of the crossing.
 const REACTION_REACH_EDGES: f64 = 3.0;
 
+/// The cutting force follows the blade's velocity smoothed over this time, s. Taken
+/// step by step, the force would switch on and off with the pose's millisecond jitter,
+/// and a haptic proxy pulled through the cut would stick and slip at the loop rate (a
+/// buzz); smoothed, it holds while the blade moves and fades over this time when it
+/// stops.
+pub const BLADE_VELOCITY_TIME_CONSTANT_S: f64 = 0.01;
+
 /// How a blade moves through the skin at its crossing `hit` this step: its velocity there
 /// (from its pose last step) against the tissue beneath, which holds still. Measured
 /// against the skin's own nodes instead, the cut would feed back on itself: the skin the
@@ -95,6 +102,9 @@ pub struct MassSpring {
     placed: Vec<Option<PlacedTool>>,
     /// Where each tool was last step (the blade's velocity through the skin).
     previous_placed: Vec<Option<PlacedTool>>,
+    /// Each blade's velocity through the skin, smoothed over
+    /// [`BLADE_VELOCITY_TIME_CONSTANT_S`] (zero outside a resisted stroke).
+    blade_velocity: Vec<Vec3>,
     /// The skin's share of the cutting resistance: forces on nodes, applied next step.
     cut_reactions: Vec<(u32, Vec3)>,
     contacts: Vec<Contact>,
@@ -271,16 +281,23 @@ impl MassSpring {
                     let resisted = match (hit, self.previous_placed[tool]) {
                         (Some(hit), Some(before)) if cutter.in_stroke(tool) && self.fracture_toughness_j_per_m2 > 0.0 => {
                             let edge = commands[tool].pose.orientation * self.tools[tool].edge_local;
-                            let motion = blade_motion(&blade, &before, &hit, edge, &self.nodes, &self.topo, self.dt_s);
+                            let mut motion = blade_motion(&blade, &before, &hit, edge, &self.nodes, &self.topo, self.dt_s);
+                            let smoothed = &mut self.blade_velocity[tool];
+                            *smoothed += (motion.relative_velocity - *smoothed) * (self.dt_s / (BLADE_VELOCITY_TIME_CONSTANT_S + self.dt_s));
+                            motion.relative_velocity = *smoothed;
                             Some((hit, resistance::resistance(&motion, self.fracture_toughness_j_per_m2, self.material.thickness_m)))
                         }
-                        _ => None,
+                        _ => {
+                            self.blade_velocity[tool] = Vec3::zeros();
+                            None
+                        }
                     };
                     // Without a fracture toughness every crossing cuts (the paper's rule).
                     let advance = resisted.is_none_or(|(_, r)| r.cuts) || self.fracture_toughness_j_per_m2 <= 0.0;
                     let plan = cutter.update(tool, &blade, hit, advance, &view, next_id);
                     if let Some((hit, r)) = resisted.filter(|(_, r)| r.cuts) {
                         feedback[tool].force_n += r.force_n;
+                        feedback[tool].resistance_n += r.force_n;
                         feedback[tool].torque_nm += (hit.point - blade.tip).cross(&r.force_n);
                         // The opposite force drags the skin the blade cuts through, spread
                         // over the nodes around the crossing (one triangle's nodes weigh
@@ -298,7 +315,10 @@ impl MassSpring {
                     }
                     plan
                 }
-                None => cutter.end_stroke(tool, &view, next_id),
+                None => {
+                    self.blade_velocity[tool] = Vec3::zeros();
+                    cutter.end_stroke(tool, &view, next_id)
+                }
             };
             if let Some(plan) = plan {
                 feedback[tool].cutting = true;
