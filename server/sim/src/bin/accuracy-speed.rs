@@ -230,7 +230,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
                     }
                 };
                 let session_error = match &reference_field {
-                    Some(field) if timing.p50_us < 30_000.0 => Some(session_error(problem, setting, &samples, field, if quick { 1.0 } else { 4.0 })?),
+                    Some(field) if timing.p50_us < 30_000.0 => Some(session_error(problem, setting, &samples, field, if quick { 1.0 } else { 4.0 })?.0),
                     _ => None,
                 };
                 let frequency_error = match frequency_ref {
