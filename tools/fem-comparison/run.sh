@@ -7,10 +7,8 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
-if [ ! -x "$here/.venv/bin/python" ]; then
-    python3 -m venv "$here/.venv"
-fi
-"$here/.venv/bin/pip" install --quiet --disable-pip-version-check -r "$here/requirements.txt"
+. "$root/tools/python-venv.sh"
+python_venv "$here"
 (cd "$root" && cargo build --quiet --locked --release -p cutsim-server)
 server="${CARGO_TARGET_DIR:-$root/target}/release/cutsim-server"
 exec "$here/.venv/bin/python" "$here/compare.py" --server "$server" --out "$root/docs/fem-comparison.md" "$@"

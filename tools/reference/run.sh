@@ -7,10 +7,8 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
-if [ ! -x "$here/.venv/bin/python" ]; then
-    python3 -m venv "$here/.venv"
-fi
-"$here/.venv/bin/pip" install --quiet --disable-pip-version-check -r "$here/requirements.txt"
+. "$root/tools/python-venv.sh"
+python_venv "$here"
 problems="${CARGO_TARGET_DIR:-$root/target}/reference-problems"
 (cd "$root" && cargo run --quiet --locked -p cutsim-sim --bin accuracy-speed -- export-problems "$problems")
 "$here/.venv/bin/python" "$here/solve.py" "$problems" "$here/results" "$@"

@@ -3,11 +3,11 @@
 //! the default scene's scripted incision against the fracture estimate J·t, and a
 //! wound that retracts over time rather than ringing.
 
+use cutsim_sim::accuracy::cut_force::{self, CutTrace};
 use cutsim_sim::accuracy::membrane::{peak_and_plateau, shrinking_gap_curve, shrinking_gap_curve_with};
 use cutsim_sim::math::{Quat, Vec3};
 use cutsim_sim::scene::{ModelSpec, Scene};
 use cutsim_sim::script::CutScript;
-use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
 fn root() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -23,24 +23,10 @@ fn edit(scene: &Scene, change: impl FnOnce(&mut serde_json::Value)) -> Scene {
     Scene::from_json_str(&json.to_string(), "edited skin-patch", None).unwrap()
 }
 
-/// Runs the straight incision script with the scalpel turned by `turn` about its axis:
-/// (force magnitude per step, cutting flag per step, cut updates, incision length m).
-fn scripted_cut(scene: &Scene, turn: Quat) -> (Vec<f64>, Vec<bool>, u64, f64) {
+/// The straight incision script with the scalpel turned by `turn` about its axis.
+fn scripted_cut(scene: &Scene, turn: Quat) -> CutTrace {
     let script = CutScript::load(&root().join("clients/cut-bot/examples/skin-patch-straight.json")).unwrap();
-    let mut tissue = cutsim_sim::build_tissue(scene).unwrap();
-    let compiled = script.compile(tissue.tools(), scene.time_step_s.get(), "straight").unwrap();
-    let n = tissue.tools().len();
-    let (mut commands, mut feedback) = (vec![ToolCommand::default(); n], vec![ToolFeedback::default(); n]);
-    let (mut forces, mut cutting) = (Vec::new(), Vec::new());
-    for step in 0..compiled.steps {
-        compiled.commands_at(step, &mut commands);
-        commands[0].pose.orientation = commands[0].pose.orientation * turn;
-        tissue.step(&commands, &mut feedback);
-        forces.push(feedback[0].force_n.norm());
-        cutting.push(feedback[0].cutting);
-    }
-    let c = tissue.counters();
-    (forces, cutting, c.cut_updates, c.incision_length_m)
+    cut_force::scripted_cut(scene, &script, "scalpel", turn).unwrap()
 }
 
 fn toughness_times_thickness(scene: &Scene) -> f64 {
@@ -75,13 +61,11 @@ fn skin_pressed_uniformly_sinks_into_its_foundation_by_pressure_over_stiffness()
 #[test]
 fn the_default_scripted_cut_resists_with_toughness_times_thickness() {
     let scene = default_scene();
-    let (forces, cutting, cuts, length) = scripted_cut(&scene, Quat::identity());
+    let cut = scripted_cut(&scene, Quat::identity());
+    let (cuts, length) = (cut.cut_updates, cut.incision_length_m);
     let estimate = toughness_times_thickness(&scene);
-    let cut_steps: Vec<usize> = (0..cutting.len()).filter(|&i| cutting[i]).collect();
-    let (first, last) = (cut_steps[0], *cut_steps.last().unwrap());
-    let middle = &forces[first + (last - first) / 4..=first + 3 * (last - first) / 4];
-    let mean = middle.iter().sum::<f64>() / middle.len() as f64;
-    let peak = forces.iter().copied().fold(0.0, f64::max);
+    let mean = cut.steady().expect("the scripted cut cuts").mean_n;
+    let peak = cut.peak_n();
     println!("{cuts} cut updates, incision {:.1} mm; steady force {mean:.2} N (J·t = {estimate:.2} N), peak {peak:.2} N", length * 1e3);
     assert!(cuts >= 1 && (length - 0.04).abs() < 0.006, "{cuts} updates, {:.1} mm", length * 1e3);
     assert!(mean > 0.5 * estimate && mean < 2.0 * estimate, "steady force {mean:.2} N against J·t = {estimate:.2} N");
@@ -91,21 +75,23 @@ fn the_default_scripted_cut_resists_with_toughness_times_thickness() {
 #[test]
 fn a_blade_drawn_sideways_does_not_cut_and_without_toughness_it_would() {
     let sideways = Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
-    let (_, _, cuts, length) = scripted_cut(&default_scene(), sideways);
-    assert_eq!((cuts, length), (0, 0.0), "the flat of the blade leading must not cut");
+    let cut = scripted_cut(&default_scene(), sideways);
+    assert_eq!((cut.cut_updates, cut.incision_length_m), (0, 0.0), "the flat of the blade leading must not cut");
     // The paper's rule (no fracture toughness): any crossing cuts, whatever the edge.
     let paper = edit(&default_scene(), |s| s["model"]["msm"]["material"]["fracture_toughness_j_per_m2"] = serde_json::json!(0));
-    let (forces, _, cuts, _) = scripted_cut(&paper, sideways);
-    assert!(cuts >= 1);
+    let cut = scripted_cut(&paper, sideways);
+    assert!(cut.cut_updates >= 1);
     let estimate = toughness_times_thickness(&default_scene());
-    assert!(forces.iter().copied().fold(0.0, f64::max) < 0.25 * estimate, "without toughness the blade passes nearly free");
+    assert!(cut.peak_n() < 0.25 * estimate, "without toughness the blade passes nearly free");
 }
 
 #[test]
 fn on_its_foundation_a_wound_retracts_over_time_instead_of_ringing() {
-    let foundation = r#", "foundation": { "stiffness_pa_per_m": 1300000, "normal_damping_pa_s_per_m": 3000, "shear_damping_pa_s_per_m": 200000 }"#;
+    // The default scene's own foundation, under a patch of the shrinking test's size.
+    let ModelSpec::Msm(spec) = &default_scene().model else { unreachable!() };
+    let foundation = format!(r#", "foundation": {}"#, serde_json::to_string(spec.foundation.as_ref().unwrap()).unwrap());
     let drum = shrinking_gap_curve(0.1, 1500).unwrap();
-    let skin = shrinking_gap_curve_with(0.1, 1500, foundation).unwrap();
+    let skin = shrinking_gap_curve_with(0.1, 1500, &foundation).unwrap();
     let ((drum_peak_at, drum_peak), _) = peak_and_plateau(&drum);
     let ((_, skin_peak), skin_plateau) = peak_and_plateau(&skin);
     let rise = |curve: &[f64], fraction: f64, level: f64| curve.iter().position(|&g| g >= fraction * level).unwrap_or(curve.len());

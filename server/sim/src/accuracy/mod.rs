@@ -5,6 +5,7 @@
 //!   export for `tools/reference/solve.py` (scikit-fem).
 //! - [`reference`]: reading its results, field errors, the linear static solve.
 
+pub mod cut_force;
 pub mod membrane;
 pub mod problems;
 pub mod reference;

@@ -13,20 +13,17 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use cutsim_sim::accuracy::cut_force::{CutTrace, scripted_cut};
 use cutsim_sim::math::Quat;
 use cutsim_sim::scene::{ModelSpec, Scene};
 use cutsim_sim::script::CutScript;
-use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
 /// A desktop haptic device's largest force (a Touch-class device renders about 3.3 N).
 const DEVICE_LIMIT_N: f64 = 3.3;
 
 struct Trace {
     label: &'static str,
-    /// Per step: (time s, force magnitude N, whether the skin was cut this step).
-    samples: Vec<(f64, f64, bool)>,
-    cuts: u64,
-    incision_length_m: f64,
+    cut: CutTrace,
 }
 
 fn main() -> ExitCode {
@@ -67,18 +64,14 @@ fn run(out: &Path) -> Result<(), String> {
     let script = CutScript::load(&root.join("clients/cut-bot/examples/skin-patch-straight.json")).map_err(|e| e.to_string())?;
     let ModelSpec::Msm(spec) = &scene.model else { return Err("skin-patch is not a mass-spring scene".into()) };
     let (toughness, thickness) = (spec.material.fracture_toughness_j_per_m2.get(), spec.material.thickness_m.get());
-    let along = trace(&scene, &script, "blade drawn along its edge", Quat::identity())?;
+    let along = Trace { label: "blade drawn along its edge", cut: scripted_cut(&scene, &script, "scalpel", Quat::identity())? };
     // Turned 90° about its axis, the blade's edge faces +y while it moves along +x.
-    let sideways = trace(&scene, &script, "blade drawn sideways (flat leading)", Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2))?;
+    let sideways_turn = Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
+    let sideways = Trace { label: "blade drawn sideways (flat leading)", cut: scripted_cut(&scene, &script, "scalpel", sideways_turn)? };
 
-    // The steady part: the middle half of the steps that cut.
-    let cutting: Vec<usize> = along.samples.iter().enumerate().filter(|(_, s)| s.2).map(|(i, _)| i).collect();
-    let (first, last) = (*cutting.first().ok_or("the scripted cut never cut")?, *cutting.last().expect("non-empty"));
-    let window = &along.samples[first + (last - first) / 4..=first + 3 * (last - first) / 4];
-    let forces: Vec<f64> = window.iter().map(|s| s.1).collect();
-    let mean = forces.iter().sum::<f64>() / forces.len() as f64;
-    let (lo, hi) = forces.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &f| (lo.min(f), hi.max(f)));
-    let peak = along.samples.iter().map(|s| s.1).fold(0.0, f64::max);
+    let steady = along.cut.steady().ok_or("the scripted cut never cut")?;
+    let (mean, lo, hi) = (steady.mean_n, steady.min_n, steady.max_n);
+    let peak = along.cut.peak_n();
     let estimate = toughness * thickness;
 
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
@@ -100,7 +93,7 @@ fn run(out: &Path) -> Result<(), String> {
     let _ = writeln!(md, "| range over the middle half | {lo:.2}–{hi:.2} N |");
     let _ = writeln!(md, "| largest force over the whole run | {peak:.2} N (a desktop device renders up to {DEVICE_LIMIT_N} N) |");
     for t in [&along, &sideways] {
-        let _ = writeln!(md, "| {}: cut updates, incision length | {}, {:.1} mm |", t.label, t.cuts, t.incision_length_m * 1e3);
+        let _ = writeln!(md, "| {}: cut updates, incision length | {}, {:.1} mm |", t.label, t.cut.cut_updates, t.cut.incision_length_m * 1e3);
     }
     let files = [("cut-force.md", md.clone()), ("cut-force.svg", svg(&[&along, &sideways], estimate))];
     for (name, text) in files {
@@ -112,31 +105,11 @@ fn run(out: &Path) -> Result<(), String> {
     Ok(())
 }
 
-/// Runs the script with the scalpel turned by `turn` about its axis; records its force.
-fn trace(scene: &Scene, script: &CutScript, label: &'static str, turn: Quat) -> Result<Trace, String> {
-    let mut tissue = cutsim_sim::build_tissue(scene).map_err(|e| e.to_string())?;
-    let compiled = script.compile(tissue.tools(), scene.time_step_s.get(), "skin-patch-straight").map_err(|e| e.to_string())?;
-    let n = tissue.tools().len();
-    let scalpel = tissue.tools().iter().position(|t| t.name == "scalpel").ok_or("the scene has no scalpel")?;
-    let (mut commands, mut feedback) = (vec![ToolCommand::default(); n], vec![ToolFeedback::default(); n]);
-    let dt = scene.time_step_s.get();
-    let mut samples = Vec::with_capacity(compiled.steps as usize);
-    for step in 0..compiled.steps {
-        compiled.commands_at(step, &mut commands);
-        commands[scalpel].pose.orientation = commands[scalpel].pose.orientation * turn;
-        tissue.step(&commands, &mut feedback);
-        let f = &feedback[scalpel];
-        samples.push((step as f64 * dt, f.force_n.norm(), f.cutting));
-    }
-    let counters = tissue.counters();
-    Ok(Trace { label, samples, cuts: counters.cut_updates, incision_length_m: counters.incision_length_m })
-}
-
 /// Force magnitude against time, one polyline per trace, J·t and the device limit dashed.
 fn svg(traces: &[&Trace], estimate: f64) -> String {
     let (w, h, left, right, top, bottom) = (760.0, 380.0, 60.0, 20.0, 20.0, 50.0);
-    let t_max = traces.iter().flat_map(|t| t.samples.iter().map(|s| s.0)).fold(0.0, f64::max).max(1e-3);
-    let f_max = (traces.iter().flat_map(|t| t.samples.iter().map(|s| s.1)).fold(0.0, f64::max).max(DEVICE_LIMIT_N) * 1.1).ceil();
+    let t_max = traces.iter().flat_map(|t| t.cut.samples.iter().map(|s| s.0)).fold(0.0, f64::max).max(1e-3);
+    let f_max = (traces.iter().flat_map(|t| t.cut.samples.iter().map(|s| s.1)).fold(0.0, f64::max).max(DEVICE_LIMIT_N) * 1.1).ceil();
     let x = |t: f64| left + (w - left - right) * t / t_max;
     let y = |f: f64| h - bottom - (h - top - bottom) * f / f_max;
     let mut s = String::new();
@@ -161,7 +134,7 @@ fn svg(traces: &[&Trace], estimate: f64) -> String {
         let _ = writeln!(s, r#"<text x="{}" y="{}" text-anchor="end" fill="{colour}">{label} {value:.2} N</text>"#, w - right - 4.0, y(value) - 4.0);
     }
     for (trace, colour) in traces.iter().zip(["#1f5fbf", "#e08a00"]) {
-        let points: Vec<String> = trace.samples.iter().map(|p| format!("{:.1},{:.1}", x(p.0), y(p.1))).collect();
+        let points: Vec<String> = trace.cut.samples.iter().map(|p| format!("{:.1},{:.1}", x(p.0), y(p.1))).collect();
         let _ = writeln!(s, r#"<polyline fill="none" stroke="{colour}" stroke-width="1.2" points="{}"/>"#, points.join(" "));
     }
     for (k, (trace, colour)) in traces.iter().zip(["#1f5fbf", "#e08a00"]).enumerate() {
