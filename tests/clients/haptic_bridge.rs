@@ -229,6 +229,8 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
     // resistance like friction, so the proxy does not stick and slip at the loop rate
     // (before it did, and the rate limit cut in on nine steps in ten).
     let mean = cutting.iter().map(|r| r.1).sum::<f64>() / cutting.len() as f64;
+    let (lo, hi) = cutting.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| (lo.min(r.1), hi.max(r.1)));
+    println!("sim:cut through the bridge, 1-3.5 s: mean {mean:.2} N, {lo:.2}-{hi:.2} N; largest {max_force:.2} N; rate-limited on {} of {} steps", report["rate_limited"], report["device_steps"]);
     assert!(mean > 1.1 && mean < 3.3, "mean force while cutting {mean} N (J·t = 2.2 N)");
     let rate_limited = report["rate_limited"].as_u64().unwrap();
     assert!((rate_limited as f64) < 0.1 * report["device_steps"].as_u64().unwrap() as f64, "the rate limit cut in on {rate_limited} steps: {report}");
