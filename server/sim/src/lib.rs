@@ -10,6 +10,7 @@
 //! Units are SI everywhere: m, kg, s, Pa, N.
 
 pub mod accuracy;
+pub mod assessment;
 pub mod broad_phase;
 pub mod geometry;
 pub mod grid;
