@@ -21,7 +21,10 @@ pub fn render(script: &str, report: &pb::ScriptReport, elapsed: Duration) -> Str
         ("cuts", report.cuts.to_string()),
         ("incision_length_m", report.incision_length_m.to_string()),
         ("max_tool_force_n", report.max_tool_force_n.to_string()),
-    ] {
+    ]
+    .into_iter()
+    .chain(assessment_properties(report.assessment.as_ref()))
+    {
         let _ = writeln!(out, "      <property name=\"{name}\" value=\"{}\"/>", escape(&value));
     }
     let _ = writeln!(out, "    </properties>");
@@ -38,6 +41,36 @@ pub fn render(script: &str, report: &pb::ScriptReport, elapsed: Duration) -> Str
     }
     let _ = writeln!(out, "  </testsuite>\n</testsuites>");
     out
+}
+
+/// The task's metrics, each as `assessment.<metric>` (those the task defines).
+fn assessment_properties(a: Option<&pb::Assessment>) -> Vec<(&'static str, String)> {
+    let Some(a) = a else { return Vec::new() };
+    let optional = |name: &'static str, v: Option<f64>| v.map(|v| (name, v.to_string()));
+    [
+        optional("assessment.score", a.score),
+        a.passed.map(|p| ("assessment.passed", p.to_string())),
+        Some(("assessment.completed", a.completed.to_string())),
+        optional("assessment.time_to_complete_s", a.time_to_complete_s),
+        optional("assessment.coverage", a.coverage),
+        optional("assessment.deviation_rms_mm", a.deviation_rms_mm),
+        optional("assessment.deviation_max_mm", a.deviation_max_mm),
+        optional("assessment.outside_band_mm", a.outside_band_mm),
+        optional("assessment.depth_error_rms_mm", a.depth_error_rms_mm),
+        Some(("assessment.incision_length_mm", a.incision_length_mm.to_string())),
+        Some(("assessment.strokes", a.strokes.to_string())),
+        Some(("assessment.path_length_mm", a.path_length_mm.to_string())),
+        optional("assessment.economy_of_motion", a.economy_of_motion),
+        Some(("assessment.peak_force_n", a.peak_force_n.to_string())),
+        Some(("assessment.mean_force_n", a.mean_force_n.to_string())),
+        optional("assessment.time_above_force_limit_s", a.time_above_force_limit_s),
+        optional("assessment.log_dimensionless_jerk", a.log_dimensionless_jerk),
+        Some(("assessment.no_go_entries", a.no_go_entries.to_string())),
+        (!a.failures.is_empty()).then(|| ("assessment.failures", a.failures.join("; "))),
+    ]
+    .into_iter()
+    .flatten()
+    .collect()
 }
 
 fn escape(s: &str) -> String {

@@ -231,6 +231,25 @@ impl Progress {
     }
 }
 
+/// The task's metrics, where the scene has a task.
+fn print_assessment(a: &pb::Assessment) {
+    let Some(passed) = a.passed else { return };
+    let optional = |v: Option<f64>, unit: &str| v.map_or("n/a".to_owned(), |v| format!("{v:.2}{unit}"));
+    println!("task             {}", if a.task.is_empty() { "(no description)" } else { &a.task });
+    println!(
+        "  score {} · coverage {} · deviation RMS {} (max {}) · time {} · strokes {} · path {:.1} mm · peak force {:.2} N",
+        optional(a.score, ""),
+        optional(a.coverage.map(|c| c * 100.0), " %"),
+        optional(a.deviation_rms_mm, " mm"),
+        optional(a.deviation_max_mm, " mm"),
+        optional(a.time_to_complete_s, " s"),
+        a.strokes,
+        a.path_length_mm,
+        a.peak_force_n
+    );
+    println!("  task {}", if passed { "passed".to_owned() } else { format!("failed: {}", a.failures.join("; ")) });
+}
+
 fn print_report(name: &str, r: &pb::ScriptReport) {
     println!("script           {name} on scene {} ({})", r.scene, r.model);
     println!("steps            {} ({:.3} s simulated, {:.0} steps/s)", r.steps, r.simulated_time_s, r.steps_per_second);
@@ -240,6 +259,9 @@ fn print_report(name: &str, r: &pb::ScriptReport) {
     println!("pieces           {}", r.pieces);
     println!("max tool force   {:.4} N", r.max_tool_force_n);
     println!("state_hash       {}", r.state_hash);
+    if let Some(a) = &r.assessment {
+        print_assessment(a);
+    }
     for e in &r.expectations {
         if e.passed {
             println!("PASS {:<26} {}", e.name, e.expected);

@@ -3,6 +3,7 @@
 //! session (no unchecked optional fields).
 
 use cutsim_proto::v1 as pb;
+use cutsim_sim::assessment::Assessment;
 use cutsim_sim::hash::hash_hex;
 use cutsim_sim::math::{Pose, Vec3, quat_from_wxyz};
 use cutsim_sim::runner::{Progress, RunReport};
@@ -89,10 +90,56 @@ pub fn counters(c: &TissueCounters, pieces: u64) -> pb::TissueCounters {
     }
 }
 
+/// The metrics in the API's form; `problem`: what the assessor missed, `task`: the task's
+/// description.
+pub fn assessment(a: &Assessment, problem: String, task: String) -> pb::Assessment {
+    pb::Assessment {
+        steps: a.steps,
+        has_plan: a.has_plan,
+        started_s: a.started_s,
+        completed: a.completed,
+        time_to_complete_s: a.time_to_complete_s,
+        incision_length_mm: a.incision_length_mm,
+        plan_length_mm: a.plan_length_mm,
+        coverage: a.coverage,
+        deviation_rms_mm: a.deviation_rms_mm,
+        deviation_max_mm: a.deviation_max_mm,
+        outside_band_mm: a.outside_band_mm,
+        depth_error_rms_mm: a.depth_error_rms_mm,
+        strokes: a.strokes,
+        path_length_mm: a.path_length_mm,
+        economy_of_motion: a.economy_of_motion,
+        peak_force_n: a.peak_force_n,
+        mean_force_n: a.mean_force_n,
+        time_above_force_limit_s: a.time_above_force_limit_s,
+        jerk_rms_m_per_s3: a.jerk_rms_m_per_s3,
+        log_dimensionless_jerk: a.log_dimensionless_jerk,
+        no_go_entries: a.no_go_entries,
+        no_go_time_s: a.no_go_time_s,
+        score: a.score,
+        passed: a.passed,
+        failures: a.failures.clone(),
+        events: a
+            .events
+            .iter()
+            .map(|e| pb::AssessmentEvent { step: e.step, time_s: e.time_s, kind: e.kind.clone(), message: e.message.clone() })
+            .collect(),
+        events_dropped: a.events_dropped,
+        problem,
+        task,
+    }
+}
+
+/// A session's newest published metrics.
+pub fn session_assessment(s: &Session) -> pb::Assessment {
+    assessment(&s.assessment.load(), s.assessment.problem(), s.assessment.task.clone())
+}
+
 /// A session as the API describes it (from its newest frame).
 pub fn session_info(s: &Session) -> pb::SessionInfo {
     let frame = s.frame.load();
     pb::SessionInfo {
+        assessment: Some(session_assessment(s)),
         id: s.id.clone(),
         label: s.label.clone(),
         scene: s.scene_name.clone(),
@@ -192,7 +239,8 @@ pub fn progress(p: &Progress) -> pb::ScriptProgress {
     pb::ScriptProgress { step: p.step, total_steps: p.total, cuts: p.cuts, max_tool_force_n: p.max_tool_force_n }
 }
 
-pub fn report(r: &RunReport) -> pb::ScriptReport {
+/// A script's report; `task`: the scene task's description.
+pub fn report(r: &RunReport, task: &str) -> pb::ScriptReport {
     pb::ScriptReport {
         scene: r.scene.clone(),
         model: r.model.clone(),
@@ -223,6 +271,7 @@ pub fn report(r: &RunReport) -> pb::ScriptReport {
         passed: r.passed,
         counters: Some(counters(&r.counters, r.pieces)),
         report_json: serde_json::to_string(r).unwrap_or_default(),
+        assessment: Some(assessment(&r.assessment, String::new(), task.to_owned())),
     }
 }
 

@@ -117,6 +117,11 @@ impl Sessions for Api {
         let (snapshot, step) = session.snapshot().await?;
         Ok(Response::new(convert::snapshot(&snapshot, &session.id, step)))
     }
+
+    async fn get_assessment(&self, request: Request<pb::GetAssessmentRequest>) -> Result<Response<pb::Assessment>, Status> {
+        let session = self.session(&request.get_ref().session_id, &request, Role::Observe)?;
+        Ok(Response::new(convert::session_assessment(&session)))
+    }
 }
 
 /// What the command reader and the feedback stream of one haptic client share.
@@ -319,9 +324,10 @@ impl Scripts for Api {
         }
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
         session.send_control(crate::session::Control::RunScript { script: compiled, progress_every: r.progress_every_steps, events: tx })?;
-        let events = tokio_stream_from(rx).map(|event| match event {
+        let task = session.assessment.task.clone();
+        let events = tokio_stream_from(rx).map(move |event| match event {
             ScriptEvent::Progress(p) => Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Progress(convert::progress(&p))) }),
-            ScriptEvent::Report(report) => Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(convert::report(&report))) }),
+            ScriptEvent::Report(report) => Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(convert::report(&report, &task))) }),
             ScriptEvent::Failed(message) => Err(Status::unavailable(message)),
         });
         // The physics thread may die mid-script: the stream then ends with its reason

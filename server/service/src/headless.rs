@@ -64,7 +64,7 @@ fn try_run(args: &RunArgs, scene_dirs: &[PathBuf]) -> Result<RunReport, String> 
     };
     let steps = args.steps.or(compiled.as_ref().map(|c| c.steps)).unwrap_or(1000);
     let mut progress = ProgressPrinter::new(!args.json || std::io::stderr().is_terminal());
-    let report = runner::run(tissue.as_mut(), &scene.name, compiled.as_ref(), steps, (steps / 20).max(1), |p| progress.show(p));
+    let report = runner::run(tissue.as_mut(), &scene.name, scene.task(), compiled.as_ref(), steps, (steps / 20).max(1), |p| progress.show(p));
     progress.finish();
     Ok(report)
 }

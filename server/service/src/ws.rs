@@ -237,6 +237,7 @@ where
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut ticks: u64 = 0;
     let mut last_playback = None;
+    let mut last_assessment: Option<std::sync::Arc<cutsim_sim::assessment::Assessment>> = None;
     let mut requests = crate::rate::TokenBucket::new(requests_per_second, requests_per_second, std::time::Instant::now());
     loop {
         let mut resync = false;
@@ -296,6 +297,13 @@ where
                             status: convert::status(frame.status) as i32,
                             server_unix_ms: frame.unix_ms,
                             playback: convert::playback(&frame.playback, &session),
+                            // The metrics only when they changed (their events list may be long).
+                            assessment: {
+                                let current = session.assessment.load();
+                                let changed = !last_assessment.as_ref().is_some_and(|a| std::sync::Arc::ptr_eq(a, &current));
+                                last_assessment = Some(current.clone());
+                                changed.then(|| convert::assessment(&current, session.assessment.problem(), session.assessment.task.clone()))
+                            },
                         };
                         outgoing.push(frame_bytes(pb::viewer_frame::Frame::Stats(stats)));
                     }

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
+use crate::assessment::{Assessment, Assessor, Task, ToolSample};
 use crate::hash::hash_hex;
 use crate::script::{CompiledScript, ExpectationResult};
 use crate::stats::LatencyHistogram;
@@ -42,6 +43,9 @@ pub struct RunReport {
     /// 16 hex digits; equal for equal scene + commands.
     pub state_hash: String,
     pub counters: TissueCounters,
+    /// The trainee's metrics against the scene's task (docs/assessment.md).
+    #[serde(default)]
+    pub assessment: Assessment,
     pub expectations: Vec<ExpectationResult>,
     /// True when every expectation holds (and there are none that fail).
     pub passed: bool,
@@ -57,16 +61,18 @@ pub struct Progress {
 }
 
 /// Steps `tissue` `steps` times with the script's commands (tools away without one),
-/// calling `on_progress` about every `progress_every` steps and at the end.
+/// assessing the steps against `task`, calling `on_progress` about every
+/// `progress_every` steps and at the end.
 pub fn run(
     tissue: &mut dyn Tissue,
     scene_name: &str,
+    task: Task,
     script: Option<&CompiledScript>,
     steps: u64,
     progress_every: u64,
     on_progress: impl FnMut(&Progress),
 ) -> RunReport {
-    match run_with_hook(tissue, scene_name, script, steps, progress_every, on_progress, |_, _, _| ControlFlow::Continue(())) {
+    match run_with_hook(tissue, scene_name, task, script, steps, progress_every, on_progress, |_, _, _| ControlFlow::Continue(())) {
         Ok(report) => report,
         Err(Stopped { .. }) => unreachable!("the hook never stops the run"),
     }
@@ -85,6 +91,7 @@ pub struct Stopped {
 pub fn run_with_hook(
     tissue: &mut dyn Tissue,
     scene_name: &str,
+    task: Task,
     script: Option<&CompiledScript>,
     steps: u64,
     progress_every: u64,
@@ -96,6 +103,8 @@ pub fn run_with_hook(
     let mut feedback = vec![ToolFeedback::default(); tools];
     let mut histogram = LatencyHistogram::new();
     let mut max_force: f64 = 0.0;
+    let mut assessor = Assessor::new(task, tools, tissue.time_step_s());
+    let mut samples = vec![ToolSample::default(); tools];
     let start = Instant::now();
     for step in 0..steps {
         if let Some(s) = script {
@@ -110,6 +119,10 @@ pub fn run_with_hook(
         for fb in &feedback {
             max_force = max_force.max(fb.force_n.norm());
         }
+        for ((sample, command), fb) in samples.iter_mut().zip(&commands).zip(&feedback) {
+            *sample = ToolSample::new(command, fb);
+        }
+        assessor.observe(&samples);
         if progress_every > 0 && (step + 1) % progress_every == 0 && step + 1 < steps {
             on_progress(&Progress { step: step + 1, total: steps, cuts: tissue.counters().cuts, max_tool_force_n: max_force });
         }
@@ -141,6 +154,7 @@ pub fn run_with_hook(
         topology_version: tissue.topology_version(),
         state_hash: hash_hex(tissue.state_hash()),
         counters,
+        assessment: assessor.assessment(),
         expectations: Vec::new(),
         passed: true,
     };

@@ -98,6 +98,51 @@ pub struct Expectations {
     /// Final state hash (16 hex digits).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub state_hash: Option<String>,
+    /// Assessment: Time from the first contact to completing the planned incision, s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_to_complete_s: Option<Bound>,
+    /// Assessment: Fraction of the planned incision cut within its band (0–1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<Bound>,
+    /// Assessment: RMS deviation of the cut from the plan, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub deviation_rms_mm: Option<Bound>,
+    /// Assessment: Largest deviation of the cut from the plan, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub deviation_max_mm: Option<Bound>,
+    /// Assessment: Length cut outside the plan's band, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outside_band_mm: Option<Bound>,
+    /// Assessment: RMS error of the cut's depth against the plan's target, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_error_rms_mm: Option<Bound>,
+    /// Assessment: Separate cutting strokes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub strokes: Option<Bound>,
+    /// Assessment: Path of the measured tool's tip from the first contact, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub path_length_mm: Option<Bound>,
+    /// Assessment: Plan length over the tip's path until completion (0–1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub economy_of_motion: Option<Bound>,
+    /// Assessment: Mean force on the tools while in contact, N.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mean_force_n: Option<Bound>,
+    /// Assessment: Time above the task's force limit, s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_above_force_limit_s: Option<Bound>,
+    /// Assessment: Smoothness of the tool path (higher is smoother).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub log_dimensionless_jerk: Option<Bound>,
+    /// Assessment: Entries into no-go regions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub no_go_entries: Option<Bound>,
+    /// Assessment: The task's score, 0–100.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub score: Option<Bound>,
+    /// Assessment: the task passed (true) or failed (false).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub task_passed: Option<bool>,
 }
 
 /// A numeric expectation: any of min, max, equals, or approx with tolerance.
@@ -242,6 +287,20 @@ impl Expectations {
             ("incision_length_m", &self.incision_length_m),
             ("max_force_n", &self.max_force_n),
             ("reconstruction_fallbacks", &self.reconstruction_fallbacks),
+            ("time_to_complete_s", &self.time_to_complete_s),
+            ("coverage", &self.coverage),
+            ("deviation_rms_mm", &self.deviation_rms_mm),
+            ("deviation_max_mm", &self.deviation_max_mm),
+            ("outside_band_mm", &self.outside_band_mm),
+            ("depth_error_rms_mm", &self.depth_error_rms_mm),
+            ("strokes", &self.strokes),
+            ("path_length_mm", &self.path_length_mm),
+            ("economy_of_motion", &self.economy_of_motion),
+            ("mean_force_n", &self.mean_force_n),
+            ("time_above_force_limit_s", &self.time_above_force_limit_s),
+            ("log_dimensionless_jerk", &self.log_dimensionless_jerk),
+            ("no_go_entries", &self.no_go_entries),
+            ("score", &self.score),
         ]
         .into_iter()
         .filter_map(|(n, b)| b.as_ref().map(|b| (n, b)))
@@ -251,20 +310,52 @@ impl Expectations {
     /// Checks every given expectation against the report's values.
     pub fn check(&self, report: &crate::runner::RunReport) -> Vec<ExpectationResult> {
         let mut out = Vec::new();
+        let a = &report.assessment;
         for (name, bound) in self.bounds() {
             let actual = match name {
-                "cuts" => report.cuts as f64,
-                "removed_elements" => report.removed_elements as f64,
-                "pieces" => report.pieces as f64,
-                "incision_length_m" => report.incision_length_m,
-                "max_force_n" => report.max_tool_force_n,
-                _ => report.reconstruction_fallbacks as f64,
+                "cuts" => Some(report.cuts as f64),
+                "removed_elements" => Some(report.removed_elements as f64),
+                "pieces" => Some(report.pieces as f64),
+                "incision_length_m" => Some(report.incision_length_m),
+                "max_force_n" => Some(report.max_tool_force_n),
+                "reconstruction_fallbacks" => Some(report.reconstruction_fallbacks as f64),
+                "time_to_complete_s" => a.time_to_complete_s,
+                "coverage" => a.coverage,
+                "deviation_rms_mm" => a.deviation_rms_mm,
+                "deviation_max_mm" => a.deviation_max_mm,
+                "outside_band_mm" => a.outside_band_mm,
+                "depth_error_rms_mm" => a.depth_error_rms_mm,
+                "strokes" => Some(a.strokes as f64),
+                "path_length_mm" => Some(a.path_length_mm),
+                "economy_of_motion" => a.economy_of_motion,
+                "mean_force_n" => Some(a.mean_force_n),
+                "time_above_force_limit_s" => a.time_above_force_limit_s,
+                "log_dimensionless_jerk" => a.log_dimensionless_jerk,
+                "no_go_entries" => Some(a.no_go_entries as f64),
+                "score" => a.score,
+                other => unreachable!("expectation {other} has no value"),
             };
+            out.push(match actual {
+                Some(actual) => ExpectationResult { name: name.to_owned(), expected: bound.describe(), actual: format!("{actual}"), passed: bound.holds(actual) },
+                None => ExpectationResult {
+                    name: name.to_owned(),
+                    expected: bound.describe(),
+                    actual: "absent (the scene's task does not define it, or nothing was cut or completed)".into(),
+                    passed: false,
+                },
+            });
+        }
+        if let Some(expected) = self.task_passed {
+            let actual = a.passed;
             out.push(ExpectationResult {
-                name: name.to_owned(),
-                expected: bound.describe(),
-                actual: format!("{actual}"),
-                passed: bound.holds(actual),
+                name: "task_passed".into(),
+                expected: expected.to_string(),
+                actual: match actual {
+                    Some(p) if a.failures.is_empty() => p.to_string(),
+                    Some(p) => format!("{p} ({})", a.failures.join("; ")),
+                    None => "absent (the scene has no task)".into(),
+                },
+                passed: actual == Some(expected),
             });
         }
         if let Some(hash) = &self.state_hash {

@@ -1,6 +1,7 @@
 //! Sessions: one tissue, one physics thread, its viewers, haptic clients and recording.
 
 pub mod admission;
+pub mod assessing;
 pub mod hub;
 pub mod physics;
 mod playback;
@@ -161,6 +162,8 @@ pub struct Session {
     pub stale_lifts: AtomicU64,
     /// The room the session holds; given back when it closes or fails.
     admission: Mutex<Option<Slot>>,
+    /// The trainee's metrics against the scene's task, as last published.
+    pub assessment: Arc<assessing::AssessmentCell>,
 }
 
 impl Session {
@@ -515,6 +518,16 @@ impl Registry {
             panic_at_step: faults.panic_at_step,
         };
         let registry = Arc::downgrade(self);
+        let task = scene.task.as_ref().map(|t| t.description.clone()).unwrap_or_default();
+        let assessment = assessing::AssessmentCell::new(task);
+        // Replays assess on their physics thread (with a copy per kept state, to seek).
+        let assess = match &replay {
+            Some(_) => None,
+            None => Some(
+                assessing::start(&id, scene.task(), tools.len(), tissue.time_step_s(), assessment.clone())
+                    .map_err(|e| ApiError::Internal(format!("cannot start an assessor thread: {e}")))?,
+            ),
+        };
 
         // The physics thread starts parked until the session is assembled.
         let (start_tx, start_rx) = std::sync::mpsc::channel::<Arc<Session>>();
@@ -531,7 +544,7 @@ impl Registry {
                 let run = {
                     let session = session.clone();
                     move || {
-                        let physics = physics::Physics::new(session, scene_for_thread, tissue, control_rx, hub_tx, producer, settings);
+                        let physics = physics::Physics::new(session, scene_for_thread, tissue, control_rx, hub_tx, producer, assess, settings);
                         match replay {
                             Some(recording) => physics.run_replay(recording),
                             None => physics.run(),
@@ -580,6 +593,7 @@ impl Registry {
             failure: OnceLock::new(),
             stale_lifts: AtomicU64::new(0),
             admission: Mutex::new(Some(slot)),
+            assessment,
         });
         tokio::spawn(hub.run(hub_rx));
         start_tx.send(session.clone()).map_err(|_| ApiError::Internal("the physics thread did not start".into()))?;

@@ -16,6 +16,7 @@ use std::sync::Arc;
 use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
+use cutsim_sim::assessment::ToolSample;
 use cutsim_sim::runner::{self, Progress};
 use cutsim_sim::scene::Scene;
 use cutsim_sim::stats::LatencyHistogram;
@@ -24,6 +25,7 @@ use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 use tokio::sync::mpsc::UnboundedSender;
 
+use super::assessing::AssessProducer;
 use super::hub::{FramePool, HubEvent, PlaybackState, StepStats, ToolFrame};
 use super::records::{FeedbackRecord, StampedCommand};
 use super::recording::{RecordEvent, RecordingProducer};
@@ -80,6 +82,8 @@ pub(super) struct Outputs {
     hub: UnboundedSender<HubEvent>,
     /// None for replays (they do not record themselves).
     recording: Option<RecordingProducer>,
+    /// The assessor's ring (None for replays: they assess on this thread, see playback).
+    assess: Option<AssessProducer>,
     pub(super) commands: Vec<ToolCommand>,
     recorded: Vec<ToolCommand>,
     pub(super) feedback: Vec<ToolFeedback>,
@@ -105,6 +109,7 @@ impl Physics {
         control: Receiver<Control>,
         hub: UnboundedSender<HubEvent>,
         recording: Option<RecordingProducer>,
+        assess: Option<AssessProducer>,
         settings: Settings,
     ) -> Self {
         let tools = tissue.tools().len();
@@ -130,6 +135,7 @@ impl Physics {
                 session,
                 hub,
                 recording,
+                assess,
                 commands: vec![ToolCommand::default(); tools],
                 recorded: vec![ToolCommand::default(); tools],
                 feedback: vec![ToolFeedback::default(); tools],
@@ -396,17 +402,19 @@ impl Physics {
         let mut last_frame = Instant::now();
         let steps = script.steps;
         let every = if progress_every == 0 { (steps / 20).max(1) } else { progress_every };
+        let task = self.scene.task();
         let (tissue, scene_name, out, panic_at) = (self.tissue.as_mut(), &self.scene.name, &mut self.out, self.settings.panic_at_step);
         let realtime = out.session.mode == Mode::Realtime;
         // The hook records, publishes deltas and, about 60 times a second of wall time,
         // a frame for viewers; it is not part of the timed step.
-        let mut run = move || {
+        let run = move || {
             if realtime {
                 yield_to_real_time();
             }
             runner::run_with_hook(
                 tissue,
                 scene_name,
+                task,
                 Some(script),
                 steps,
                 every,
@@ -446,6 +454,10 @@ impl Physics {
         self.out.status = previous_status;
         self.update_stats();
         self.out.publish_frame(self.tissue.as_ref());
+        if let Ok(report) = &outcome {
+            // The assessor thread reaches the same metrics a moment later; publish them now.
+            self.out.session.assessment.publish(report.assessment.clone());
+        }
         let _ = events.send(match outcome {
             Ok(report) => ScriptEvent::Report(Box::new(report)),
             Err(stopped) => ScriptEvent::Failed(format!("the script stopped after {} of {steps} steps: its client went away or the session closed", stopped.at_step)),
@@ -456,6 +468,9 @@ impl Physics {
     fn reset(&mut self) -> Result<(), String> {
         let tissue = cutsim_sim::build_tissue(&self.scene).map_err(|e| e.to_string())?;
         self.out.record(RecordEvent::Reset { step: self.tissue.step_index() });
+        if let Some(assess) = &mut self.out.assess {
+            assess.reset();
+        }
         self.replace_tissue(tissue);
         self.out.recorded.iter_mut().for_each(|c| *c = ToolCommand::default());
         self.out.commands.iter_mut().for_each(|c| *c = ToolCommand::default());
@@ -508,6 +523,11 @@ impl Outputs {
     /// Publishes what a step changed: its topology deltas (only after a cut).
     pub(super) fn after_step(&mut self, tissue: &mut dyn Tissue) {
         self.total_steps += 1;
+        if let Some(assess) = &mut self.assess {
+            // A script waits for the assessor rather than lose a step of its metrics.
+            let samples = self.commands.iter().zip(&self.feedback).map(|(c, f)| ToolSample::new(c, f));
+            assess.push_step(samples, self.status == Status::RunningScript);
+        }
         tissue.drain_deltas(&mut self.deltas);
         if !self.deltas.is_empty() {
             for mut delta in self.deltas.drain(..) {

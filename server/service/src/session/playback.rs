@@ -6,6 +6,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use cutsim_sim::assessment::{Assessor, ToolSample};
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::ToolCommand;
 
@@ -24,6 +25,7 @@ struct Keyframe {
     cursor: usize,
     commands: Vec<ToolCommand>,
     tissue: Box<dyn Tissue>,
+    assessor: Assessor,
 }
 
 struct Player {
@@ -37,14 +39,30 @@ struct Player {
     playing: bool,
     speed: f64,
     keyframes: Vec<Keyframe>,
+    /// The metrics of the steps replayed (as the live session computed them).
+    assessor: Assessor,
+    samples: Vec<ToolSample>,
 }
 
 impl Physics {
     /// The body of a replay session's thread.
     pub fn run_replay(mut self, recording: Arc<Recording>) {
         let total = recording.total_steps();
-        let start = Keyframe { global: 0, epoch: 0, cursor: 0, commands: self.out.commands.clone(), tissue: self.tissue.clone_box() };
-        let mut player = Player { recording, epoch: 0, cursor: 0, global: 0, total, playing: false, speed: 1.0, keyframes: vec![start] };
+        let tools = self.out.commands.len();
+        let assessor = Assessor::new(self.scene.task(), tools, self.tissue.time_step_s());
+        let start = Keyframe { global: 0, epoch: 0, cursor: 0, commands: self.out.commands.clone(), tissue: self.tissue.clone_box(), assessor: assessor.clone() };
+        let mut player = Player {
+            recording,
+            epoch: 0,
+            cursor: 0,
+            global: 0,
+            total,
+            playing: false,
+            speed: 1.0,
+            keyframes: vec![start],
+            assessor,
+            samples: vec![ToolSample::default(); tools],
+        };
         let period = self.tissue.time_step_s();
         self.show(&player);
         let mut next = Instant::now();
@@ -106,8 +124,9 @@ impl Physics {
         self.show(player);
     }
 
-    /// Publishes a frame with the playback's state.
+    /// Publishes a frame with the playback's state, and the metrics up to it.
     fn show(&mut self, player: &Player) {
+        self.out.session.assessment.publish(player.assessor.assessment());
         self.out.status = if player.playing { Status::Running } else { Status::Idle };
         self.out.playback = Some(PlaybackState { step: player.global, total_steps: player.total, playing: player.playing, speed: player.speed });
         self.out.publish_frame(self.tissue.as_ref());
@@ -121,6 +140,7 @@ impl Physics {
             player.epoch += 1;
             player.cursor = 0;
             self.out.commands.iter_mut().for_each(|c| *c = ToolCommand::default());
+            player.assessor.reset();
             let fresh = cutsim_sim::build_tissue(&self.scene).expect("the scene built when the replay started");
             if publish {
                 self.replace_tissue(fresh);
@@ -141,6 +161,10 @@ impl Physics {
         }
         self.tissue.step(&self.out.commands, &mut self.out.feedback);
         player.global += 1;
+        for ((sample, command), feedback) in player.samples.iter_mut().zip(&self.out.commands).zip(&self.out.feedback) {
+            *sample = ToolSample::new(command, feedback);
+        }
+        player.assessor.observe(&player.samples);
         if publish {
             self.out.after_step(self.tissue.as_mut());
         } else {
@@ -156,6 +180,7 @@ impl Physics {
                 cursor: player.cursor,
                 commands: self.out.commands.clone(),
                 tissue: self.tissue.clone_box(),
+                assessor: player.assessor.clone(),
             });
         }
     }
@@ -168,6 +193,7 @@ impl Physics {
         if target < player.global || keyframe.global > player.global {
             self.tissue = keyframe.tissue.clone_box();
             self.out.commands.clone_from(&keyframe.commands);
+            player.assessor.clone_from(&keyframe.assessor);
             (player.epoch, player.cursor, player.global) = (keyframe.epoch, keyframe.cursor, keyframe.global);
         }
         while player.global < target {

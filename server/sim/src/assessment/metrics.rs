@@ -160,6 +160,7 @@ struct CutPoint {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Assessor {
     task: Task,
+    tools: usize,
     dt: f64,
     stroke_gap_steps: u64,
     jerk_every: u64,
@@ -210,6 +211,7 @@ impl Assessor {
         let regions = task.no_go.len();
         Self {
             task,
+            tools,
             dt: time_step_s,
             stroke_gap_steps: (STROKE_GAP_S / time_step_s).round().max(1.0) as u64,
             jerk_every: (JERK_SAMPLE_S / time_step_s).round().max(1.0) as u64,
@@ -245,6 +247,11 @@ impl Assessor {
             events: Vec::new(),
             events_dropped: 0,
         }
+    }
+
+    /// Starts again from no steps (the tissue was rebuilt).
+    pub fn reset(&mut self) {
+        *self = Assessor::new(self.task.clone(), self.tools, self.dt);
     }
 
     /// The task it measures against.

@@ -108,6 +108,9 @@ impl Scene {
                 ));
             }
         }
+        if let Some(task) = &self.task {
+            task.compile(&crate::tool::tool_shapes(self), origin)?;
+        }
         match &self.model {
             super::ModelSpec::Msm(msm) => {
                 for (i, fixed) in msm.fixed.iter().enumerate() {

@@ -42,6 +42,10 @@ pub struct Scene {
     /// Tools the session drives; commands address them by index in this list.
     #[serde(default)]
     pub tools: Vec<ToolSpec>,
+    /// The training task: a planned incision, no-go regions, a force limit
+    /// (docs/assessment.md). Absent: motion and force metrics only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub task: Option<crate::assessment::TaskSpec>,
     /// Directory that relative file paths in this scene are resolved against (the scene
     /// file's directory); not part of the JSON.
     #[serde(skip)]
@@ -55,6 +59,16 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// The scene's task checked against its tools (checked already when the scene was
+    /// read, so this cannot fail for a scene that loaded).
+    pub fn task(&self) -> crate::assessment::Task {
+        let tools = crate::tool::tool_shapes(self);
+        match &self.task {
+            Some(spec) => spec.compile(&tools, &self.origin).unwrap_or_else(|e| panic!("a loaded scene's task is valid: {e}")),
+            None => crate::assessment::Task::none(&tools),
+        }
+    }
+
     /// The scene with its branched grid at coarsening level `level` (other models as
     /// they are). Panics on a level outside [`GridLevel`]'s range: callers pass levels
     /// they chose, not input.
