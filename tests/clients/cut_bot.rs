@@ -39,7 +39,7 @@ fn example_scripts_pass_and_a_tampered_one_fails_readably() {
     let examples = repo("clients/cut-bot/examples");
     let mut names: Vec<_> = std::fs::read_dir(&examples).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "json")).collect();
     names.sort();
-    assert_eq!(names.len(), 7, "a straight, a curved and a separating cut for each skin scene, and a slit of the U-tube's base (branched grid)");
+    assert_eq!(names.len(), 14, "a straight, a curved and a separating cut for each skin scene, a slit of the U-tube's base (branched grid), and a good and a bad cut of each bundled task");
     for script in &names {
         let junit = dir.0.join("junit.xml");
         let report = dir.0.join("report.json");

@@ -14,7 +14,9 @@ use super::task::Task;
 use crate::math::Vec3;
 use crate::tool::{ToolCommand, ToolFeedback};
 
-/// A pause in cutting shorter than this continues the stroke; a longer one starts a new one.
+/// A pause in cutting shorter than this continues the stroke; a longer one starts a new
+/// one unless the blade stayed on the tissue with its cut button held all along (a
+/// volumetric model removes a voxel only every few steps).
 pub const STROKE_GAP_S: f64 = 0.05;
 /// The tool path is sampled this often for its jerk (finer sampling amplifies the
 /// rounding of the positions, not the motion).
@@ -35,6 +37,8 @@ pub struct ToolSample {
     pub active: bool,
     /// The tool removed tissue this step.
     pub cutting: bool,
+    /// The cut button is held (a blade engaged, whether or not it removed tissue).
+    pub cut_held: bool,
 }
 
 impl ToolSample {
@@ -45,6 +49,7 @@ impl ToolSample {
             contacts: feedback.contacts,
             active: command.active,
             cutting: feedback.cutting,
+            cut_held: command.cut,
         }
     }
 }
@@ -90,7 +95,7 @@ pub struct Assessment {
     pub strokes: u64,
     /// Path of the measured tool's tip since the start, mm.
     pub path_length_mm: f64,
-    /// Plan length over the tip's path until completion (1: no motion wasted).
+    /// Length of plan covered over the tip's path, until completion (1: no motion wasted).
     pub economy_of_motion: Option<f64>,
     /// Largest force on any tool, N, and the mean over steps in contact.
     pub peak_force_n: f64,
@@ -168,6 +173,8 @@ pub struct Assessor {
     started_step: Option<u64>,
     completed_step: Option<u64>,
     last_cut: Option<CutPoint>,
+    /// The blade left the tissue or let go of the cut button since the last cut.
+    disengaged: bool,
     strokes: u64,
     incision_length_m: f64,
     deviation: AlongCut,
@@ -179,7 +186,8 @@ pub struct Assessor {
     bin_m: f64,
     last_position: Option<Vec3>,
     path_length_m: f64,
-    path_at_completion_m: Option<f64>,
+    /// (path length, plan covered) when the task completed, m.
+    at_completion: Option<(f64, f64)>,
     active_time_s: f64,
     jerk_window: [Vec3; 4],
     jerk_filled: usize,
@@ -219,6 +227,7 @@ impl Assessor {
             started_step: None,
             completed_step: None,
             last_cut: None,
+            disengaged: true,
             strokes: 0,
             incision_length_m: 0.0,
             deviation: AlongCut::default(),
@@ -230,7 +239,7 @@ impl Assessor {
             bin_m,
             last_position: None,
             path_length_m: 0.0,
-            path_at_completion_m: None,
+            at_completion: None,
             active_time_s: 0.0,
             jerk_window: [Vec3::zeros(); 4],
             jerk_filled: 0,
@@ -279,6 +288,9 @@ impl Assessor {
         }
         if measured.active && measured.cutting {
             self.observe_cut(step, measured.position_m);
+            self.disengaged = false;
+        } else if !(measured.active && measured.cut_held && measured.contacts > 0) {
+            self.disengaged = true;
         }
     }
 
@@ -359,7 +371,7 @@ impl Assessor {
 
     fn observe_cut(&mut self, step: u64, position: Vec3) {
         let nearest = self.task.plan.as_ref().map(|plan| plan.nearest(&position));
-        let previous = self.last_cut.filter(|c| step - c.step <= self.stroke_gap_steps);
+        let previous = self.last_cut.filter(|c| step - c.step <= self.stroke_gap_steps || !self.disengaged);
         if previous.is_none() {
             self.strokes += 1;
         }
@@ -404,6 +416,11 @@ impl Assessor {
         }
     }
 
+    /// Length of the plan covered, m.
+    fn covered_m(&self) -> f64 {
+        self.covered_count as f64 * self.bin_m
+    }
+
     fn coverage(&self) -> Option<f64> {
         self.task.plan.as_ref().map(|_| self.covered_count as f64 / self.covered.len() as f64)
     }
@@ -411,7 +428,7 @@ impl Assessor {
     fn check_completion(&mut self, step: u64) {
         if self.completed_step.is_none() && self.coverage().is_some_and(|c| c >= self.task.min_coverage) {
             self.completed_step = Some(step);
-            self.path_at_completion_m = Some(self.path_length_m);
+            self.at_completion = Some((self.path_length_m, self.covered_m()));
             let started = self.started_step.unwrap_or(step);
             self.event(step, "completed", format!("the planned incision is complete after {:.2} s", (step - started) as f64 * self.dt));
         }
@@ -430,9 +447,9 @@ impl Assessor {
         let mm = |m: f64| m * 1e3;
         let plan = self.task.plan.as_ref();
         let started = self.started_step;
-        let economy = plan.and_then(|p| {
-            let path = self.path_at_completion_m.unwrap_or(self.path_length_m);
-            (path > 0.0).then(|| (p.length_m() / path).min(1.0))
+        let economy = plan.and_then(|_| {
+            let (path, covered) = self.at_completion.unwrap_or((self.path_length_m, self.covered_m()));
+            (path > 0.0).then(|| (covered / path).min(1.0))
         });
         let log_dimensionless_jerk = (self.path_length_m > 0.0 && self.jerk_integral > 0.0).then(|| {
             let t = self.active_time_s;
