@@ -4,10 +4,13 @@
 //!
 //! Run: `cargo bench -p cutsim-sim --bench step` (add `-- --quick` for a short run).
 //! Prints, per case, steps per second and the p50/p99/max step time measured over every
-//! step, plus the time per stage; then divan's statistics of the intact step.
+//! step, plus the time per stage; then what assessing the steps costs (the physics thread
+//! hands each step's tool samples to an assessor thread through a lock-free ring, as the
+//! server does); then divan's statistics of the intact step.
 
 use std::time::Instant;
 
+use cutsim_sim::assessment::{Assessor, ToolSample};
 use cutsim_sim::math::{Pose, Quat, Vec3};
 use cutsim_sim::msm::{MassSpring, build_from_scene};
 use cutsim_sim::scene::{ModelSpec, Scene};
@@ -116,9 +119,60 @@ fn main() {
             }
         }
     }
+    assessment_cost();
     if !quick {
         divan::main();
     }
+}
+
+/// The 1k explicit cut again, each step's two tool samples pushed into a ring that an
+/// assessor thread drains and folds into the metrics (the server's arrangement): what
+/// the push costs the physics thread, and what the assessor does per step on its own.
+fn assessment_cost() {
+    let scene = Scene::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/skin-patch.json"))).unwrap();
+    let mut assessor = Assessor::new(scene.task(), 2, 0.001);
+    let mut model = build(40, 37, true);
+    let (mut ring, mut drain) = rtrb::RingBuffer::<[ToolSample; 2]>::new(1 << 12);
+    let assessing = std::thread::spawn(move || {
+        let mut observe = LatencyHistogram::new();
+        loop {
+            let done = drain.is_abandoned();
+            while let Ok(samples) = drain.pop() {
+                let t = Instant::now();
+                assessor.observe(&samples);
+                observe.record(t.elapsed());
+            }
+            if done {
+                return (observe, assessor.assessment());
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+    });
+    let (mut step_time, mut push_time) = (LatencyHistogram::new(), LatencyHistogram::new());
+    let mut feedback = [ToolFeedback::default(); 2];
+    for step in 0..400 {
+        let commands = blade_at(-0.02 + 0.04 * step as f64 / 400.0);
+        let t = Instant::now();
+        model.step(&commands, &mut feedback);
+        step_time.record(t.elapsed());
+        let t = Instant::now();
+        let _ = ring.push([ToolSample::new(&commands[0], &feedback[0]), ToolSample::new(&commands[1], &feedback[1])]);
+        push_time.record(t.elapsed());
+    }
+    drop(ring);
+    let (observe, assessment) = assessing.join().unwrap();
+    let ns = |h: &LatencyHistogram, q: f64| h.quantile_ns(q) as f64;
+    println!(
+        "assessment, 1k explicit cutting: physics thread's push {:.0} ns mean, p99 {:.0} ns ({:.3} % of the mean step, {:.1} µs); assessor thread {:.0} ns mean, p99 {:.0} ns per step; score {:.1}, coverage {:.2}",
+        push_time.mean_ns(),
+        ns(&push_time, 0.99),
+        100.0 * push_time.mean_ns() / step_time.mean_ns(),
+        step_time.mean_ns() / 1e3,
+        observe.mean_ns(),
+        ns(&observe, 0.99),
+        assessment.score.unwrap_or(f64::NAN),
+        assessment.coverage.unwrap_or(f64::NAN),
+    );
 }
 
 /// divan's view of one intact explicit step at each size.
