@@ -2,6 +2,7 @@
 //! real clients — the generated Rust gRPC client, a tokio-tungstenite WebSocket client,
 //! and gRPC reflection and health clients as grpcurl would use them.
 
+mod assessment;
 mod bad_input;
 mod deploy;
 mod faults;

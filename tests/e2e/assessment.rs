@@ -1,0 +1,99 @@
+//! Assessment over the real server: a script's report carries the task's metrics and the
+//! session serves the same; a live cut through a haptic stream is assessed off the
+//! physics thread, and its replay recomputes exactly the same metrics.
+
+use std::time::Duration;
+
+use cutsim_proto::v1 as pb;
+
+use crate::harness::*;
+use crate::haptics::open;
+
+const ADMIN: &str = "0123456789abcdef0123456789abcdef";
+
+async fn post(server: &Server, path: &str, token: &str, body: &str) -> HttpResponse {
+    http_call(&server.http, "POST", path, &[("cutsim-token", token), ("content-type", "application/json")], body).await
+}
+
+async fn assessment(server: &Server, id: &str, token: &str) -> pb::Assessment {
+    server.sessions().await.get_assessment(authed(pb::GetAssessmentRequest { session_id: id.into() }, token)).await.unwrap().into_inner()
+}
+
+#[tokio::test]
+async fn a_good_and_a_bad_scripted_cut_are_scored_and_the_session_serves_the_same_metrics() {
+    let server = Server::start();
+    let session = create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    let good = run_script(&server, &session, &example_script("skin-patch-task-good.json")).await.unwrap();
+    assert!(good.passed, "{:?}", good.expectations);
+    let metrics = good.assessment.clone().expect("a script's report carries its assessment");
+    assert_eq!(metrics.passed, Some(true), "{:?}", metrics.failures);
+    assert!(metrics.task.contains("straight 40 mm incision"), "{}", metrics.task);
+    assert!(metrics.events.iter().any(|e| e.kind == "completed"), "{:?}", metrics.events);
+    // What the session serves afterwards is what the report said (same steps, same metrics).
+    assert_eq!(assessment(&server, &session.id, &session.observe).await, metrics);
+    let info = server.sessions().await.get_session(authed(pb::GetSessionRequest { session_id: session.id.clone(), with_state_hash: false }, &session.observe)).await.unwrap().into_inner();
+    assert_eq!(info.assessment.as_ref(), Some(&metrics));
+
+    let bad = run_script(&server, &session, &example_script("skin-patch-task-bad.json")).await.unwrap();
+    assert!(bad.passed, "the bad cut's script asserts that the task fails: {:?}", bad.expectations);
+    let metrics = bad.assessment.unwrap();
+    assert_eq!(metrics.passed, Some(false));
+    assert!(metrics.failures.iter().any(|f| f.contains("coverage")) && metrics.failures.iter().any(|f| f.contains("from the plan")), "{:?}", metrics.failures);
+    assert!(metrics.score.unwrap() < 60.0);
+
+    // The observe token may read the metrics; a wrong token may not.
+    let denied = server.sessions().await.get_assessment(authed(pb::GetAssessmentRequest { session_id: session.id.clone() }, "wrong")).await.unwrap_err();
+    assert_eq!(denied.code(), tonic::Code::Unauthenticated);
+}
+
+#[tokio::test]
+async fn a_live_cut_is_assessed_and_its_replay_recomputes_the_same_metrics() {
+    let dir = TempDir::new("assessment");
+    let config = dir.0.join("config.json");
+    std::fs::write(&config, format!(r#"{{"admin_token": "{ADMIN}"}}"#)).unwrap();
+    let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
+    let live = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+
+    // A trainee's scalpel: down into the skin before the plan's start, along it at
+    // 0.1 m/s, out past its end, one pose a millisecond.
+    let (tx, response) = open(&server, &live.id, &live.control).await;
+    let mut feedback = response.expect("the stream opens");
+    let reader = tokio::spawn(async move { while let Ok(Some(_)) = feedback.message().await {} });
+    let mut tick = tokio::time::interval(Duration::from_millis(1));
+    for i in 0..600u32 {
+        tick.tick().await;
+        let (x, z) = match i {
+            0..50 => (-0.024, 0.005 - 0.01 * f64::from(i) / 50.0),
+            50..505 => (-0.024 + 0.0455 * f64::from(i - 50) / 455.0, -0.005),
+            _ => (0.0215, -0.005 + 0.015 * f64::from(i - 505) / 95.0),
+        };
+        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.0, z)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1 };
+        tx.send(command).await.unwrap();
+    }
+    drop(tx);
+    let _ = reader.await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    let metrics = assessment(&server, &live.id, &live.observe).await;
+    assert!(metrics.has_plan && metrics.problem.is_empty(), "{metrics:?}");
+    assert!(metrics.strokes >= 1 && metrics.incision_length_mm > 20.0, "the live cut was assessed: {metrics:?}");
+    assert!(metrics.coverage.unwrap() > 0.5 && metrics.deviation_max_mm.unwrap() < 2.0, "{metrics:?}");
+    assert!(metrics.path_length_mm > 40.0 && metrics.peak_force_n > 0.5, "{metrics:?}");
+
+    // The replay, shown at the step those metrics were of, computes the same metrics.
+    let closed = server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: live.id.clone() }, &live.control)).await;
+    assert!(closed.is_ok(), "{closed:?}");
+    let replay = post(&server, &format!("/api/recordings/{}/replay", live.id), ADMIN, "").await;
+    assert_eq!(replay.status, 201, "{}", replay.body);
+    let created: serde_json::Value = serde_json::from_str(&replay.body).unwrap();
+    let (id, control, observe) = (created["session_id"].as_str().unwrap(), created["control_token"].as_str().unwrap(), created["observe_token"].as_str().unwrap());
+    let playback = format!("/api/sessions/{id}/playback");
+    let seek = post(&server, &playback, control, &format!(r#"{{"action": "seek", "step": {}}}"#, metrics.steps)).await;
+    assert_eq!(seek.status, 204, "{}", seek.body);
+    let replayed = assessment(&server, id, observe).await;
+    assert_eq!(replayed, metrics, "the replay recomputes the live session's metrics");
+    // And back to the start: nothing assessed yet.
+    assert_eq!(post(&server, &playback, control, r#"{"action": "seek", "step": 0}"#).await.status, 204);
+    let start = assessment(&server, id, observe).await;
+    assert_eq!((start.steps, start.strokes, start.coverage), (0, 0, Some(0.0)));
+}
