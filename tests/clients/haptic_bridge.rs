@@ -235,3 +235,29 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
     let rate_limited = report["rate_limited"].as_u64().unwrap();
     assert!((rate_limited as f64) < 0.1 * report["device_steps"].as_u64().unwrap() as f64, "the rate limit cut in on {rate_limited} steps: {report}");
 }
+
+/// `--cues`: the simulated cut passes through a no-go region of the session's task; the
+/// bridge learns of the entry from the server's assessment and plays a pulse.
+#[tokio::test(flavor = "multi_thread")]
+async fn entering_a_no_go_region_plays_a_cue_pulse() {
+    let server = Server::start();
+    let scene = inline("skin-patch", |s| {
+        s["task"]["no_go"] = serde_json::json!([{ "name": "vessel", "min_m": [-0.012, -0.005, -0.02], "max_m": [-0.004, 0.005, 0.01] }]);
+    });
+    let session = create_inline(&server, scene, pb::SessionMode::Realtime).await.unwrap();
+    let dir = TempDir::new("bridge-cues");
+    // sim:cut moves the device 10 mm/s from x = -20 mm; the blade (the coupling's proxy,
+    // held back by the cutting resistance) reaches the region after about 1–2 s.
+    let out = Command::new(BRIDGE)
+        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "0", "--device", "sim:cut"])
+        .args(["--duration-s", "3", "--cues"])
+        .arg("--report")
+        .arg(dir.0.join("report.json"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
+    let assessment = server.sessions().await.get_assessment(authed(pb::GetAssessmentRequest { session_id: session.id.clone() }, &session.observe)).await.unwrap().into_inner();
+    assert!(assessment.no_go_entries >= 1, "the blade entered the region: {assessment:?}");
+    assert!(report["cues"].as_u64().unwrap() >= 1, "a cue was played: {report}");
+}

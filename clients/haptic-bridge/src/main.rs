@@ -8,6 +8,7 @@
 //! are stale. See docs/haptic-bridge.md.
 
 mod coupling;
+mod cues;
 mod device;
 mod limiter;
 mod link;
@@ -78,6 +79,10 @@ struct Args {
     /// The device's rated force, N.
     #[arg(long)]
     max_force_n: Option<f64>,
+    /// Training cues: a short force pulse when the trainee enters a no-go region of the
+    /// session's task or goes above its force limit (off by default; docs/haptic-bridge.md).
+    #[arg(long)]
+    cues: bool,
     /// The largest force change per second, N/s.
     #[arg(long)]
     max_force_rate_n_per_s: Option<f64>,
@@ -120,6 +125,8 @@ struct Report {
     clamped: u64,
     rate_limited: u64,
     non_finite: u64,
+    /// Cue pulses played (`--cues`).
+    cues: u64,
     config: Config,
     ended_by: String,
 }
@@ -182,6 +189,8 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let mut device = open_device(&args.device)?;
     let server = cutsim_proto::endpoint(&args.server, args.tls_ca.as_deref()).map_err(|e| anyhow::anyhow!(e))?;
     let origin = Instant::now();
+    let mut watcher = args.cues.then(|| cues::Watcher::start(server.clone(), args.session.clone(), args.token.clone()));
+    let mut pulse = cues::Pulse::new(config.limits.max_force_rate_n_per_s);
     let mut link = link::Link::start(
         link::Target { server, session: args.session.clone(), token: args.token.clone(), tool: args.tool },
         origin,
@@ -233,7 +242,10 @@ fn run(args: &Args) -> anyhow::Result<()> {
             && connected
             && answer.as_ref().is_some_and(|a| now.duration_since(a.received).as_secs_f64() * 1e3 <= config.limits.stale_ms);
         let (tissue, resistance) = if fresh { answer.map_or_else(Default::default, |a| (a.force, a.resistance)) } else { Default::default() };
-        let wanted = if state.present { coupling.step(dt_s, position, velocity, tissue, resistance) } else { V3::default() };
+        let mut wanted = if state.present { coupling.step(dt_s, position, velocity, tissue, resistance) } else { V3::default() };
+        if let Some(w) = watcher.as_ref().filter(|_| state.present && ramping_out_until.is_none()) {
+            wanted = wanted + pulse.step(dt_s, w.warnings.load(Ordering::Acquire), tissue);
+        }
         let force = limiter.apply(config.workspace.force_to_device(wanted), fresh, dt_s);
         device.write_force(force, fresh);
 
@@ -273,6 +285,10 @@ fn run(args: &Args) -> anyhow::Result<()> {
     link.send(pb::ToolCommand { tool: args.tool, active: false, ..Default::default() });
     std::thread::sleep(Duration::from_millis(20));
     link.stop();
+    if let Some(w) = watcher.as_mut() {
+        w.stop();
+        report.cues = pulse.played();
+    }
     if let Some(mut t) = trace {
         t.flush()?;
     }
