@@ -74,6 +74,22 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     console.log(`screenshot ${shot}: ${lipPixels} red wound pixels`);
     assert.ok(lipPixels > 1000, `the incision is visible (${lipPixels} red pixels)`);
 
+    // The task's metrics beside the view, and the planned incision drawn on the tissue.
+    const task = await waitFor('the task metrics', () =>
+      page.evaluate((id) => {
+        const panel = window.cutsimViewer.panels.get(id);
+        const a = panel?.assessment;
+        const text = (role) => panel.el.querySelector(`[data-role="${role}"]`).textContent;
+        return a && a.steps === 1500 && { score: a.score, passed: a.passed, plan: Boolean(panel.planLine), verdict: text('verdict'), coverage: text('coverage'), task: text('task-text') };
+      }, id),
+    );
+    assert.equal(task.passed, report.assessment.passed, 'the page shows the report\'s verdict');
+    assert.equal(task.score, report.assessment.score);
+    assert.equal(task.verdict, report.assessment.passed ? 'passed' : 'failed');
+    assert.match(task.task, /straight 40 mm incision/);
+    assert.ok(task.plan, 'the planned incision is drawn');
+    await page.locator(`.panel[data-session="${id}"]`).screenshot({ path: path.join(artifacts, 'viewer-assessment.png') });
+
     // Restart: the page says it is reconnecting, then, the old session being gone, lists
     // the new server's sessions and opens a new one.
     server.kill('SIGKILL');

@@ -16,6 +16,10 @@ const WALL_DEPTH_M = 0.002;
 // Force arrow: 1 N is drawn this long, m.
 const ARROW_M_PER_N = 0.02;
 const PLOT_SECONDS = 5;
+// The planned incision (dashed, over the tissue).
+const PLAN_COLOUR = 0x30e070;
+// Warnings listed under the metrics.
+const WARNINGS_SHOWN = 4;
 
 export class SessionPanel {
   /**
@@ -82,6 +86,22 @@ export class SessionPanel {
           <dt>latency</dt><dd data-role="latency">–</dd>
         </dl>
         <canvas class="plot" width="260" height="70" title="|force| over the last ${PLOT_SECONDS} s"></canvas>
+        <div class="task" data-role="task" hidden>
+          <p class="task-text" data-role="task-text"></p>
+          <dl>
+            <dt>score</dt><dd data-role="score">–</dd>
+            <dt>verdict</dt><dd data-role="verdict">–</dd>
+            <dt>coverage</dt><dd data-role="coverage">–</dd>
+            <dt>deviation</dt><dd data-role="deviation">–</dd>
+            <dt>depth error</dt><dd data-role="depth">–</dd>
+            <dt>time</dt><dd data-role="time">–</dd>
+            <dt>strokes</dt><dd data-role="strokes">–</dd>
+            <dt>path</dt><dd data-role="path">–</dd>
+            <dt>peak force</dt><dd data-role="peak">–</dd>
+            <dt>no-go</dt><dd data-role="nogo">–</dd>
+          </dl>
+          <ul class="warnings" data-role="warnings"></ul>
+        </div>
       </div>`;
     el.querySelector('code.id').textContent = this.id;
     container.appendChild(el);
@@ -277,6 +297,8 @@ export class SessionPanel {
       case 'stats':
         this.stats = frame.stats;
         this.playback = frame.stats.playback;
+        // Sent only when the metrics changed: keep the last ones.
+        if (frame.stats.assessment) this.setAssessment(frame.stats.assessment);
         this.latencyMs = Date.now() - frame.stats.server_unix_ms;
         break;
       default:
@@ -410,6 +432,57 @@ export class SessionPanel {
         tool.arrow.visible = true;
       }
     }
+  }
+
+  /** The trainee's metrics (docs/assessment.md), and the planned incision drawn once. */
+  setAssessment(a) {
+    this.assessment = a;
+    if (!this.planLine && a.plan_points_m && a.plan_points_m.length >= 6) {
+      const geometry = new THREE.BufferGeometry();
+      geometry.setAttribute('position', new THREE.Float32BufferAttribute(a.plan_points_m, 3));
+      // Drawn over the tissue (no depth test) so that the cut's lips never hide the plan.
+      this.planLine = new THREE.Line(geometry, new THREE.LineDashedMaterial({ color: PLAN_COLOUR, dashSize: 0.002, gapSize: 0.001, depthTest: false }));
+      this.planLine.computeLineDistances();
+      this.planLine.renderOrder = 2;
+      this.scene.add(this.planLine);
+    }
+    this.updateTask();
+  }
+
+  updateTask() {
+    const a = this.assessment;
+    const box = this.field('task');
+    if (!a) return;
+    box.hidden = false;
+    const set = (role, text) => {
+      this.field(role).textContent = text;
+    };
+    const mm = (v) => (v == null ? '–' : `${v.toFixed(1)} mm`);
+    set('task-text', a.task || 'no task: motion and force only');
+    set('score', a.score == null ? '–' : a.score.toFixed(0));
+    const verdict = this.field('verdict');
+    verdict.textContent = a.passed == null ? '–' : a.passed ? 'passed' : a.completed ? 'failed' : 'in progress';
+    verdict.dataset.verdict = a.passed == null ? '' : a.passed ? 'passed' : 'failed';
+    verdict.title = (a.failures || []).join('; ');
+    set('coverage', a.coverage == null ? '–' : `${(a.coverage * 100).toFixed(0)} %`);
+    set('deviation', a.deviation_rms_mm == null ? '–' : `${mm(a.deviation_rms_mm)} RMS, ${mm(a.deviation_max_mm)} max (±${a.band_mm.toFixed(1)})`);
+    set('depth', mm(a.depth_error_rms_mm));
+    set('time', a.time_to_complete_s == null ? (a.started_s == null ? '–' : 'not complete') : `${a.time_to_complete_s.toFixed(2)} s`);
+    set('strokes', `${a.strokes}`);
+    set('path', `${a.path_length_mm.toFixed(0)} mm${a.economy_of_motion == null ? '' : `, economy ${a.economy_of_motion.toFixed(2)}`}`);
+    set('peak', `${a.peak_force_n.toFixed(2)} N${a.time_above_force_limit_s ? `, ${a.time_above_force_limit_s.toFixed(2)} s over the limit` : ''}`);
+    set('nogo', a.no_go_entries ? `${a.no_go_entries} entr${a.no_go_entries === 1 ? 'y' : 'ies'}` : 'none');
+    // Warnings as they happened, newest first (text, never markup).
+    const list = this.field('warnings');
+    const warnings = (a.events || []).filter((e) => e.kind !== 'completed').slice(-WARNINGS_SHOWN).reverse();
+    list.replaceChildren(
+      ...warnings.map((e) => {
+        const li = document.createElement('li');
+        li.dataset.kind = e.kind;
+        li.textContent = `${e.time_s.toFixed(2)} s — ${e.message}`;
+        return li;
+      }),
+    );
   }
 
   updateHud() {

@@ -12,6 +12,7 @@ use cutsim_sim::tissue::TissueCounters;
 use cutsim_sim::tool::ToolCommand;
 
 use crate::error::ApiError;
+use crate::session::assessing::TaskInfo;
 use crate::session::hub::{Frame, StepStats};
 use crate::session::records::StampedCommand;
 use crate::session::{Mode, Session, Status};
@@ -90,9 +91,8 @@ pub fn counters(c: &TissueCounters, pieces: u64) -> pb::TissueCounters {
     }
 }
 
-/// The metrics in the API's form; `problem`: what the assessor missed, `task`: the task's
-/// description.
-pub fn assessment(a: &Assessment, problem: String, task: String) -> pb::Assessment {
+/// The metrics in the API's form; `problem`: what the assessor missed.
+pub fn assessment(a: &Assessment, problem: String, task: &TaskInfo) -> pb::Assessment {
     pb::Assessment {
         steps: a.steps,
         has_plan: a.has_plan,
@@ -126,13 +126,15 @@ pub fn assessment(a: &Assessment, problem: String, task: String) -> pb::Assessme
             .collect(),
         events_dropped: a.events_dropped,
         problem,
-        task,
+        task: task.description.clone(),
+        plan_points_m: task.plan_points_m.clone(),
+        band_mm: task.band_mm,
     }
 }
 
 /// A session's newest published metrics.
 pub fn session_assessment(s: &Session) -> pb::Assessment {
-    assessment(&s.assessment.load(), s.assessment.problem(), s.assessment.task.clone())
+    assessment(&s.assessment.load(), s.assessment.problem(), &s.assessment.task)
 }
 
 /// A session as the API describes it (from its newest frame).
@@ -239,8 +241,8 @@ pub fn progress(p: &Progress) -> pb::ScriptProgress {
     pb::ScriptProgress { step: p.step, total_steps: p.total, cuts: p.cuts, max_tool_force_n: p.max_tool_force_n }
 }
 
-/// A script's report; `task`: the scene task's description.
-pub fn report(r: &RunReport, task: &str) -> pb::ScriptReport {
+/// A script's report, with the session's task.
+pub fn report(r: &RunReport, task: &TaskInfo) -> pb::ScriptReport {
     pb::ScriptReport {
         scene: r.scene.clone(),
         model: r.model.clone(),
@@ -271,7 +273,7 @@ pub fn report(r: &RunReport, task: &str) -> pb::ScriptReport {
         passed: r.passed,
         counters: Some(counters(&r.counters, r.pieces)),
         report_json: serde_json::to_string(r).unwrap_or_default(),
-        assessment: Some(assessment(&r.assessment, String::new(), task.to_owned())),
+        assessment: Some(assessment(&r.assessment, String::new(), task)),
     }
 }
 

@@ -302,7 +302,7 @@ where
                                 let current = session.assessment.load();
                                 let changed = !last_assessment.as_ref().is_some_and(|a| std::sync::Arc::ptr_eq(a, &current));
                                 last_assessment = Some(current.clone());
-                                changed.then(|| convert::assessment(&current, session.assessment.problem(), session.assessment.task.clone()))
+                                changed.then(|| convert::assessment(&current, session.assessment.problem(), &session.assessment.task))
                             },
                         };
                         outgoing.push(frame_bytes(pb::viewer_frame::Frame::Stats(stats)));

@@ -32,16 +32,36 @@ enum Item {
     Reset,
 }
 
+/// What viewers show of a task beside its metrics.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TaskInfo {
+    pub description: String,
+    /// The planned incision's points, m, flattened (x, y, z, …).
+    pub plan_points_m: Vec<f32>,
+    pub band_mm: f64,
+}
+
+impl TaskInfo {
+    pub fn new(description: &str, task: &Task) -> Self {
+        let plan = task.plan.as_ref();
+        Self {
+            description: description.to_owned(),
+            plan_points_m: plan.map_or_else(Vec::new, |p| p.points().iter().flat_map(|q| [q.x as f32, q.y as f32, q.z as f32]).collect()),
+            band_mm: plan.map_or(0.0, |p| p.band_m * 1e3),
+        }
+    }
+}
+
 /// The metrics as last published, with what the assessor missed.
 pub struct AssessmentCell {
     current: ArcSwap<Assessment>,
     lost: AtomicU64,
-    /// The task's description, shown beside the metrics.
-    pub task: String,
+    /// The task, shown beside the metrics.
+    pub task: TaskInfo,
 }
 
 impl AssessmentCell {
-    pub fn new(task: String) -> Arc<Self> {
+    pub fn new(task: TaskInfo) -> Arc<Self> {
         Arc::new(Self { current: ArcSwap::from_pointee(Assessment::default()), lost: AtomicU64::new(0), task })
     }
 

@@ -518,8 +518,8 @@ impl Registry {
             panic_at_step: faults.panic_at_step,
         };
         let registry = Arc::downgrade(self);
-        let task = scene.task.as_ref().map(|t| t.description.clone()).unwrap_or_default();
-        let assessment = assessing::AssessmentCell::new(task);
+        let description = scene.task.as_ref().map(|t| t.description.clone()).unwrap_or_default();
+        let assessment = assessing::AssessmentCell::new(assessing::TaskInfo::new(&description, &scene.task()));
         // Replays assess on their physics thread (with a copy per kept state, to seek).
         let assess = match &replay {
             Some(_) => None,

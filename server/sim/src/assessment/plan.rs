@@ -53,6 +53,11 @@ impl Plan {
         Ok(Plan { points: points.to_vec(), arc, normal, band_m })
     }
 
+    /// The plan's points, m.
+    pub fn points(&self) -> &[Vec3] {
+        &self.points
+    }
+
     /// The plan's length, m.
     pub fn length_m(&self) -> f64 {
         *self.arc.last().expect("a plan has at least two points")
