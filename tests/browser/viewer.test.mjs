@@ -90,6 +90,20 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     assert.ok(task.plan, 'the planned incision is drawn');
     await page.locator(`.panel[data-session="${id}"]`).screenshot({ path: path.join(artifacts, 'viewer-assessment.png') });
 
+    // The printable report: a download of its own, with the verdict and both figures.
+    const [download] = await Promise.all([page.waitForEvent('download'), page.click(`.panel[data-session="${id}"] [data-role="report"]`)]);
+    assert.equal(download.suggestedFilename(), `cutsim-report-${id}.html`);
+    const reportHtml = fs.readFileSync(await download.path(), 'utf8');
+    assert.match(reportHtml, /Verdict: <span class="pass">passed<\/span>/);
+    assert.equal((reportHtml.match(/<svg/g) || []).length, 2, 'the plan figure and the force figure');
+    assert.ok(!reportHtml.includes('<script'), 'no script in the report');
+    fs.writeFileSync(path.join(artifacts, 'assessment-report.html'), reportHtml);
+    // Printed, as an instructor would: a picture of it for the docs.
+    const printed = await browser.newPage({ viewport: { width: 780, height: 1000 } });
+    await printed.setContent(reportHtml);
+    await printed.screenshot({ path: path.join(artifacts, 'assessment-report.png'), fullPage: true });
+    await printed.close();
+
     // Restart: the page says it is reconnecting, then, the old session being gone, lists
     // the new server's sessions and opens a new one.
     server.kill('SIGKILL');

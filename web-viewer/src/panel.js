@@ -61,6 +61,7 @@ export class SessionPanel {
         <span class="title">session <code class="id"></code> <span class="scene"></span></span>
         <span class="state" data-role="state">connecting…</span>
         <button data-role="reset" title="Reset the view">Reset view</button>
+        <button data-role="report" title="Download the session's assessment as a printable page">Report</button>
         <label><input type="checkbox" data-role="wire"> wireframe</label>
         <button data-role="close" title="Close this panel">✕</button>
       </header>
@@ -114,6 +115,7 @@ export class SessionPanel {
       onClose(this);
     };
     this.field('reset').onclick = () => this.resetView();
+    this.field('report').onclick = () => this.downloadReport();
     this.field('wire').onchange = (e) => {
       this.wireframe = e.target.checked;
       this.front.material.wireframe = this.wireframe;
@@ -131,6 +133,24 @@ export class SessionPanel {
     };
     this.field('play').onclick = () => this.playbackRequest({ action: this.playback?.playing ? 'pause' : 'play' });
     this.field('speed').onchange = (e) => this.playbackRequest({ action: 'speed', speed: Number(e.target.value) });
+  }
+
+  /** The printable report (docs/assessment.md), saved as a file of its own. */
+  async downloadReport() {
+    const response = await fetch(`/api/sessions/${encodeURIComponent(this.id)}/report`, { headers: { 'cutsim-token': this.token } });
+    if (!response.ok) {
+      this.errors.push(`report: HTTP ${response.status}`);
+      this.setState(`report failed (HTTP ${response.status})`, this.state);
+      return;
+    }
+    const url = URL.createObjectURL(await response.blob());
+    const link = document.createElement('a');
+    link.href = url;
+    link.download = `cutsim-report-${this.id}.html`;
+    document.body.appendChild(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10_000);
   }
 
   async playbackRequest(body) {

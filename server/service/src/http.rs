@@ -46,6 +46,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/recordings", get(recordings))
         .route("/api/recordings/{session}/replay", post(replay))
         .route("/api/sessions/{id}/playback", post(playback))
+        .route("/api/sessions/{id}/report", get(assessment_report))
         .route("/api/sessions/{id}", get(session_json).delete(close_session))
         .route("/api/sessions", get(sessions_json))
         .route("/api/whoami", get(whoami))
@@ -125,6 +126,10 @@ async fn security_headers(State(app): State<AppState>, request: axum::extract::R
     let mut response = next.run(request).await;
     let headers = response.headers_mut();
     for (name, value) in &app.headers.list {
+        // A page with a policy of its own (the printable report) keeps it.
+        if name == header::CONTENT_SECURITY_POLICY && headers.contains_key(name) {
+            continue;
+        }
         headers.insert(name.clone(), value.clone());
     }
     if api {
@@ -244,6 +249,35 @@ async fn session_json(State(app): State<AppState>, caller: HttpCaller, Path(id):
         caller.operator(&app).map_err(|_| e)?;
     }
     Ok(axum::Json(summaries(&[session]).remove(0)))
+}
+
+/// `GET /api/sessions/{id}/report`: the session's assessment as a printable HTML page
+/// (docs/assessment.md), for its token holders and operators. It holds no script; it is
+/// served as an attachment so that it opens as a file of its own, outside the viewer.
+async fn assessment_report(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    caller.require_credentials(&app)?;
+    let session = app.registry.get(&id)?;
+    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
+        caller.operator(&app).map_err(|_| e)?;
+    }
+    let cell = &session.assessment;
+    let header = cutsim_sim::assessment::report::ReportHeader {
+        session: &session.id,
+        scene: &session.scene_name,
+        task: &cell.task.description,
+        build: crate::session::recording::BUILD,
+    };
+    let html = cutsim_sim::assessment::report::render(&header, &cell.checked, &cell.load(), &cell.history());
+    let disposition = format!("attachment; filename=\"cutsim-report-{}.html\"", session.id);
+    Ok((
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8".to_owned()),
+            (header::CONTENT_DISPOSITION, disposition),
+            // Its own page: inline styles, no script, nothing loaded from anywhere.
+            (header::CONTENT_SECURITY_POLICY, "default-src 'none'; style-src 'unsafe-inline'".to_owned()),
+        ],
+        html,
+    ))
 }
 
 /// `DELETE /api/sessions/{id}`: an operator closes any session; its control token

@@ -275,19 +275,27 @@ where
                 // physics thread's frames (it publishes into frames nobody holds).
                 let outgoing = {
                     let frame = session.frame.load();
-                    if frame.sequence == mirror.last_frame {
+                    // The metrics change off the physics thread (an idle session's final
+                    // metrics arrive after its last frame): they are news on their own.
+                    let assessment = session.assessment.load();
+                    let assessment_changed = !last_assessment.as_ref().is_some_and(|a| std::sync::Arc::ptr_eq(a, &assessment));
+                    let new_frame = frame.sequence != mirror.last_frame;
+                    if !new_frame && !assessment_changed {
                         continue;
                     }
-                    mirror.last_frame = frame.sequence;
                     let mut outgoing = Vec::with_capacity(3);
-                    if let Some(moved) = mirror.moved(&frame) {
-                        outgoing.push(frame_bytes(pb::viewer_frame::Frame::Positions(moved)));
+                    if new_frame {
+                        mirror.last_frame = frame.sequence;
+                        if let Some(moved) = mirror.moved(&frame) {
+                            outgoing.push(frame_bytes(pb::viewer_frame::Frame::Positions(moved)));
+                        }
+                        outgoing.push(frame_bytes(pb::viewer_frame::Frame::Tools(convert::tool_states(&frame))));
                     }
-                    outgoing.push(frame_bytes(pb::viewer_frame::Frame::Tools(convert::tool_states(&frame))));
-                    // Stats ten times less often — and at once when a replay's playback changed.
+                    // Stats ten times less often — and at once when a replay's playback
+                    // changed, or the metrics changed while no frame came.
                     let playback_changed = frame.playback != last_playback;
                     last_playback = frame.playback;
-                    if ticks % 10 == 0 || playback_changed {
+                    if (new_frame && ticks % 10 == 0) || playback_changed || !new_frame {
                         let stats = pb::SessionStats {
                             step: frame.total_steps,
                             stats: Some(convert::stats(&frame.stats)),
@@ -298,13 +306,11 @@ where
                             server_unix_ms: frame.unix_ms,
                             playback: convert::playback(&frame.playback, &session),
                             // The metrics only when they changed (their events list may be long).
-                            assessment: {
-                                let current = session.assessment.load();
-                                let changed = !last_assessment.as_ref().is_some_and(|a| std::sync::Arc::ptr_eq(a, &current));
-                                last_assessment = Some(current.clone());
-                                changed.then(|| convert::assessment(&current, session.assessment.problem(), &session.assessment.task))
-                            },
+                            assessment: assessment_changed.then(|| convert::assessment(&assessment, session.assessment.problem(), &session.assessment.task)),
                         };
+                        if assessment_changed {
+                            last_assessment = Some(assessment);
+                        }
                         outgoing.push(frame_bytes(pb::viewer_frame::Frame::Stats(stats)));
                     }
                     outgoing

@@ -14,14 +14,16 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use arc_swap::ArcSwap;
-use cutsim_sim::assessment::{Assessment, Assessor, Task, ToolSample};
+use cutsim_sim::assessment::{Assessment, Assessor, History, Task, ToolSample};
 
 /// Ring capacity, in tool samples: several seconds of two tools at 1 kHz.
 const RING_CAPACITY: usize = 1 << 14;
 /// The assessor thread looks for samples this often…
 const POLL: Duration = Duration::from_millis(2);
-/// …and publishes the metrics this often while they change.
+/// …and publishes the metrics this often while they change…
 const PUBLISH_EVERY: Duration = Duration::from_millis(50);
+/// …and the history (the report's figures; a larger copy) this often.
+const PUBLISH_HISTORY_EVERY: Duration = Duration::from_secs(1);
 
 /// What the physics thread sends.
 #[derive(Debug, Clone, Copy)]
@@ -55,14 +57,32 @@ impl TaskInfo {
 /// The metrics as last published, with what the assessor missed.
 pub struct AssessmentCell {
     current: ArcSwap<Assessment>,
+    history: ArcSwap<History>,
     lost: AtomicU64,
     /// The task, shown beside the metrics.
     pub task: TaskInfo,
+    /// The task as checked against the scene (the report draws it).
+    pub checked: Task,
 }
 
 impl AssessmentCell {
-    pub fn new(task: TaskInfo) -> Arc<Self> {
-        Arc::new(Self { current: ArcSwap::from_pointee(Assessment::default()), lost: AtomicU64::new(0), task })
+    pub fn new(task: TaskInfo, checked: Task) -> Arc<Self> {
+        Arc::new(Self {
+            current: ArcSwap::from_pointee(Assessment::default()),
+            history: ArcSwap::from_pointee(History::default()),
+            lost: AtomicU64::new(0),
+            task,
+            checked,
+        })
+    }
+
+    /// The newest history (at most a second older than the metrics).
+    pub fn history(&self) -> Arc<History> {
+        self.history.load_full()
+    }
+
+    pub fn publish_history(&self, history: &History) {
+        self.history.store(Arc::new(history.clone()));
     }
 
     /// The newest metrics.
@@ -131,7 +151,9 @@ pub fn start(session_id: &str, task: Task, tools: usize, time_step_s: f64, cell:
         let mut assessor = fresh();
         let mut step = vec![ToolSample::default(); tools];
         let mut changed = false;
+        let mut history_changed = false;
         let mut last_publish = std::time::Instant::now();
+        let mut last_history = std::time::Instant::now();
         loop {
             let abandoned = consumer.is_abandoned();
             while let Ok(item) = consumer.pop() {
@@ -143,11 +165,13 @@ pub fn start(session_id: &str, task: Task, tools: usize, time_step_s: f64, cell:
                         if last {
                             assessor.observe(&step);
                             changed = true;
+                            history_changed = true;
                         }
                     }
                     Item::Reset => {
                         assessor = fresh();
                         changed = true;
+                        history_changed = true;
                     }
                 }
             }
@@ -155,6 +179,11 @@ pub fn start(session_id: &str, task: Task, tools: usize, time_step_s: f64, cell:
                 published.publish(assessor.assessment());
                 changed = false;
                 last_publish = std::time::Instant::now();
+            }
+            if history_changed && (abandoned || last_history.elapsed() >= PUBLISH_HISTORY_EVERY) {
+                published.publish_history(assessor.history());
+                history_changed = false;
+                last_history = std::time::Instant::now();
             }
             if abandoned {
                 return;

@@ -519,7 +519,8 @@ impl Registry {
         };
         let registry = Arc::downgrade(self);
         let description = scene.task.as_ref().map(|t| t.description.clone()).unwrap_or_default();
-        let assessment = assessing::AssessmentCell::new(assessing::TaskInfo::new(&description, &scene.task()));
+        let checked = scene.task();
+        let assessment = assessing::AssessmentCell::new(assessing::TaskInfo::new(&description, &checked), checked);
         // Replays assess on their physics thread (with a copy per kept state, to seek).
         let assess = match &replay {
             Some(_) => None,

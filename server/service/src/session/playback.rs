@@ -17,6 +17,8 @@ use super::{Control, PlaybackCommand, Status};
 
 const KEYFRAME_EVERY: u64 = 1000;
 const MAX_KEYFRAMES: usize = 256;
+/// While playing, the report's history is published this often (steps).
+const HISTORY_EVERY_STEPS: u64 = 500;
 
 /// A copy of the replay's state at a step.
 struct Keyframe {
@@ -126,7 +128,12 @@ impl Physics {
 
     /// Publishes a frame with the playback's state, and the metrics up to it.
     fn show(&mut self, player: &Player) {
-        self.out.session.assessment.publish(player.assessor.assessment());
+        let cell = &self.out.session.assessment;
+        cell.publish(player.assessor.assessment());
+        // The history is a larger copy: twice a second while playing.
+        if !player.playing || player.global % HISTORY_EVERY_STEPS == 0 {
+            cell.publish_history(player.assessor.history());
+        }
         self.out.status = if player.playing { Status::Running } else { Status::Idle };
         self.out.playback = Some(PlaybackState { step: player.global, total_steps: player.total, playing: player.playing, speed: player.speed });
         self.out.publish_frame(self.tissue.as_ref());

@@ -25,6 +25,55 @@ pub const JERK_SAMPLE_S: f64 = 0.01;
 pub const COVERAGE_BIN_M: f64 = 0.000_25;
 /// Events kept in a session's list (later ones are counted, not kept).
 pub const MAX_EVENTS: usize = 200;
+/// The cut path is kept as points at least this far apart, m (for the report's figure).
+pub const PATH_SPACING_M: f64 = 0.000_25;
+/// Points the history keeps of the cut path.
+pub const MAX_PATH_POINTS: usize = 8_192;
+/// The force history starts with one peak every this many seconds…
+pub const FORCE_BIN_S: f64 = 0.02;
+/// …and doubles its bins whenever it holds this many, so a long session still fits.
+pub const MAX_FORCE_BINS: usize = 8_192;
+
+/// What the report draws: the measured tool's cut path and the force over time.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct History {
+    /// Cut path points (m) with the stroke each belongs to (from 1).
+    pub cut_path: Vec<(u32, [f32; 3])>,
+    /// The largest force on any tool in each bin, N, from step 0.
+    pub force_peaks_n: Vec<f32>,
+    /// The bins' length, s.
+    pub force_bin_s: f64,
+}
+
+impl History {
+    fn new() -> Self {
+        Self { cut_path: Vec::new(), force_peaks_n: Vec::new(), force_bin_s: FORCE_BIN_S }
+    }
+
+    fn add_force(&mut self, step: u64, dt: f64, force: f64) {
+        let bin = ((step as f64 + 0.5) * dt / self.force_bin_s) as usize;
+        if bin >= self.force_peaks_n.len() {
+            self.force_peaks_n.resize(bin + 1, 0.0);
+        }
+        let peak = &mut self.force_peaks_n[bin];
+        *peak = peak.max(force as f32);
+        if self.force_peaks_n.len() > MAX_FORCE_BINS {
+            // Twice as long bins, each the larger of two.
+            self.force_peaks_n = self.force_peaks_n.chunks(2).map(|p| p.iter().copied().fold(0.0, f32::max)).collect();
+            self.force_bin_s *= 2.0;
+        }
+    }
+
+    fn add_cut_point(&mut self, stroke: u32, p: &Vec3) {
+        let point = [p.x as f32, p.y as f32, p.z as f32];
+        let far = self.cut_path.last().is_none_or(|(s, q)| {
+            *s != stroke || (0..3).map(|a| f64::from(q[a] - point[a]).powi(2)).sum::<f64>() >= PATH_SPACING_M * PATH_SPACING_M
+        });
+        if far && self.cut_path.len() < MAX_PATH_POINTS {
+            self.cut_path.push((stroke, point));
+        }
+    }
+}
 
 /// One tool after one step, as the assessor sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -204,6 +253,7 @@ pub struct Assessor {
     no_go_steps: u64,
     events: Vec<AssessmentEvent>,
     events_dropped: u64,
+    history: History,
 }
 
 impl Assessor {
@@ -255,7 +305,13 @@ impl Assessor {
             no_go_steps: 0,
             events: Vec::new(),
             events_dropped: 0,
+            history: History::new(),
         }
+    }
+
+    /// The cut path and the force over time, for the report's figures.
+    pub fn history(&self) -> &History {
+        &self.history
     }
 
     /// Starts again from no steps (the tissue was rebuilt).
@@ -304,6 +360,7 @@ impl Assessor {
             }
         }
         self.peak_force_n = self.peak_force_n.max(largest);
+        self.history.add_force(step, self.dt, largest);
         if let Some(limit) = self.task.force_limit_n {
             let above = largest > limit;
             if above {
@@ -400,6 +457,7 @@ impl Assessor {
                 self.cover(n.arc_m, n.arc_m);
             }
         }
+        self.history.add_cut_point(self.strokes as u32, &position);
         self.last_cut = Some(CutPoint { step, position, nearest });
         self.check_completion(step);
     }

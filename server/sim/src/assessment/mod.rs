@@ -5,6 +5,7 @@
 //! - [`plan`]: the planned incision's geometry (deviation, depth, arc length).
 //! - [`metrics`]: the [`Assessor`] that folds each step into an [`Assessment`].
 //! - [`score`]: the documented score and the pass/fail verdict.
+//! - [`report`]: a printable HTML report of a session's task, metrics and figures.
 //!
 //! The assessor sees the same inputs in a live session, a script and a replay (each
 //! step's tool commands and feedback), so equal commands give equal metrics. The server
@@ -12,10 +13,11 @@
 
 pub mod metrics;
 pub mod plan;
+pub mod report;
 pub mod score;
 pub mod task;
 
-pub use metrics::{Assessment, AssessmentEvent, Assessor, ToolSample};
+pub use metrics::{Assessment, AssessmentEvent, Assessor, History, ToolSample};
 pub use task::{Task, TaskSpec};
 
 #[cfg(test)]

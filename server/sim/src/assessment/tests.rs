@@ -286,3 +286,34 @@ fn bad_tasks_are_refused_with_the_path_and_what_is_allowed() {
     let e = compile(r#"{"incision": {"points_m": [[0,0,0],[0.01,0,0]], "band_m": -1}}"#).unwrap_err();
     assert!(e.contains("length must be within"), "{e}");
 }
+
+#[test]
+fn the_history_keeps_the_cut_path_by_stroke_and_force_peaks_in_bins() {
+    let mut assessor = Assessor::new(straight_plan_task(), 1, DT);
+    cut(&mut assessor, -0.02, 0.0, 0.0);
+    pause(&mut assessor, 100, Vec3::new(0.0, 0.0, 0.01));
+    cut(&mut assessor, 0.0, 0.02, 0.0);
+    let h = assessor.history();
+    // 20 mm at 0.1 mm a step, a point every 0.25 mm (every third sample, 0.3 mm): 67 a stroke.
+    assert_eq!(h.cut_path.iter().filter(|(s, _)| *s == 1).count(), 67);
+    assert_eq!(h.cut_path.iter().filter(|(s, _)| *s == 2).count(), 67);
+    // 201 + 100 + 201 steps in 20 ms bins: 26 bins; 2 N while cutting, 0 in the pause.
+    assert_eq!(h.force_peaks_n.len(), 26);
+    assert_eq!(h.force_peaks_n[0], 2.0);
+    assert_eq!(h.force_peaks_n[12], 0.0);
+}
+
+#[test]
+fn a_long_session_doubles_its_force_bins_instead_of_growing() {
+    let task = Task { plan: None, tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, min_coverage: 0.9 };
+    let mut assessor = Assessor::new(task, 1, DT);
+    let steps = 20 * 8_192 * 3; // three times what 20 ms bins hold
+    for i in 0..steps {
+        let force = if i == steps / 2 { 5.0 } else { 1.0 };
+        assessor.observe(&[ToolSample { force_n: force, contacts: 1, active: true, ..Default::default() }]);
+    }
+    let h = assessor.history();
+    assert!(h.force_peaks_n.len() <= super::metrics::MAX_FORCE_BINS);
+    assert_eq!(h.force_bin_s, 0.08, "bins doubled twice");
+    assert_eq!(h.force_peaks_n.iter().filter(|&&f| f == 5.0).count(), 1, "the peak survives the merges");
+}
