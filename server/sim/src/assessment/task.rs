@@ -10,6 +10,9 @@ use crate::quantity::{CoordinateM, ForceN, LengthM};
 use crate::scene::SceneError;
 use crate::tool::ToolShape;
 
+/// The most no-go regions a task may have (each is checked for every tool every step).
+pub const MAX_NO_GO_REGIONS: usize = 100;
+
 /// What the trainee is asked to do, and what they must not do.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -154,6 +157,9 @@ impl TaskSpec {
             let points: Vec<Vec3> = incision.points_m.iter().map(|p| Vec3::new(p[0].get(), p[1].get(), p[2].get())).collect();
             task.plan = Some(Plan::new(&points, normal / length, incision.band_m.get()).map_err(|m| err(".incision.points_m", m))?);
             task.depth = incision.depth.map(|d| (d.target_m.get(), d.tolerance_m.get()));
+        }
+        if self.no_go.len() > MAX_NO_GO_REGIONS {
+            return Err(err(".no_go", format!("{} regions; at most {MAX_NO_GO_REGIONS} are allowed", self.no_go.len())));
         }
         for (i, region) in self.no_go.iter().enumerate() {
             if region.name.trim().is_empty() {

@@ -283,6 +283,9 @@ fn bad_tasks_are_refused_with_the_path_and_what_is_allowed() {
     assert!(e.contains("task.no_go[0]") && e.contains("min ≤ max"), "{e}");
     let e = compile(r#"{"incision": {"points_m": [[0,0,0],[0.01,0,0]], "band_m": 0.002, "normal": [0,0,0]}}"#).unwrap_err();
     assert!(e.contains("task.incision.normal"), "{e}");
+    let many = format!(r#"{{"no_go": [{}]}}"#, vec![r#"{"name": "m", "min_m": [0,0,0], "max_m": [1,1,1]}"#; 101].join(","));
+    let e = compile(&many).unwrap_err();
+    assert!(e.contains("task.no_go") && e.contains("at most 100"), "{e}");
     let e = compile(r#"{"incision": {"points_m": [[0,0,0],[0.01,0,0]], "band_m": -1}}"#).unwrap_err();
     assert!(e.contains("length must be within"), "{e}");
 }
