@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use crate::assessment::{Assessment, Assessor, Task, ToolSample};
+use crate::assessment::{Assessment, Assessor, Task, ToolSample, fill_samples};
 use crate::hash::hash_hex;
 use crate::script::{CompiledScript, ExpectationResult};
 use crate::stats::LatencyHistogram;
@@ -119,9 +119,7 @@ pub fn run_with_hook(
         for fb in &feedback {
             max_force = max_force.max(fb.force_n.norm());
         }
-        for ((sample, command), fb) in samples.iter_mut().zip(&commands).zip(&feedback) {
-            *sample = ToolSample::new(command, fb);
-        }
+        fill_samples(&mut samples, &commands, &feedback);
         assessor.observe(&samples);
         if progress_every > 0 && (step + 1) % progress_every == 0 && step + 1 < steps {
             on_progress(&Progress { step: step + 1, total: steps, cuts: tissue.counters().cuts, max_tool_force_n: max_force });

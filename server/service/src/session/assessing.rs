@@ -147,8 +147,7 @@ pub fn start(session_id: &str, task: Task, tools: usize, time_step_s: f64, cell:
     let (producer, mut consumer) = rtrb::RingBuffer::new(RING_CAPACITY);
     let published = cell.clone();
     std::thread::Builder::new().name(format!("assess-{}", &session_id[..8.min(session_id.len())])).spawn(move || {
-        let fresh = || Assessor::new(task.clone(), tools, time_step_s);
-        let mut assessor = fresh();
+        let mut assessor = Assessor::new(task, tools, time_step_s);
         let mut step = vec![ToolSample::default(); tools];
         let mut changed = false;
         let mut history_changed = false;
@@ -169,7 +168,7 @@ pub fn start(session_id: &str, task: Task, tools: usize, time_step_s: f64, cell:
                         }
                     }
                     Item::Reset => {
-                        assessor = fresh();
+                        assessor.reset();
                         changed = true;
                         history_changed = true;
                     }

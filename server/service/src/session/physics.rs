@@ -454,10 +454,6 @@ impl Physics {
         self.out.status = previous_status;
         self.update_stats();
         self.out.publish_frame(self.tissue.as_ref());
-        if let Ok(report) = &outcome {
-            // The assessor thread reaches the same metrics a moment later; publish them now.
-            self.out.session.assessment.publish(report.assessment.clone());
-        }
         let _ = events.send(match outcome {
             Ok(report) => ScriptEvent::Report(Box::new(report)),
             Err(stopped) => ScriptEvent::Failed(format!("the script stopped after {} of {steps} steps: its client went away or the session closed", stopped.at_step)),

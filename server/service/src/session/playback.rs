@@ -6,7 +6,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use cutsim_sim::assessment::{Assessor, ToolSample};
+use cutsim_sim::assessment::{Assessor, ToolSample, fill_samples};
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::ToolCommand;
 
@@ -168,9 +168,7 @@ impl Physics {
         }
         self.tissue.step(&self.out.commands, &mut self.out.feedback);
         player.global += 1;
-        for ((sample, command), feedback) in player.samples.iter_mut().zip(&self.out.commands).zip(&self.out.feedback) {
-            *sample = ToolSample::new(command, feedback);
-        }
+        fill_samples(&mut player.samples, &self.out.commands, &self.out.feedback);
         player.assessor.observe(&player.samples);
         if publish {
             self.out.after_step(self.tissue.as_mut());

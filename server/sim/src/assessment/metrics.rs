@@ -103,6 +103,13 @@ impl ToolSample {
     }
 }
 
+/// Fills `samples[i]` from tool i's command and feedback of one step.
+pub fn fill_samples(samples: &mut [ToolSample], commands: &[ToolCommand], feedback: &[ToolFeedback]) {
+    for ((sample, command), fb) in samples.iter_mut().zip(commands).zip(feedback) {
+        *sample = ToolSample::new(command, fb);
+    }
+}
+
 /// Something an instructor wants to know when it happens.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AssessmentEvent {

@@ -17,7 +17,7 @@ pub mod report;
 pub mod score;
 pub mod task;
 
-pub use metrics::{Assessment, AssessmentEvent, Assessor, History, ToolSample};
+pub use metrics::{Assessment, AssessmentEvent, Assessor, History, ToolSample, fill_samples};
 pub use task::{Task, TaskSpec};
 
 #[cfg(test)]
