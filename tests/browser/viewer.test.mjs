@@ -69,7 +69,7 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     // The incision on screen: a screenshot, checked for the red lips.
     fs.mkdirSync(artifacts, { recursive: true });
     const shot = path.join(artifacts, 'viewer-incision.png');
-    await page.locator(`.panel[data-session="${id}"] .view canvas`).screenshot({ path: shot });
+    await page.locator(`.panel[data-session="${id}"] .view > canvas`).screenshot({ path: shot });
     const lipPixels = countLipPixels(fs.readFileSync(shot));
     console.log(`screenshot ${shot}: ${lipPixels} red wound pixels`);
     assert.ok(lipPixels > 1000, `the incision is visible (${lipPixels} red pixels)`);
@@ -103,6 +103,39 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     await printed.setContent(reportHtml);
     await printed.screenshot({ path: path.join(artifacts, 'assessment-report.png'), fullPage: true });
     await printed.close();
+
+    // A second trainee beside the first: a bad cut, with its own verdict and warnings.
+    const other = await api.createSession('skin-patch');
+    const otherId = other.session.id;
+    await page.fill('#token-session', otherId);
+    await page.fill('#token-value', other.observe_token);
+    await page.click('#token-form button[type="submit"]');
+    const bad = await api.runScript(otherId, other.control_token, fs.readFileSync(path.join(repo, 'clients/cut-bot/examples/skin-patch-task-bad.json'), 'utf8'));
+    assert.equal(bad.assessment.passed, false);
+    const console2 = await waitFor('both sessions with their own metrics', () =>
+      page.evaluate(([a, b, steps]) => {
+        const show = (id) => {
+          const panel = window.cutsimViewer.panels.get(id);
+          if (!panel?.assessment) return null;
+          const r = panel.el.getBoundingClientRect();
+          const text = (role) => panel.el.querySelector(`[data-role="${role}"]`).textContent;
+          return { steps: panel.assessment.steps, verdict: text('verdict'), score: panel.assessment.score, warnings: [...panel.el.querySelectorAll('[data-role="warnings"] li')].map((li) => li.dataset.kind), left: r.left, top: r.top };
+        };
+        const [first, second] = [show(a), show(b)];
+        return first && second && second.steps === steps && second.verdict === 'failed' && { first, second };
+      }, [id, otherId, bad.assessment.steps]),
+    );
+    assert.equal(console2.first.verdict, 'passed');
+    assert.equal(console2.first.score, report.assessment.score, 'the first panel keeps its own metrics');
+    assert.equal(console2.second.verdict, 'failed');
+    assert.equal(console2.second.score, bad.assessment.score);
+    assert.ok(console2.second.warnings.includes('outside_band'), `the bad cut's warnings: ${console2.second.warnings}`);
+    assert.equal(console2.first.top, console2.second.top, 'side by side');
+    assert.notEqual(console2.first.left, console2.second.left);
+    await page.locator('#panels').screenshot({ path: path.join(artifacts, 'console-two-sessions.png') });
+    // Narrow panels keep their buttons clear of the metrics: the second's report downloads.
+    const [badDownload] = await Promise.all([page.waitForEvent('download'), page.click(`.panel[data-session="${otherId}"] [data-role="report"]`)]);
+    assert.match(fs.readFileSync(await badDownload.path(), 'utf8'), /Verdict: <span class="fail">failed<\/span>/);
 
     // Restart: the page says it is reconnecting, then, the old session being gone, lists
     // the new server's sessions and opens a new one.
@@ -170,7 +203,7 @@ test('the viewer draws a branched-grid session and follows its voxel-removal cut
       FOLLOW_MS,
     );
     fs.mkdirSync(artifacts, { recursive: true });
-    await page.locator(`.panel[data-session="${id}"] .view canvas`).screenshot({ path: path.join(artifacts, 'viewer-u-tube-slit.png') });
+    await page.locator(`.panel[data-session="${id}"] .view > canvas`).screenshot({ path: path.join(artifacts, 'viewer-u-tube-slit.png') });
     assert.deepEqual(consoleErrors, [], 'no console errors');
   } finally {
     await browser.close();
@@ -209,6 +242,24 @@ test('a recorded session replays with play, pause and scrub', async () => {
     assert.equal(replay.total, 1500);
     const playback = () => page.evaluate((id) => window.cutsimViewer.panels.get(id).playback, replay.id);
     const panel = `.panel[data-session="${replay.id}"]`;
+    // The force and metric curves of the whole recording are drawn under the timeline.
+    const curves = await waitFor('the timeline curves', () =>
+      page.$eval(`${panel} canvas.curves`, (c) => c.dataset.complete === 'true' && { bins: Number(c.dataset.bins), width: c.getBoundingClientRect().width }),
+    );
+    assert.equal(curves.bins, 500, '1,500 steps in bins of 3');
+    assert.ok(curves.width > 300, `the curves span the timeline (${curves.width} px)`);
+    const timeline = await page.evaluate((id) => window.cutsimViewer.panels.get(id).curves.timeline, replay.id);
+    assert.ok(Math.max(...timeline.force_peak_n) > 0.5, 'the recorded cut pressed on the skin');
+    assert.ok(timeline.score[timeline.score.length - 1] > 80, `the straight cut scored well: ${timeline.score.at(-1)}`);
+    // A click on the curves seeks there: a third of the way in.
+    const box = await page.$eval(`${panel} canvas.curves`, (c) => {
+      const r = c.getBoundingClientRect();
+      return { x: r.left, y: r.top, w: r.width, h: r.height };
+    });
+    await page.mouse.click(box.x + box.w / 3, box.y + box.h / 2);
+    await waitFor('the step clicked', async () => Math.abs((await playback()).step - 500) <= 3);
+    fs.mkdirSync(artifacts, { recursive: true });
+    await page.locator(panel).screenshot({ path: path.join(artifacts, 'replay-timeline.png') });
     await page.click(`${panel} [data-role="play"]`);
     await waitFor('playing', async () => (await playback()).step > 100);
     await page.click(`${panel} [data-role="play"]`);

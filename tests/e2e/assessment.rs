@@ -119,6 +119,24 @@ async fn a_live_cut_is_assessed_and_its_replay_recomputes_the_same_metrics() {
     assert_eq!(seek.status, 204, "{}", seek.body);
     let replayed = assessment(&server, id, observe).await;
     assert_eq!(replayed, metrics, "the replay recomputes the live session's metrics");
+    // Its timeline (built before the seek was answered) covers the whole recording and
+    // ends where the live session did (the tool had left the tissue: no metric moved).
+    let timeline = http_call(&server.http, "GET", &format!("/api/sessions/{id}/timeline"), &[("cutsim-token", observe)], "").await;
+    assert_eq!(timeline.status, 200, "{}", timeline.body);
+    let timeline: serde_json::Value = serde_json::from_str(&timeline.body).unwrap();
+    assert_eq!(timeline["indexed_steps"], created["total_steps"], "{timeline}");
+    assert_eq!(timeline["total_steps"], created["total_steps"]);
+    let bins = timeline["force_peak_n"].as_array().unwrap();
+    assert!(!bins.is_empty() && bins.len() <= 600 && timeline["score"].as_array().unwrap().len() == bins.len());
+    let peak = bins.iter().map(|f| f.as_f64().unwrap()).fold(0.0, f64::max);
+    // The curves are f32 (written in their shortest form).
+    assert_eq!(peak as f32, metrics.peak_force_n as f32, "the curves' largest force is the metrics' peak");
+    let last_score = timeline["score"].as_array().unwrap().last().unwrap().as_f64().unwrap();
+    assert_eq!(last_score as f32, metrics.score.unwrap() as f32, "{timeline}");
+    // Live sessions have no timeline.
+    let other = create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    let refused = http_call(&server.http, "GET", &format!("/api/sessions/{}/timeline", other.id), &[("cutsim-token", &other.observe)], "").await;
+    assert!(refused.status >= 400 && refused.body.contains("only replays have a timeline"), "{} {}", refused.status, refused.body);
     // And back to the start: nothing assessed yet.
     assert_eq!(post(&server, &playback, control, r#"{"action": "seek", "step": 0}"#).await.status, 204);
     let start = assessment(&server, id, observe).await;

@@ -5,6 +5,7 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { decodeFrame, encodeRequest } from './protocol.js';
 import { Surface } from './surface.js';
+import { TimelineCurves } from './curves.js';
 
 // Colours per material id (0 = skin); back faces show the underside of the tissue.
 const MATERIAL_COLOURS = [0xe7b49c, 0xf2d16b, 0xb4473c, 0xc98a5a, 0x8e3b5f, 0x6d2f2a, 0xa5605a, 0xd89f8f];
@@ -65,7 +66,38 @@ export class SessionPanel {
         <label><input type="checkbox" data-role="wire"> wireframe</label>
         <button data-role="close" title="Close this panel">✕</button>
       </header>
-      <div class="view"><canvas></canvas><div class="legend"></div></div>
+      <div class="view"><canvas></canvas><div class="legend"></div>
+        <div class="hud">
+          <dl>
+            <dt>status</dt><dd data-role="status">–</dd>
+            <dt>physics</dt><dd data-role="rate">–</dd>
+            <dt>p99 step</dt><dd data-role="p99">–</dd>
+            <dt>missed</dt><dd data-role="missed">–</dd>
+            <dt>force</dt><dd data-role="force">–</dd>
+            <dt>cuts</dt><dd data-role="cuts">–</dd>
+            <dt>incision</dt><dd data-role="incision">–</dd>
+            <dt>triangles</dt><dd data-role="triangles">–</dd>
+            <dt>latency</dt><dd data-role="latency">–</dd>
+          </dl>
+          <canvas class="plot" width="260" height="70" title="|force| over the last ${PLOT_SECONDS} s"></canvas>
+          <div class="task" data-role="task" hidden>
+            <p class="task-text" data-role="task-text"></p>
+            <dl>
+              <dt>score</dt><dd data-role="score">–</dd>
+              <dt>verdict</dt><dd data-role="verdict">–</dd>
+              <dt>coverage</dt><dd data-role="coverage">–</dd>
+              <dt>deviation</dt><dd data-role="deviation">–</dd>
+              <dt>depth error</dt><dd data-role="depth">–</dd>
+              <dt>time</dt><dd data-role="time">–</dd>
+              <dt>strokes</dt><dd data-role="strokes">–</dd>
+              <dt>path</dt><dd data-role="path">–</dd>
+              <dt>peak force</dt><dd data-role="peak">–</dd>
+              <dt>no-go</dt><dd data-role="nogo">–</dd>
+            </dl>
+            <ul class="warnings" data-role="warnings"></ul>
+          </div>
+        </div>
+      </div>
       <div class="timeline" hidden>
         <button data-role="play" title="Play / pause">▶</button>
         <input type="range" data-role="scrub" min="0" max="0" value="0" step="1">
@@ -73,41 +105,13 @@ export class SessionPanel {
         <select data-role="speed" title="Replay speed">
           <option value="0.25">¼×</option><option value="0.5">½×</option><option value="1" selected>1×</option><option value="2">2×</option><option value="4">4×</option>
         </select>
+        <canvas class="curves" data-role="curves" width="900" height="64" title="The recording's largest force, score, coverage and deviation over time; click to go there"></canvas>
       </div>
-      <div class="hud">
-        <dl>
-          <dt>status</dt><dd data-role="status">–</dd>
-          <dt>physics</dt><dd data-role="rate">–</dd>
-          <dt>p99 step</dt><dd data-role="p99">–</dd>
-          <dt>missed</dt><dd data-role="missed">–</dd>
-          <dt>force</dt><dd data-role="force">–</dd>
-          <dt>cuts</dt><dd data-role="cuts">–</dd>
-          <dt>incision</dt><dd data-role="incision">–</dd>
-          <dt>triangles</dt><dd data-role="triangles">–</dd>
-          <dt>latency</dt><dd data-role="latency">–</dd>
-        </dl>
-        <canvas class="plot" width="260" height="70" title="|force| over the last ${PLOT_SECONDS} s"></canvas>
-        <div class="task" data-role="task" hidden>
-          <p class="task-text" data-role="task-text"></p>
-          <dl>
-            <dt>score</dt><dd data-role="score">–</dd>
-            <dt>verdict</dt><dd data-role="verdict">–</dd>
-            <dt>coverage</dt><dd data-role="coverage">–</dd>
-            <dt>deviation</dt><dd data-role="deviation">–</dd>
-            <dt>depth error</dt><dd data-role="depth">–</dd>
-            <dt>time</dt><dd data-role="time">–</dd>
-            <dt>strokes</dt><dd data-role="strokes">–</dd>
-            <dt>path</dt><dd data-role="path">–</dd>
-            <dt>peak force</dt><dd data-role="peak">–</dd>
-            <dt>no-go</dt><dd data-role="nogo">–</dd>
-          </dl>
-          <ul class="warnings" data-role="warnings"></ul>
-        </div>
-      </div>`;
+`;
     el.querySelector('code.id').textContent = this.id;
     container.appendChild(el);
     this.el = el;
-    this.canvas = el.querySelector('.view canvas');
+    this.canvas = el.querySelector('.view > canvas');
     this.plot = el.querySelector('canvas.plot');
     this.field = (role) => el.querySelector(`[data-role="${role}"]`);
     this.field('close').onclick = () => {
@@ -131,6 +135,10 @@ export class SessionPanel {
       await this.playbackRequest({ action: 'seek', step: Number(scrub.value) });
       this.scrubbing = false;
     };
+    this.curves = new TimelineCurves(this.field('curves'), {
+      load: () => this.loadTimeline(),
+      seek: (step) => this.playbackRequest({ action: 'seek', step }),
+    });
     this.field('play').onclick = () => this.playbackRequest({ action: this.playback?.playing ? 'pause' : 'play' });
     this.field('speed').onchange = (e) => this.playbackRequest({ action: 'speed', speed: Number(e.target.value) });
   }
@@ -153,6 +161,21 @@ export class SessionPanel {
     setTimeout(() => URL.revokeObjectURL(url), 10_000);
   }
 
+  /** The replay's curves (null while it starts or after an error, which is kept). */
+  async loadTimeline() {
+    try {
+      const response = await fetch(`/api/sessions/${encodeURIComponent(this.id)}/timeline`, { cache: 'no-store', headers: { 'cutsim-token': this.token } });
+      if (response.ok) return await response.json();
+      if (response.status !== 503) {
+        this.errors.push(`timeline: HTTP ${response.status}`);
+        this.curves.stop();
+      }
+    } catch (e) {
+      this.errors.push(`timeline: ${e}`);
+    }
+    return null;
+  }
+
   async playbackRequest(body) {
     const response = await fetch(`/api/sessions/${encodeURIComponent(this.id)}/playback`, {
       method: 'POST',
@@ -173,6 +196,8 @@ export class SessionPanel {
     const bar = this.el.querySelector('.timeline');
     bar.hidden = !p;
     if (!p) return;
+    this.curves.start();
+    this.curves.setCursor(p.step);
     const scrub = this.field('scrub');
     scrub.max = String(p.total_steps);
     if (!this.scrubbing) {
@@ -481,7 +506,8 @@ export class SessionPanel {
     set('task-text', a.task || 'no task: motion and force only');
     set('score', a.score == null ? '–' : a.score.toFixed(0));
     const verdict = this.field('verdict');
-    verdict.textContent = a.passed == null ? '–' : a.passed ? 'passed' : a.completed ? 'failed' : 'in progress';
+    // Not passed yet is only "in progress" while the trainee can still finish.
+    verdict.textContent = a.passed == null ? '–' : a.passed ? 'passed' : a.completed || !this.stepping ? 'failed' : 'in progress';
     verdict.dataset.verdict = a.passed == null ? '' : a.passed ? 'passed' : 'failed';
     verdict.title = (a.failures || []).join('; ');
     set('coverage', a.coverage == null ? '–' : `${(a.coverage * 100).toFixed(0)} %`);
@@ -512,7 +538,11 @@ export class SessionPanel {
     };
     if (st) {
       set('status', String(st.status).replace('SESSION_STATUS_', '').toLowerCase().replace('_', ' '));
-      this.stepping = ['SESSION_STATUS_RUNNING', 'SESSION_STATUS_RUNNING_SCRIPT', 'SESSION_STATUS_DEGRADED'].includes(st.status);
+      const stepping = ['SESSION_STATUS_RUNNING', 'SESSION_STATUS_RUNNING_SCRIPT', 'SESSION_STATUS_DEGRADED'].includes(st.status);
+      if (stepping !== this.stepping) {
+        this.stepping = stepping;
+        this.updateTask(); // the verdict of an unfinished task depends on it
+      }
       set('rate', `${st.stats.achieved_rate_hz.toFixed(0)} Hz`);
       set('p99', `${st.stats.p99_us.toFixed(0)} µs`);
       set('missed', `${st.stats.missed_deadlines}`);
@@ -566,6 +596,7 @@ export class SessionPanel {
     cancelAnimationFrame(this.raf);
     this.resizeObserver.disconnect();
     this.ws?.close();
+    this.curves.stop();
     this.renderer.dispose();
     this.el.remove();
   }

@@ -47,6 +47,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/recordings/{session}/replay", post(replay))
         .route("/api/sessions/{id}/playback", post(playback))
         .route("/api/sessions/{id}/report", get(assessment_report))
+        .route("/api/sessions/{id}/timeline", get(replay_timeline))
         .route("/api/sessions/{id}", get(session_json).delete(close_session))
         .route("/api/sessions", get(sessions_json))
         .route("/api/whoami", get(whoami))
@@ -278,6 +279,22 @@ async fn assessment_report(State(app): State<AppState>, caller: HttpCaller, Path
         ],
         html,
     ))
+}
+
+/// `GET /api/sessions/{id}/timeline`: a replay's force and metric curves over its whole
+/// recording (docs/server.md), as far as the replay has indexed it, for its token
+/// holders and operators.
+async fn replay_timeline(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
+    caller.require_credentials(&app)?;
+    let session = app.registry.get(&id)?;
+    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
+        caller.operator(&app).map_err(|_| e)?;
+    }
+    if session.mode != crate::session::Mode::Replay {
+        return Err(ApiError::FailedPrecondition(format!("session {id} is not a replay; only replays have a timeline")));
+    }
+    let timeline = session.assessment.timeline().ok_or_else(|| ApiError::Unavailable(format!("replay {id} is starting; ask again")))?;
+    Ok(axum::Json(timeline.as_ref().clone()))
 }
 
 /// `DELETE /api/sessions/{id}`: an operator closes any session; its control token

@@ -13,8 +13,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use arc_swap::ArcSwap;
-use cutsim_sim::assessment::{Assessment, Assessor, History, Task, ToolSample};
+use arc_swap::{ArcSwap, ArcSwapOption};
+use cutsim_sim::assessment::{Assessment, Assessor, History, Task, Timeline, ToolSample};
 
 /// Ring capacity, in tool samples: several seconds of two tools at 1 kHz.
 const RING_CAPACITY: usize = 1 << 14;
@@ -58,6 +58,8 @@ impl TaskInfo {
 pub struct AssessmentCell {
     current: ArcSwap<Assessment>,
     history: ArcSwap<History>,
+    /// A replay's curves over its whole recording (none for live sessions).
+    timeline: ArcSwapOption<Timeline>,
     lost: AtomicU64,
     /// The task, shown beside the metrics.
     pub task: TaskInfo,
@@ -70,6 +72,7 @@ impl AssessmentCell {
         Arc::new(Self {
             current: ArcSwap::from_pointee(Assessment::default()),
             history: ArcSwap::from_pointee(History::default()),
+            timeline: ArcSwapOption::empty(),
             lost: AtomicU64::new(0),
             task,
             checked,
@@ -83,6 +86,15 @@ impl AssessmentCell {
 
     pub fn publish_history(&self, history: &History) {
         self.history.store(Arc::new(history.clone()));
+    }
+
+    /// A replay's timeline as far as it is built.
+    pub fn timeline(&self) -> Option<Arc<Timeline>> {
+        self.timeline.load_full()
+    }
+
+    pub fn publish_timeline(&self, timeline: &Timeline) {
+        self.timeline.store(Some(Arc::new(timeline.clone())));
     }
 
     /// The newest metrics.

@@ -253,7 +253,12 @@ impl Physics {
     }
 
     pub(super) fn snapshot(&self) -> SurfaceSnapshot {
-        let mut s = self.tissue.snapshot();
+        self.snapshot_of(self.tissue.as_ref())
+    }
+
+    /// A tissue's surface under the versions viewers of this session know.
+    pub(super) fn snapshot_of(&self, tissue: &dyn Tissue) -> SurfaceSnapshot {
+        let mut s = tissue.snapshot();
         s.version += self.out.epoch_version;
         s
     }

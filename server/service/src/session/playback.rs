@@ -1,22 +1,27 @@
 //! Replay sessions: the physics thread plays a recording — the recorded commands at their
-//! steps, through every reset — with play, pause, speed and seek. Seeking backwards
-//! restarts from the nearest kept copy of the state (one every 1,000 steps), so
-//! scrubbing costs at most 1,000 steps of physics.
+//! steps, through every reset — with play, pause, speed and seek. It first plays the
+//! whole recording through once without showing it (the index), to draw the timeline's
+//! force and metric curves and keep a copy of the state every 1,000 steps; seeking
+//! then restarts from the nearest kept copy, so scrubbing costs at most 1,000 steps of
+//! physics.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use cutsim_sim::assessment::{Assessor, ToolSample, fill_samples};
+use cutsim_sim::assessment::{Assessor, Timeline, ToolSample, fill_samples};
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::ToolCommand;
 
 use super::hub::PlaybackState;
 use super::physics::Physics;
 use super::recording::{EpochEvent, Recording};
-use super::{Control, PlaybackCommand, Status};
+use super::{CloseReason, Control, PlaybackCommand, Status};
 
 const KEYFRAME_EVERY: u64 = 1000;
 const MAX_KEYFRAMES: usize = 256;
+/// Steps the first pass through the recording (its index) plays between looks at the
+/// control channel.
+const INDEX_CHUNK_STEPS: u64 = 500;
 /// While playing, the report's history is published this often (steps).
 const HISTORY_EVERY_STEPS: u64 = 500;
 
@@ -67,26 +72,23 @@ impl Physics {
         };
         let period = self.tissue.time_step_s();
         self.show(&player);
+        match self.index(&mut player, period) {
+            Err(reason) => return self.finish(reason),
+            Ok(deferred) => {
+                for message in deferred {
+                    if let Some(reason) = self.handle_replay(&mut player, message) {
+                        return self.finish(reason);
+                    }
+                }
+            }
+        }
         let mut next = Instant::now();
         loop {
             while let Ok(message) = self.control.try_recv() {
-                match message {
-                    Control::Close(reason) => return self.finish(reason),
-                    Control::Playback(command, done) => {
-                        self.command(&mut player, command);
-                        next = Instant::now();
-                        let _ = done.send(());
-                    }
-                    Control::Snapshot(reply) => {
-                        let _ = reply.send((self.snapshot(), self.tissue.step_index()));
-                    }
-                    Control::StateHash(reply) => {
-                        let _ = reply.send((self.tissue.step_index(), self.tissue.state_hash()));
-                    }
-                    Control::RunScript { events, .. } => {
-                        let _ = events.send(super::ScriptEvent::Failed("a replay session plays its recording; run scripts on another session".into()));
-                    }
+                if let Some(reason) = self.handle_replay(&mut player, message) {
+                    return self.finish(reason);
                 }
+                next = Instant::now();
             }
             if self.out.session.is_closed() {
                 return self.finish(super::CloseReason::Closed);
@@ -114,6 +116,70 @@ impl Physics {
                 self.show(&player);
             }
         }
+    }
+
+    /// Answers a control message; `Some` when the session must close.
+    fn handle_replay(&mut self, player: &mut Player, message: Control) -> Option<CloseReason> {
+        match message {
+            Control::Close(reason) => return Some(reason),
+            Control::Playback(command, done) => {
+                self.command(player, command);
+                let _ = done.send(());
+            }
+            Control::Snapshot(reply) => {
+                let _ = reply.send((self.snapshot(), self.tissue.step_index()));
+            }
+            Control::StateHash(reply) => {
+                let _ = reply.send((self.tissue.step_index(), self.tissue.state_hash()));
+            }
+            Control::RunScript { events, .. } => {
+                let _ = events.send(super::ScriptEvent::Failed("a replay session plays its recording; run scripts on another session".into()));
+            }
+        }
+        None
+    }
+
+    /// Plays the whole recording through once, as fast as the CPU allows and without
+    /// publishing, to draw its timeline (force and metric curves, published as they
+    /// grow: the viewer shows the progress) and keep the states that make seeking
+    /// quick; then goes back to the start. Meanwhile viewers are answered with the start
+    /// and playback commands wait (they are returned, to apply in order).
+    fn index(&mut self, player: &mut Player, period: f64) -> Result<Vec<Control>, CloseReason> {
+        let cell = std::sync::Arc::clone(&self.out.session.assessment);
+        let mut timeline = Timeline::new(player.total, period);
+        cell.publish_timeline(&timeline);
+        let mut deferred = Vec::new();
+        while player.global < player.total {
+            let end = (player.global + INDEX_CHUNK_STEPS).min(player.total);
+            while player.global < end {
+                self.play_step(player, false);
+                timeline.observe(&player.samples, &player.assessor);
+            }
+            cell.publish_timeline(&timeline);
+            while let Ok(message) = self.control.try_recv() {
+                let start = &player.keyframes[0].tissue;
+                match message {
+                    Control::Close(reason) => {
+                        self.tissue = start.clone_box();
+                        return Err(reason);
+                    }
+                    Control::Snapshot(reply) => {
+                        let _ = reply.send((self.snapshot_of(start.as_ref()), start.step_index()));
+                    }
+                    Control::StateHash(reply) => {
+                        let _ = reply.send((start.step_index(), start.state_hash()));
+                    }
+                    other => deferred.push(other),
+                }
+            }
+            if self.out.session.is_closed() {
+                self.tissue = player.keyframes[0].tissue.clone_box();
+                return Err(CloseReason::Closed);
+            }
+        }
+        self.seek(player, 0);
+        self.show(player);
+        Ok(deferred)
     }
 
     fn command(&mut self, player: &mut Player, command: PlaybackCommand) {

@@ -6,6 +6,7 @@
 //! - [`metrics`]: the [`Assessor`] that folds each step into an [`Assessment`].
 //! - [`score`]: the documented score and the pass/fail verdict.
 //! - [`report`]: a printable HTML report of a session's task, metrics and figures.
+//! - [`timeline`]: a recording's force and metric curves for the replay's timeline.
 //!
 //! The assessor sees the same inputs in a live session, a script and a replay (each
 //! step's tool commands and feedback), so equal commands give equal metrics. The server
@@ -16,9 +17,11 @@ pub mod plan;
 pub mod report;
 pub mod score;
 pub mod task;
+pub mod timeline;
 
 pub use metrics::{Assessment, AssessmentEvent, Assessor, History, ToolSample, fill_samples};
 pub use task::{Task, TaskSpec};
+pub use timeline::Timeline;
 
 #[cfg(test)]
 mod tests;

@@ -320,3 +320,45 @@ fn a_long_session_doubles_its_force_bins_instead_of_growing() {
     assert_eq!(h.force_bin_s, 0.08, "bins doubled twice");
     assert_eq!(h.force_peaks_n.iter().filter(|&&f| f == 5.0).count(), 1, "the peak survives the merges");
 }
+
+#[test]
+fn a_timeline_bins_the_force_and_ends_with_the_final_metrics() {
+    let mut assessor = Assessor::new(straight_plan_task(), 1, DT);
+    // 401 cutting steps at 2 N with one of 7 N, then 99 steps of rest: 500 steps in 500 bins…
+    let mut steps: Vec<ToolSample> = (0..=400).map(|i| cutting_at(Vec3::new(-0.02 + 1e-4 * i as f64, 0.0, -0.003))).collect();
+    steps[250].force_n = 7.0;
+    steps.extend((0..99).map(|_| ToolSample { position_m: Vec3::new(0.02, 0.0, 0.01), active: true, ..Default::default() }));
+    let mut one_per_step = super::Timeline::new(500, DT);
+    // …or, for a recording of 600,000 steps, 600 bins of 1,000 (watch only the first 2,000).
+    let mut long = super::Timeline::new(600_000, DT);
+    let mut long_assessor = assessor.clone();
+    for s in &steps {
+        assessor.observe(std::slice::from_ref(s));
+        one_per_step.observe(std::slice::from_ref(s), &assessor);
+    }
+    assert!(one_per_step.complete());
+    assert_eq!((one_per_step.bin_steps, one_per_step.force_peak_n.len(), one_per_step.score.len()), (1, 500, 500));
+    assert_eq!(one_per_step.force_peak_n[250], 7.0);
+    assert_eq!(one_per_step.force_peak_n[499], 0.0);
+    let a = assessor.assessment();
+    assert_eq!(one_per_step.score.last().copied().flatten(), a.score.map(|s| s as f32));
+    assert_eq!(one_per_step.coverage_pct[499], Some(100.0));
+    assert_eq!(one_per_step.coverage_pct[0], Some(100.0 / 160.0), "one step covers one 0.25 mm bin of 160");
+    observe_all(&mut long, &mut long_assessor, &steps, 4);
+    assert_eq!((long.bin_steps, long.indexed_steps, long.force_peak_n.len(), long.score.len()), (1000, 2000, 2, 2));
+    assert_eq!(long.force_peak_n, vec![7.0, 7.0], "each bin keeps its largest force, not its last");
+    let observe_more = long.clone();
+    long.observe(&steps[..1], &long_assessor);
+    assert_eq!(long.force_peak_n.len(), 3, "a step past a bin's end opens the next");
+    assert!(!observe_more.complete());
+}
+
+/// Observes `steps` `times` over.
+fn observe_all(timeline: &mut super::Timeline, assessor: &mut Assessor, steps: &[ToolSample], times: usize) {
+    for _ in 0..times {
+        for s in steps {
+            assessor.observe(std::slice::from_ref(s));
+            timeline.observe(std::slice::from_ref(s), assessor);
+        }
+    }
+}

@@ -207,7 +207,7 @@ impl MassSpring {
             placed: vec![None::<PlacedTool>; tools.len()],
             previous_placed: vec![None::<PlacedTool>; tools.len()],
             blade_velocity: vec![Vec3::zeros(); tools.len()],
-            cut_reactions: Vec::with_capacity(64 * tools.len()),
+            cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),
             contacts: Vec::with_capacity(n),
             tools,
             nodes,

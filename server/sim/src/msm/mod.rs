@@ -61,6 +61,9 @@ pub struct StageTimes {
 /// The cutting force's reaction spreads over the skin nodes within this many mean edge
 /// lengths of the crossing.
 const REACTION_REACH_EDGES: f64 = 3.0;
+/// Nodes that share one blade's cutting reaction in a step, at most (room reserved at
+/// build, so the 1 kHz path does not allocate).
+const MAX_CUT_REACTIONS_PER_TOOL: usize = 64;
 
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
 /// step by step, the force would switch on and off with the pose's millisecond jitter,
@@ -304,9 +307,12 @@ impl MassSpring {
                         // too little to take it alone within a step).
                         let reach = REACTION_REACH_EDGES * self.mean_edge_m;
                         let first = self.cut_reactions.len();
+                        // A fixed bound, not the vector's capacity: a copy of the tissue
+                        // (a replay's kept state) must step exactly as the original.
+                        let room = MAX_CUT_REACTIONS_PER_TOOL * self.tools.len();
                         let (reactions, x) = (&mut self.cut_reactions, &self.nodes.x);
                         self.grid.query_box(&(hit.point - Vec3::repeat(reach)), &(hit.point + Vec3::repeat(reach)), |v| {
-                            if reactions.len() < reactions.capacity() && (x[v as usize] - hit.point).norm() <= reach {
+                            if reactions.len() < room && (x[v as usize] - hit.point).norm() <= reach {
                                 reactions.push((v, Vec3::zeros()));
                             }
                         });
@@ -610,6 +616,9 @@ impl Tissue for MassSpring {
     }
 
     fn clone_box(&self) -> Box<dyn Tissue> {
-        Box::new(self.clone())
+        let mut copy = self.clone();
+        // A clone keeps the lengths, not the room reserved for the 1 kHz path.
+        copy.cut_reactions.reserve(MAX_CUT_REACTIONS_PER_TOOL * self.tools.len());
+        Box::new(copy)
     }
 }

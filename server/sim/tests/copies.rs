@@ -1,0 +1,88 @@
+//! A copy of a tissue steps exactly as the original: replays keep copies to seek, and a
+//! replay must reach the recorded state hash from any of them.
+
+mod common;
+use common::*;
+use cutsim_sim::math::Vec3;
+use cutsim_sim::tissue::Tissue;
+
+/// A scalpel down into the skin, along the plan at 0.1 m/s, and out (the e2e live cut).
+fn cut_step(model: &mut dyn Tissue, i: u32) {
+    let (x, z) = match i {
+        0..50 => (-0.024, 0.005 - 0.01 * f64::from(i) / 50.0),
+        50..505 => (-0.024 + 0.0455 * f64::from(i - 50) / 455.0, -0.005),
+        _ => (0.0215, -0.005 + 0.015 * f64::from(i - 505) / 95.0),
+    };
+    let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, z), Vec3::z()), active: i < 600, cut: true };
+    // The scene's second tool (a probe) stays away.
+    let away = cutsim_sim::tool::ToolCommand { active: false, ..command };
+    let mut feedback = [cutsim_sim::tool::ToolFeedback::default(); 2];
+    model.step(&[command, away], &mut feedback);
+}
+
+#[test]
+fn a_copy_made_at_the_start_or_midway_steps_as_the_original() {
+    let scene = load_scene(&scenes_dir().join("skin-patch.json"));
+    let mut original: Box<dyn Tissue> = Box::new(build(&scene));
+    let mut at_start = original.clone_box();
+    let mut hashes = Vec::new();
+    let mut midway = None;
+    for i in 0..700 {
+        if i == 300 {
+            midway = Some(original.clone_box());
+        }
+        cut_step(original.as_mut(), i);
+        hashes.push(original.state_hash());
+    }
+    assert!(original.counters().cuts > 0, "the blade cut");
+    for i in 0..700 {
+        cut_step(at_start.as_mut(), i);
+        assert_eq!(at_start.state_hash(), hashes[i as usize], "the copy from the start after step {i}");
+    }
+    let mut midway = midway.unwrap();
+    for i in 300..700 {
+        cut_step(midway.as_mut(), i);
+        assert_eq!(midway.state_hash(), hashes[i as usize], "the copy from step 300 after step {i}");
+    }
+}
+
+/// A 40 × 20 × 10 mm block of 1 mm voxels at level 1 on its −z side, solved with the
+/// multigrid (whose copies redo a rebuild the original has out), and a scalpel.
+const BLOCK: &str = r#"{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
+    "model": { "branched-grid": {
+        "volume": { "box": { "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 } },
+        "centre": true,
+        "materials": [ { "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 } ],
+        "level": 1,
+        "fixed": [ { "side": { "side": "-z" } } ],
+        "solver": { "preconditioner": "multigrid" },
+        "cutting": {} } },
+    "tools": [ { "name": "scalpel", "shape": { "cylinder": { "radius_m": 0.0015, "length_m": 0.06 } },
+                 "can_cut": true, "contact_stiffness_n_per_m": 60, "max_force_n": 10 } ] }"#;
+
+#[test]
+fn a_copy_of_a_branched_grid_cutting_steps_as_the_original() {
+    let scene = scene(BLOCK);
+    let mut original = cutsim_sim::build_tissue(&scene).unwrap_or_else(|e| panic!("{e}"));
+    let blade = |i: u32| {
+        let x = -0.015 + 0.03 * f64::from(i.min(240)) / 240.0;
+        let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, 0.001), Vec3::z()), active: true, cut: i > 20 };
+        [command]
+    };
+    let mut feedback = [cutsim_sim::tool::ToolFeedback::default()];
+    let (mut hashes, mut copies) = (Vec::new(), Vec::new());
+    for i in 0..240 {
+        if i % 80 == 0 {
+            copies.push((i, original.clone_box()));
+        }
+        original.step(&blade(i), &mut feedback);
+        hashes.push(original.state_hash());
+    }
+    assert!(original.counters().cuts > 0, "the blade removed voxels");
+    for (from, mut copy) in copies {
+        for i in from..240 {
+            copy.step(&blade(i), &mut feedback);
+            assert_eq!(copy.state_hash(), hashes[i as usize], "the copy from step {from} after step {i}");
+        }
+    }
+}
