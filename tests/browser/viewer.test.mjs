@@ -229,6 +229,8 @@ test('a recorded session replays with play, pause and scrub', async () => {
     const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
     page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
     page.on('pageerror', (e) => consoleErrors.push(String(e)));
+    let timelineRequests = 0;
+    page.on('request', (r) => r.url().includes('/timeline') && timelineRequests++);
     await page.goto(`http://127.0.0.1:${httpPort}/`);
     await signIn(page);
     await page.click('#recordings-form button[type="submit"]');
@@ -247,6 +249,10 @@ test('a recorded session replays with play, pause and scrub', async () => {
       page.$eval(`${panel} canvas.curves`, (c) => c.dataset.complete === 'true' && { bins: Number(c.dataset.bins), width: c.getBoundingClientRect().width }),
     );
     assert.equal(curves.bins, 500, '1,500 steps in bins of 3');
+    // Complete curves are not fetched again (the page renders every frame).
+    const fetched = timelineRequests;
+    await new Promise((resolve) => setTimeout(resolve, 1000));
+    assert.equal(timelineRequests, fetched, 'no timeline request once the curves are complete');
     assert.ok(curves.width > 300, `the curves span the timeline (${curves.width} px)`);
     const timeline = await page.evaluate((id) => window.cutsimViewer.panels.get(id).curves.timeline, replay.id);
     assert.ok(Math.max(...timeline.force_peak_n) > 0.5, 'the recorded cut pressed on the skin');

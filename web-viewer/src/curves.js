@@ -20,7 +20,9 @@ export class TimelineCurves {
     this.load = load;
     this.timeline = null;
     this.cursor = 0;
-    this.polling = false;
+    // Fetching starts once, and ends when the curves are complete or on stop().
+    this.started = false;
+    this.stopped = false;
     canvas.onclick = (e) => {
       const t = this.timeline;
       if (!t || !t.total_steps) return;
@@ -30,11 +32,11 @@ export class TimelineCurves {
     };
   }
 
-  /** Starts fetching (once), then again until the curves cover the recording. */
+  /** Fetches the curves, again until they cover the recording; later calls do nothing. */
   async start() {
-    if (this.polling) return;
-    this.polling = true;
-    while (this.polling) {
+    if (this.started) return;
+    this.started = true;
+    while (!this.stopped) {
       const timeline = await this.load();
       if (timeline) {
         this.timeline = timeline;
@@ -45,11 +47,10 @@ export class TimelineCurves {
       }
       await new Promise((resolve) => setTimeout(resolve, POLL_MS));
     }
-    this.polling = false;
   }
 
   stop() {
-    this.polling = false;
+    this.stopped = true;
   }
 
   /** The step shown moved. */

@@ -241,14 +241,20 @@ async fn sessions_json(State(app): State<AppState>, caller: HttpCaller) -> Resul
     Ok(axum::Json(summaries(&app.registry.list())))
 }
 
+/// A session its caller may watch: with its observe or control token, or as an operator.
+fn observed_session(app: &AppState, caller: &HttpCaller, id: &str) -> Result<Arc<crate::session::Session>, ApiError> {
+    caller.require_credentials(app)?;
+    let session = app.registry.get(id)?;
+    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
+        caller.operator(app).map_err(|_| e)?;
+    }
+    Ok(session)
+}
+
 /// `GET /api/sessions/{id}`: one session, for its token holders and operators (the
 /// viewer asks whether its session still exists).
 async fn session_json(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
-    caller.require_credentials(&app)?;
-    let session = app.registry.get(&id)?;
-    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
-        caller.operator(&app).map_err(|_| e)?;
-    }
+    let session = observed_session(&app, &caller, &id)?;
     Ok(axum::Json(summaries(&[session]).remove(0)))
 }
 
@@ -256,11 +262,7 @@ async fn session_json(State(app): State<AppState>, caller: HttpCaller, Path(id):
 /// (docs/assessment.md), for its token holders and operators. It holds no script; it is
 /// served as an attachment so that it opens as a file of its own, outside the viewer.
 async fn assessment_report(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
-    caller.require_credentials(&app)?;
-    let session = app.registry.get(&id)?;
-    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
-        caller.operator(&app).map_err(|_| e)?;
-    }
+    let session = observed_session(&app, &caller, &id)?;
     let cell = &session.assessment;
     let header = cutsim_sim::assessment::report::ReportHeader {
         session: &session.id,
@@ -285,11 +287,7 @@ async fn assessment_report(State(app): State<AppState>, caller: HttpCaller, Path
 /// recording (docs/server.md), as far as the replay has indexed it, for its token
 /// holders and operators.
 async fn replay_timeline(State(app): State<AppState>, caller: HttpCaller, Path(id): Path<String>) -> Result<impl IntoResponse, ApiError> {
-    caller.require_credentials(&app)?;
-    let session = app.registry.get(&id)?;
-    if let Err(e) = session.authorize(caller.token(), Role::Observe) {
-        caller.operator(&app).map_err(|_| e)?;
-    }
+    let session = observed_session(&app, &caller, &id)?;
     if session.mode != crate::session::Mode::Replay {
         return Err(ApiError::FailedPrecondition(format!("session {id} is not a replay; only replays have a timeline")));
     }

@@ -153,16 +153,14 @@ impl Physics {
             let end = (player.global + INDEX_CHUNK_STEPS).min(player.total);
             while player.global < end {
                 self.play_step(player, false);
-                timeline.observe(&player.samples, &player.assessor);
+                timeline.observe(&player.assessor);
             }
             cell.publish_timeline(&timeline);
+            let start = &player.keyframes[0].tissue;
+            let mut closed = self.out.session.is_closed().then_some(CloseReason::Closed);
             while let Ok(message) = self.control.try_recv() {
-                let start = &player.keyframes[0].tissue;
                 match message {
-                    Control::Close(reason) => {
-                        self.tissue = start.clone_box();
-                        return Err(reason);
-                    }
+                    Control::Close(reason) => closed = Some(reason),
                     Control::Snapshot(reply) => {
                         let _ = reply.send((self.snapshot_of(start.as_ref()), start.step_index()));
                     }
@@ -172,9 +170,10 @@ impl Physics {
                     other => deferred.push(other),
                 }
             }
-            if self.out.session.is_closed() {
-                self.tissue = player.keyframes[0].tissue.clone_box();
-                return Err(CloseReason::Closed);
+            if let Some(reason) = closed {
+                // The session ends showing what its viewers saw: the start.
+                self.tissue = start.clone_box();
+                return Err(reason);
             }
         }
         self.seek(player, 0);

@@ -250,6 +250,8 @@ pub struct Assessor {
     jerk_integral: f64,
     jerk_time_s: f64,
     peak_force_n: f64,
+    /// The largest force on any active tool in the last step.
+    step_force_n: f64,
     contact_force_sum: f64,
     contact_steps: u64,
     above_limit_steps: u64,
@@ -303,6 +305,7 @@ impl Assessor {
             jerk_integral: 0.0,
             jerk_time_s: 0.0,
             peak_force_n: 0.0,
+            step_force_n: 0.0,
             contact_force_sum: 0.0,
             contact_steps: 0,
             above_limit_steps: 0,
@@ -336,6 +339,12 @@ impl Assessor {
         self.steps
     }
 
+    /// The largest force on any active tool in the last step folded in, N (what the peak
+    /// force and the force history are made of).
+    pub fn step_force_n(&self) -> f64 {
+        self.step_force_n
+    }
+
     /// Folds in one step: `tools[i]` is tool i after it.
     pub fn observe(&mut self, tools: &[ToolSample]) {
         let step = self.steps;
@@ -366,6 +375,7 @@ impl Assessor {
                 self.contact_steps += 1;
             }
         }
+        self.step_force_n = largest;
         self.peak_force_n = self.peak_force_n.max(largest);
         self.history.add_force(step, self.dt, largest);
         if let Some(limit) = self.task.force_limit_n {

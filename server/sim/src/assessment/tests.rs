@@ -334,7 +334,7 @@ fn a_timeline_bins_the_force_and_ends_with_the_final_metrics() {
     let mut long_assessor = assessor.clone();
     for s in &steps {
         assessor.observe(std::slice::from_ref(s));
-        one_per_step.observe(std::slice::from_ref(s), &assessor);
+        one_per_step.observe(&assessor);
     }
     assert!(one_per_step.complete());
     assert_eq!((one_per_step.bin_steps, one_per_step.force_peak_n.len(), one_per_step.score.len()), (1, 500, 500));
@@ -347,10 +347,10 @@ fn a_timeline_bins_the_force_and_ends_with_the_final_metrics() {
     observe_all(&mut long, &mut long_assessor, &steps, 4);
     assert_eq!((long.bin_steps, long.indexed_steps, long.force_peak_n.len(), long.score.len()), (1000, 2000, 2, 2));
     assert_eq!(long.force_peak_n, vec![7.0, 7.0], "each bin keeps its largest force, not its last");
-    let observe_more = long.clone();
-    long.observe(&steps[..1], &long_assessor);
+    long_assessor.observe(&steps[..1]);
+    long.observe(&long_assessor);
     assert_eq!(long.force_peak_n.len(), 3, "a step past a bin's end opens the next");
-    assert!(!observe_more.complete());
+    assert!(!long.complete());
 }
 
 /// Observes `steps` `times` over.
@@ -358,7 +358,7 @@ fn observe_all(timeline: &mut super::Timeline, assessor: &mut Assessor, steps: &
     for _ in 0..times {
         for s in steps {
             assessor.observe(std::slice::from_ref(s));
-            timeline.observe(std::slice::from_ref(s), assessor);
+            timeline.observe(assessor);
         }
     }
 }

@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::metrics::{Assessor, ToolSample};
+use super::metrics::Assessor;
 
 /// Bins a timeline holds at most (a recording longer than this many steps puts
 /// several steps in a bin).
@@ -56,12 +56,12 @@ impl Timeline {
         self.indexed_steps >= self.total_steps
     }
 
-    /// One more step: its tools' samples, and the assessor that has just observed them.
-    pub fn observe(&mut self, samples: &[ToolSample], assessor: &Assessor) {
+    /// One more step, read from the assessor that has just folded it in.
+    pub fn observe(&mut self, assessor: &Assessor) {
         if self.complete() {
             return;
         }
-        let force = samples.iter().filter(|s| s.active).map(|s| s.force_n as f32).fold(0.0, f32::max);
+        let force = assessor.step_force_n() as f32;
         if self.indexed_steps.is_multiple_of(self.bin_steps) {
             self.force_peak_n.push(force);
         } else if let Some(peak) = self.force_peak_n.last_mut() {
