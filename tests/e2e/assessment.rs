@@ -79,8 +79,9 @@ async fn a_live_cut_is_assessed_and_its_replay_recomputes_the_same_metrics() {
     let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
     let live = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
 
-    // A trainee's scalpel: down into the skin before the plan's start, along it at
-    // 0.1 m/s, out past its end, one pose a millisecond.
+    // A trainee's scalpel: pressed down into the skin before the plan's start until it
+    // punctures it (about 7 mm of indentation), along the plan at 0.1 m/s 5 mm deep,
+    // out past its end, one pose a millisecond.
     let (tx, response) = open(&server, &live.id, &live.control).await;
     let mut feedback = response.expect("the stream opens");
     let reader = tokio::spawn(async move { while let Ok(Some(_)) = feedback.message().await {} });
@@ -88,7 +89,7 @@ async fn a_live_cut_is_assessed_and_its_replay_recomputes_the_same_metrics() {
     for i in 0..600u32 {
         tick.tick().await;
         let (x, z) = match i {
-            0..50 => (-0.024, 0.005 - 0.01 * f64::from(i) / 50.0),
+            0..50 => (-0.024, 0.005 - 0.015 * f64::from(i) / 50.0),
             50..505 => (-0.024 + 0.0455 * f64::from(i - 50) / 455.0, -0.005),
             _ => (0.0215, -0.005 + 0.015 * f64::from(i - 505) / 95.0),
         };

@@ -92,6 +92,8 @@ bounded!(/// Viscous drag of a foundation per unit area (pressure per unit speed
     FoundationDampingPaSPerM: f64, "number", what = "foundation damping", unit = "Pa·s/m", range = [0.0, 1e9]);
 bounded!(/// Fracture toughness: the work a cut needs per unit area of new crack.
     FractureToughnessJPerM2: f64, "number", what = "fracture toughness", unit = "J/m²", range = [0.0, 1e6]);
+bounded!(/// A Coulomb friction coefficient (tangential over normal force).
+    FrictionCoefficient: f64, "number", what = "friction coefficient", unit = "", range = [0.0, 10.0]);
 impl Default for FoundationStiffnessPaPerM {
     fn default() -> Self {
         Self(0.0)

@@ -82,7 +82,7 @@ fn steps_with_contact_allocate_nothing() {
         // The skin pushes the probe back up, mostly straight up (on its foundation the skin
         // gives way little, so only a few nodes of the triangular lattice touch the probe,
         // not placed symmetrically about its axis).
-        assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "the probe is pushed back: {:?}", fb[1]);
+        assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "{integrator}: the probe is pushed back: {:?}", fb[1]);
         assert!(fb[1].force_n.xy().norm() < 0.2 * fb[1].force_n.z, "{:?}", fb[1]);
     }
 }

@@ -21,6 +21,7 @@ fn oscillator(integrator: IntegratorChoice, damping_per_s: f64) -> MassSpring {
         cutting: None,
         foundation: None,
         fracture_toughness_j_per_m2: 0.0,
+        friction: None,
     };
     // Node 0 is held; node 1 starts stretched by AMPLITUDE and at rest.
     let positions = [Vec3::zeros(), Vec3::new(L0 + AMPLITUDE, 0.0, 0.0)];

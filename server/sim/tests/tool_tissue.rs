@@ -102,3 +102,81 @@ fn on_its_foundation_a_wound_retracts_over_time_instead_of_ringing() {
     assert!(skin_peak < 1.05 * skin_plateau, "and without overshoot: peak {:.3} mm, plateau {:.3} mm", skin_peak * 1e3, skin_plateau * 1e3);
     assert!(skin_plateau > 1e-3, "the wound still gapes: {:.3} mm", skin_plateau * 1e3);
 }
+
+/// One step of a tool pressed straight down into the skin.
+#[derive(Debug, Clone, Copy)]
+struct PressSample {
+    tip_z: f64,
+    /// Height of the skin where the tool's axis meets it (the highest crossing of the
+    /// vertical line through the tip), m.
+    skin_z: Option<f64>,
+    /// Force of the skin on the tool along +z, N.
+    force_n: f64,
+}
+
+/// Presses tool `tool` (vertical, its tip starting 2 mm above the skin at `xy`) down at
+/// `speed` m/s with the cut button `cut`, until its force reaches `until_n` or its tip
+/// is `max_depth_m` below the rest surface.
+fn press(scene: &Scene, tool: usize, xy: (f64, f64), cut: bool, speed: f64, until_n: f64, max_depth_m: f64) -> Vec<PressSample> {
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    let mut skin = cutsim_sim::msm::build_from_scene(scene, spec).unwrap();
+    let tools = scene.tools.len();
+    let mut commands = vec![cutsim_sim::tool::ToolCommand::default(); tools];
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); tools];
+    let dt = scene.time_step_s.get();
+    let mut samples = Vec::new();
+    for step in 0.. {
+        let tip = Vec3::new(xy.0, xy.1, 0.002 - speed * dt * f64::from(step));
+        commands[tool] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut };
+        skin.step(&commands, &mut feedback);
+        let (x, tris): (&[Vec3], Vec<[u32; 3]>) = (skin.positions(), skin.triangles().map(|(_, t)| t).collect());
+        let skin_z = tris
+            .iter()
+            .filter_map(|t| {
+                let [a, b, c] = t.map(|v| x[v as usize]);
+                let (top, bottom) = (Vec3::new(xy.0, xy.1, 1.0), Vec3::new(xy.0, xy.1, -1.0));
+                cutsim_sim::math::segment_triangle_intersection(&top, &bottom, &a, &b, &c).map(|s| 1.0 - 2.0 * s)
+            })
+            .reduce(f64::max);
+        let force_n = feedback[tool].force_n.z;
+        samples.push(PressSample { tip_z: tip.z, skin_z, force_n });
+        if force_n >= until_n || tip.z < -max_depth_m {
+            break;
+        }
+    }
+    samples
+}
+
+#[test]
+fn a_probe_pressed_to_its_rated_force_never_goes_through() {
+    let scene = default_scene();
+    // The 6 mm blunt probe on a node, and the 1 mm scalpel (cut off) between nodes.
+    for (tool, xy) in [(1, (0.0, 0.0)), (0, (0.0013, 0.0011))] {
+        let rated = scene.tools[tool].max_force_n.get();
+        let trace = press(&scene, tool, xy, false, 0.05, 0.99 * rated, 0.08);
+        let last = trace.last().unwrap();
+        let deepest_through = trace.iter().filter_map(|s| s.skin_z.map(|z| z - s.tip_z)).fold(f64::NEG_INFINITY, f64::max);
+        println!("{}: {:.2} N at {:.1} mm deep, skin at most {:.4} mm above the tip", scene.tools[tool].name, last.force_n, -last.tip_z * 1e3, deepest_through * 1e3);
+        assert!(last.force_n >= 0.99 * rated, "{} reached only {:.2} N at {:.1} mm", scene.tools[tool].name, last.force_n, -last.tip_z * 1e3);
+        assert!(deepest_through < 1e-4, "{} went {:.2} mm through the skin", scene.tools[tool].name, deepest_through * 1e3);
+    }
+}
+
+#[test]
+fn a_blade_goes_in_only_when_it_presses_with_the_puncture_force() {
+    let scene = default_scene();
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    let puncture = cutsim_sim::msm::resistance::puncture_force_n(spec.material.fracture_toughness_j_per_m2.get(), 2.0 * skin_tool_radius(&scene, 0));
+    let trace = press(&scene, 0, (0.0013, 0.0011), true, 0.02, f64::INFINITY, 0.03);
+    let peak = trace.iter().map(|s| s.force_n).fold(0.0, f64::max);
+    let gone_in = trace.iter().position(|s| s.skin_z.is_some_and(|z| z > s.tip_z + 1e-3)).expect("the blade goes through");
+    let before = trace[..gone_in].iter().map(|s| s.force_n).fold(0.0, f64::max);
+    println!("puncture force {puncture:.2} N: peak {peak:.2} N, in at {:.1} mm, then {:.3} N", -trace[gone_in].tip_z * 1e3, trace.last().unwrap().force_n);
+    assert!(before >= puncture && before < 1.5 * puncture, "pressed with {before:.2} N before going in; puncture force {puncture:.2} N");
+    assert!(trace.last().unwrap().force_n < 0.25 * puncture, "once in, the blade passes");
+}
+
+fn skin_tool_radius(scene: &Scene, tool: usize) -> f64 {
+    let cutsim_sim::scene::ToolShapeSpec::Cylinder { radius_m, .. } = scene.tools[tool].shape;
+    radius_m.get()
+}

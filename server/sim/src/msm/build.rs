@@ -44,6 +44,8 @@ pub struct MsmParams {
     pub foundation: Option<FoundationParams>,
     /// The work a cut needs per unit area, J/m² (0: cutting needs no force).
     pub fracture_toughness_j_per_m2: f64,
+    /// Coulomb friction at the tools' tip faces: (static, dynamic) coefficients.
+    pub friction: Option<(f64, f64)>,
 }
 
 /// Why a model could not be built.
@@ -206,9 +208,15 @@ impl MassSpring {
             integrator,
             placed: vec![None::<PlacedTool>; tools.len()],
             previous_placed: vec![None::<PlacedTool>; tools.len()],
+            swept: vec![None::<PlacedTool>; tools.len()],
+            tool_velocity: vec![Vec3::zeros(); tools.len()],
+            pierced: vec![false; tools.len()],
+            holding: vec![false; tools.len()],
+            blade_through: vec![false; tools.len()],
+            holder: super::hold::Holder::new(tools.len(), params.friction, topo.tris.len()),
             blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),
-            contacts: Vec::with_capacity(n),
+            contacts: Vec::with_capacity(2 * n),
             tools,
             nodes,
             springs,
@@ -366,6 +374,7 @@ pub fn build_from_scene(scene: &Scene, spec: &MsmSpec) -> Result<MassSpring, Sce
             shear_damping_pa_s_per_m: f.shear_damping_pa_s_per_m.get(),
         }),
         fracture_toughness_j_per_m2: spec.material.fracture_toughness_j_per_m2.get(),
+        friction: spec.material.friction.map(|f| (f.static_coefficient.get(), f.dynamic_coefficient.get())),
     };
     MassSpring::new(mesh, free, &params, tools).map_err(|e| match e {
         MsmBuildError::Unstable { .. } => err("model.msm.integrator.symplectic-euler.substeps", e.to_string()),

@@ -54,6 +54,19 @@ pub fn cylinder_penetration(tool: &PlacedTool, x: &Vec3, radial_only: bool) -> O
     Some(Penetration { direction, depth_m: radial_depth })
 }
 
+/// Which nodes inside the tool its penalty pushes, and which way.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum ContactMode {
+    /// The paper's rule: every node radially (a blade cutting its way through).
+    Radial,
+    /// Every node by its shortest way out, radial or through an end face (a tool
+    /// through the skin that is not cutting).
+    ShortestWayOut,
+    /// Only nodes the tip face does not hold (those within this reach of it, m, and
+    /// nearer it than the side; [`super::hold`]), radially.
+    SideOnly { face_reach_m: f64 },
+}
+
 /// A node in contact during the current step (kept for the implicit solver's tangent).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Contact {
@@ -64,12 +77,12 @@ pub(crate) struct Contact {
 
 /// Adds the contact forces of one tool to the nodes, and their reaction to `feedback`
 /// (scaled by `weight`, the substep's share of the step). Contacts are appended to
-/// `contacts` (whose capacity is the node count, so this never allocates).
+/// `contacts` (whose capacity is twice the node count: a node's penalty and a tip face's hold, so this never allocates).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn apply_tool_contacts(
     tool: &PlacedTool,
     stiffness: f64,
-    radial_only: bool,
+    mode: ContactMode,
     nodes: &mut Nodes,
     grid: &PointGrid,
     contacts: &mut Vec<Contact>,
@@ -82,7 +95,12 @@ pub(crate) fn apply_tool_contacts(
     let (mut force, mut torque) = (Vec3::zeros(), Vec3::zeros());
     grid.query_box(&min, &max, |id| {
         let i = id as usize;
-        if let Some(pen) = cylinder_penetration(tool, &nodes.x[i], radial_only) {
+        if let ContactMode::SideOnly { face_reach_m } = mode
+            && super::hold::face_depth(tool, &nodes.x[i], face_reach_m).is_some()
+        {
+            return;
+        }
+        if let Some(pen) = cylinder_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut) {
             let on_node = pen.direction * (stiffness * pen.depth_m);
             nodes.f[i] += on_node;
             force -= on_node;

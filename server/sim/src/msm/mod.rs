@@ -18,6 +18,7 @@ pub mod cut;
 pub mod explicit;
 pub(crate) mod forces;
 pub mod foundation;
+pub(crate) mod hold;
 pub mod resistance;
 pub(crate) mod implicit;
 pub(crate) mod state;
@@ -30,7 +31,7 @@ pub use foundation::FoundationParams;
 use std::time::Instant;
 
 use calibration::MembraneMaterial;
-use contact::{Contact, apply_tool_contacts};
+use contact::{Contact, ContactMode, apply_tool_contacts};
 use cut::{CutView, Cutter};
 use implicit::ImplicitSolver;
 use state::{Nodes, SpringSet, Topology};
@@ -64,6 +65,12 @@ const REACTION_REACH_EDGES: f64 = 3.0;
 /// Nodes that share one blade's cutting reaction in a step, at most (room reserved at
 /// build, so the 1 kHz path does not allocate).
 const MAX_CUT_REACTIONS_PER_TOOL: usize = 64;
+
+/// With the implicit integrator a point held at a tip face is a contact this many times
+/// stiffer than the tool's penalty, in the system matrix along the tool's axis: stiff
+/// enough that within a step the skin moves off the face by a small fraction of an
+/// edge, soft enough for the Jacobi-preconditioned CG.
+const HELD_STIFFNESS_OVER_CONTACT: f64 = 100.0;
 
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
 /// step by step, the force would switch on and off with the pose's millisecond jitter,
@@ -105,6 +112,19 @@ pub struct MassSpring {
     placed: Vec<Option<PlacedTool>>,
     /// Where each tool was last step (the blade's velocity through the skin).
     previous_placed: Vec<Option<PlacedTool>>,
+    /// Where each tool is at the current substep: swept from last step's pose to this
+    /// step's, so that a tool moving fast pushes the skin ahead instead of jumping past.
+    swept: Vec<Option<PlacedTool>>,
+    /// Each tool's velocity this step, m/s (zero on the step it appears).
+    tool_velocity: Vec<Vec3>,
+    /// Tools through the skin: appeared below it, or a blade that punctured it; until
+    /// their axis no longer crosses the skin. Others hold the skin at their tip face.
+    pierced: Vec<bool>,
+    /// Which tools hold the skin at their tip face this step ([`hold`]).
+    holding: Vec<bool>,
+    /// Which tools are blades through the skin with their cut button held this step.
+    blade_through: Vec<bool>,
+    holder: hold::Holder,
     /// Each blade's velocity through the skin, smoothed over
     /// [`BLADE_VELOCITY_TIME_CONSTANT_S`] (zero outside a resisted stroke).
     blade_velocity: Vec<Vec3>,
@@ -139,9 +159,11 @@ impl MassSpring {
                 let h = self.dt_s / f64::from(substeps);
                 let weight = 1.0 / f64::from(substeps);
                 let mut check = 0.0;
-                for _ in 0..substeps {
+                for k in 1..=substeps {
+                    self.sweep_tools(f64::from(k) / f64::from(substeps));
                     self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                     self.timed(|s| s.add_contacts(commands, feedback, weight), |t, ns| t.contacts_ns += ns);
+                    self.timed(|s| s.hold_skin(feedback, weight), |t, ns| t.contacts_ns += ns);
                     check = self.timed(
                         |s| explicit::substep(&mut s.nodes, h, s.mass_damping_per_s, s.foundation.as_ref()),
                         |t, ns| t.integrate_ns += ns,
@@ -150,8 +172,10 @@ impl MassSpring {
                 check
             }
             Integrator::ImplicitEuler(_) => {
+                self.sweep_tools(1.0);
                 self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                 self.timed(|s| s.add_contacts(commands, feedback, 1.0), |t, ns| t.contacts_ns += ns);
+                self.timed(|s| s.hold_skin(feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns)
             }
         };
@@ -159,6 +183,7 @@ impl MassSpring {
             self.contain_blowup(feedback);
         }
         self.timed(|s| explicit::refresh_grid(&s.nodes, &mut s.grid), |t, ns| t.integrate_ns += ns);
+        self.release_pierced();
         if self.cutter.is_some() {
             self.timed(|s| s.cut(commands, feedback), |t, ns| t.cut_ns += ns);
         }
@@ -185,6 +210,7 @@ impl MassSpring {
     }
 
     fn place_tools(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        self.holder.begin_step();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             self.placed[i] = if !command.active {
@@ -195,6 +221,98 @@ impl MassSpring {
                 self.counters.rejected_poses += 1;
                 None
             };
+            self.tool_velocity[i] = match (self.placed[i], self.previous_placed[i]) {
+                (Some(now), Some(before)) => (now.tip - before.tip) / self.dt_s,
+                _ => Vec3::zeros(),
+            };
+            self.pierced[i] = match (self.placed[i], self.previous_placed[i]) {
+                (None, _) => false,
+                // A tool that appears below the skin is through it; the skin is not
+                // dragged to its tip.
+                (Some(tool), None) => self.holder.first_crossing(&tool, &self.nodes, &self.topo, &self.grid, self.max_edge_m).is_some(),
+                (Some(_), Some(_)) => self.pierced[i],
+            };
+            // A blade cutting by the paper's rule (no fracture toughness) passes freely.
+            let paper_blade = self.cuts_by_crossing(i, command);
+            self.holding[i] = self.placed[i].is_some() && !self.pierced[i] && !paper_blade;
+            self.blade_through[i] = !self.holding[i] && self.tools[i].can_cut && command.cut;
+        }
+    }
+
+    /// Whether tool `i` cuts wherever its axis crosses the skin (the paper's rule, for a
+    /// material without fracture toughness), so nothing holds it.
+    fn cuts_by_crossing(&self, i: usize, command: &ToolCommand) -> bool {
+        self.tools[i].can_cut && command.cut && self.fracture_toughness_j_per_m2 <= 0.0
+    }
+
+    /// Places every tool at fraction `s` of its motion this step. A blade cutting its
+    /// way through the skin is not swept: it passes by the paper's rule at its pose.
+    fn sweep_tools(&mut self, s: f64) {
+        for (((swept, now), before), &blade_through) in self.swept.iter_mut().zip(&self.placed).zip(&self.previous_placed).zip(&self.blade_through) {
+            let sweeps = !blade_through;
+            *swept = match (now, before) {
+                (Some(now), Some(before)) if s < 1.0 && sweeps => {
+                    let tip = before.tip + (now.tip - before.tip) * s;
+                    let top = before.top + (now.top - before.top) * s;
+                    let axis = (top - tip).try_normalize(0.0).unwrap_or(now.axis);
+                    Some(PlacedTool { tip, top: tip + axis * now.length_m, axis, ..*now })
+                }
+                _ => *now,
+            };
+        }
+    }
+
+    /// Holds the skin at the tip face of every tool that holds this step.
+    fn hold_skin(&mut self, feedback: &mut [ToolFeedback], weight: f64) {
+        let h = self.substep_s();
+        let implicit = matches!(self.integrator, Integrator::ImplicitEuler(_));
+        for i in 0..self.tools.len() {
+            let Some(tool) = self.swept[i].filter(|_| self.holding[i]) else {
+                self.holder.release(i);
+                continue;
+            };
+            let view = hold::HoldView {
+                nodes: &mut self.nodes,
+                topo: &self.topo,
+                grid: &self.grid,
+                max_edge_m: self.max_edge_m,
+                margin_m: 0.5 * self.grid.cell_size_m(),
+                h,
+                implicit: implicit.then_some(hold::ImplicitHold {
+                    contacts: &mut self.contacts,
+                    stiffness_n_per_m: HELD_STIFFNESS_OVER_CONTACT * self.tools[i].contact_stiffness_n_per_m,
+                }),
+            };
+            let reach_m = hold::hold_reach_m(self.tool_velocity[i], tool.axis, h, self.mean_edge_m);
+            let held_tool = hold::HeldTool { placed: &tool, velocity: self.tool_velocity[i], reach_m };
+            if !self.holder.hold(i, held_tool, view, &mut feedback[i], weight) {
+                // Got under the skin from the side: through it, from the next step on.
+                self.pierced[i] = true;
+            }
+        }
+    }
+
+    /// The time one integration substep covers, s.
+    fn substep_s(&self) -> f64 {
+        match &self.integrator {
+            Integrator::SymplecticEuler { substeps } => self.dt_s / f64::from(*substeps),
+            Integrator::ImplicitEuler(_) => self.dt_s,
+        }
+    }
+
+    /// Tools through the skin stay so until their axis no longer crosses it (and a
+    /// blade until its stroke has ended). Runs before the cut stage: a blade that
+    /// punctures the skin there, still lying at its tip, is through it.
+    fn release_pierced(&mut self) {
+        for i in 0..self.tools.len() {
+            if self.cutter.as_ref().is_some_and(|c| c.in_stroke(i)) {
+                continue;
+            }
+            if let (true, Some(tool)) = (self.pierced[i], self.placed[i])
+                && self.holder.first_crossing(&tool, &self.nodes, &self.topo, &self.grid, self.max_edge_m).is_none()
+            {
+                self.pierced[i] = false;
+            }
         }
     }
 
@@ -208,17 +326,23 @@ impl MassSpring {
 
     fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
         self.contacts.clear();
-        for (i, placed) in self.placed.iter().enumerate() {
+        for (i, placed) in self.swept.iter().enumerate() {
             let Some(tool) = placed else { continue };
             let shape = &self.tools[i];
             // The broad phase is refreshed once per step: half a cell of margin covers
             // what nodes travel in between.
             let margin = 0.5 * self.grid.cell_size_m();
-            let radial_only = shape.can_cut && commands[i].cut;
+            let mode = if self.holding[i] {
+                ContactMode::SideOnly { face_reach_m: hold::hold_reach_m(self.tool_velocity[i], tool.axis, self.substep_s(), self.mean_edge_m) }
+            } else if shape.can_cut && commands[i].cut {
+                ContactMode::Radial
+            } else {
+                ContactMode::ShortestWayOut
+            };
             apply_tool_contacts(
                 tool,
                 shape.contact_stiffness_n_per_m,
-                radial_only,
+                mode,
                 &mut self.nodes,
                 &self.grid,
                 &mut self.contacts,
@@ -279,7 +403,18 @@ impl MassSpring {
             let next_id = self.nodes.len() as u32;
             let plan = match self.placed[tool].filter(|_| wants_cut) {
                 Some(blade) => {
-                    let hit = cutter.crossing(&blade, &view);
+                    let hit = if self.holding[tool] {
+                        // Pressing intact skin: it gives when the tip presses hard enough.
+                        // The blade is then through it: from the next step it passes, the
+                        // skin springs back up along it, and its stroke begins where it
+                        // crosses the skin then.
+                        let hold = self.holder.tools[tool];
+                        let puncture = resistance::puncture_force_n(self.fracture_toughness_j_per_m2, 2.0 * self.tools[tool].radius_m);
+                        self.pierced[tool] |= hold.force_n > 0.0 && hold.force_n >= puncture;
+                        None
+                    } else {
+                        cutter.crossing(&blade, &view)
+                    };
                     // The skin resists a blade already through it (a stroke under way).
                     let resisted = match (hit, self.previous_placed[tool]) {
                         (Some(hit), Some(before)) if cutter.in_stroke(tool) && self.fracture_toughness_j_per_m2 > 0.0 => {

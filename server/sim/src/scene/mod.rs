@@ -210,6 +210,20 @@ pub struct MembraneMaterialSpec {
     /// published values). 0: cutting needs no force.
     #[serde(default)]
     pub fracture_toughness_j_per_m2: FractureToughnessJPerM2,
+    /// Coulomb friction between the skin and a tool's tip face (docs/tool-tissue.md).
+    /// Absent: frictionless.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub friction: Option<FrictionSpec>,
+}
+
+/// Coulomb friction: the skin sticks to a tool while the tangential force stays within
+/// `static_coefficient` times the normal force, and slides against
+/// `dynamic_coefficient` times it otherwise.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FrictionSpec {
+    pub static_coefficient: FrictionCoefficient,
+    pub dynamic_coefficient: FrictionCoefficient,
 }
 
 fn one_third() -> Poisson {

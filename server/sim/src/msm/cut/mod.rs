@@ -281,16 +281,7 @@ impl Cutter {
         view.grid.query_box(&min, &max, |node| candidates.extend(view.topo.node_tris[node as usize].iter().copied()));
         self.candidates.sort_unstable();
         self.candidates.dedup();
-        let mut best: Option<Crossing> = None;
-        for &t in &self.candidates {
-            let [a, b, c] = view.topo.tris[t as usize].map(|v| view.x[v as usize]);
-            if let Some(s) = segment_triangle_intersection(&blade.tip, &blade.top, &a, &b, &c) {
-                if best.is_none_or(|h| s < h.blade_t) {
-                    best = Some(Crossing { point: blade.tip + (blade.top - blade.tip) * s, blade_t: s, triangle: t });
-                }
-            }
-        }
-        best
+        nearest_crossing(blade, &self.candidates, view.x, view.topo)
     }
 
     /// The part of the blade within a few edge lengths of the surface crossing.
@@ -321,6 +312,20 @@ impl Cutter {
         });
         tris
     }
+}
+
+/// Where the tool's axis crosses one of the live `candidates` triangles nearest its tip.
+pub(crate) fn nearest_crossing(tool: &PlacedTool, candidates: &[u32], x: &[Vec3], topo: &Topology) -> Option<Crossing> {
+    let mut best: Option<Crossing> = None;
+    for &t in candidates.iter().filter(|&&t| topo.tri_alive[t as usize]) {
+        let [a, b, c] = topo.tris[t as usize].map(|v| x[v as usize]);
+        if let Some(s) = segment_triangle_intersection(&tool.tip, &tool.top, &a, &b, &c)
+            && best.is_none_or(|h| s < h.blade_t)
+        {
+            best = Some(Crossing { point: tool.tip + (tool.top - tool.tip) * s, blade_t: s, triangle: t });
+        }
+    }
+    best
 }
 
 fn anchor_position(anchor: &Anchor, view: &CutView) -> Vec3 {

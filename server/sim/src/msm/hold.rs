@@ -1,0 +1,371 @@
+//! Contact that holds: the tool's tip face against intact skin, as a constraint.
+//!
+//! The penalty of [`super::contact`] lets a node that sinks deeper than the tool's
+//! radius slide out along the shaft, and a tool thinner than the node spacing falls
+//! between nodes, so a pressed probe went through intact skin. Here the tip face is a
+//! hard constraint instead (a god-object in the sense of Zilles and Salisbury 1995: the
+//! skin may not cross the tip): after each substep's integration
+//!
+//! 1. every node under the tip face (inside the cylinder, nearer its tip face than its
+//!    side) is put back on the face plane, and
+//! 2. the triangle the tool's axis crosses nearest its tip is moved, point by point
+//!    with its barycentric weights over the nodes' inverse masses (position-based
+//!    dynamics' point–triangle projection), so that the crossing point lies on the face
+//!    plane: a blade 0.5 mm thin between nodes 2.5 mm apart holds as a probe does.
+//!
+//! Projected nodes lose the velocity with which they approached the tool (relative to
+//! the tool's own velocity), so the contact is inelastic and adds no energy. The force
+//! the tool feels is the force the rest of the skin presses the held points against its
+//! face with (their spring, foundation and gravity forces along the axis, never
+//! pulling): the force of the solved state, not a penalty depth. A tool that appeared
+//! already below the skin (placed there by a script, or through a wound) is through it,
+//! and is not held until its axis no longer crosses the skin; so is a blade whose cut
+//! has begun ([`super::MassSpring`] decides which tools hold).
+//!
+//! Only crossings within 60° of the triangle's normal are held: a tool lying along the
+//! skin pushes it with its side (the penalty), not with its face.
+
+use super::contact::Contact;
+use super::cut::{Crossing, nearest_crossing};
+use super::state::{Nodes, Topology};
+use crate::broad_phase::PointGrid;
+use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle};
+use crate::tool::{PlacedTool, ToolFeedback};
+
+/// The smallest |cos| between the tool's axis and a held triangle's normal.
+const MIN_HOLD_COSINE: f64 = 0.5;
+
+/// What one tool held during the current step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct HoldState {
+    /// Force with which the held skin pushed back along the tool's axis, N, averaged
+    /// over the step's substeps (what a blade's puncture is decided on).
+    pub force_n: f64,
+}
+
+/// Coulomb friction at the tip face: (static, dynamic) coefficients.
+pub(crate) type Friction = (f64, f64);
+
+/// The tip-face constraint of every tool, with its scratch (kept so that a step does
+/// not allocate).
+#[derive(Debug, Clone)]
+pub(crate) struct Holder {
+    pub tools: Vec<HoldState>,
+    /// The triangle each tool held at its last substep: a contact that goes on is kept
+    /// however the skin tilts and stretches around the tip (only a new one must face
+    /// it), and it and its neighbours are candidates however far their corners moved.
+    held_triangle: Vec<Option<u32>>,
+    friction: Option<Friction>,
+    candidates: Vec<u32>,
+}
+
+/// The model state a hold reads and changes.
+pub(crate) struct HoldView<'a> {
+    pub nodes: &'a mut Nodes,
+    pub topo: &'a Topology,
+    pub grid: &'a PointGrid,
+    /// Longest edge of the mesh, m (how far around the tool triangles are looked for).
+    pub max_edge_m: f64,
+    /// How far nodes may have moved since the broad phase was refreshed, m.
+    pub margin_m: f64,
+    /// The substep, s.
+    pub h: f64,
+    /// Implicit integration: the held points' constraint goes into the system matrix
+    /// as a stiff contact along the axis (appended here, N/m) instead of as a force
+    /// predicted from an explicit substep.
+    pub implicit: Option<ImplicitHold<'a>>,
+}
+
+/// Where the implicit integrator takes held points ([`HoldView::implicit`]).
+pub(crate) struct ImplicitHold<'a> {
+    pub contacts: &'a mut Vec<super::contact::Contact>,
+    /// Stiffness of a held point along the axis in the system matrix, N/m.
+    pub stiffness_n_per_m: f64,
+}
+
+/// A tool as a hold sees it for one substep.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct HeldTool<'a> {
+    pub placed: &'a PlacedTool,
+    /// The tool's velocity, m/s.
+    pub velocity: Vec3,
+    /// How far above the tip face skin may lie and still be taken as pressed by it, m:
+    /// what the tip can have travelled into the skin since the last substep, with a
+    /// tolerance ([`hold_reach_m`]). Skin further above is skin the tool got under from
+    /// the side (at a border, through a wound): the tool is through it.
+    pub reach_m: f64,
+}
+
+/// Skin within this many mean edge lengths above the tip face, beyond the tip's own
+/// travel, is taken as pressed by it (the skin's own motion within a substep).
+const HOLD_TOLERANCE_EDGES: f64 = 0.1;
+
+/// [`HeldTool::reach_m`] for a tool moving at `velocity` along `axis` over a substep h.
+pub(crate) fn hold_reach_m(velocity: Vec3, axis: Vec3, h: f64, mean_edge_m: f64) -> f64 {
+    (-velocity.dot(&axis)).max(0.0) * h + HOLD_TOLERANCE_EDGES * mean_edge_m
+}
+
+/// What one held point sums into the tool's reaction.
+#[derive(Default)]
+struct Reaction {
+    force: Vec3,
+    torque: Vec3,
+    normal_n: f64,
+    points: u32,
+}
+
+impl Reaction {
+    fn add(&mut self, tool: &PlacedTool, at: Vec3, on_tool: Vec3, normal_n: f64) {
+        self.force += on_tool;
+        self.torque += (at - tool.tip).cross(&on_tool);
+        self.normal_n += normal_n;
+        self.points += 1;
+    }
+}
+
+impl Holder {
+    /// For `tools` tools on a mesh of `triangles` triangles (the candidates' room: each
+    /// triangle listed once per corner before duplicates go, so a step never allocates).
+    pub fn new(tools: usize, friction: Option<Friction>, triangles: usize) -> Self {
+        Self { tools: vec![HoldState::default(); tools], held_triangle: vec![None; tools], friction, candidates: Vec::with_capacity(3 * triangles) }
+    }
+
+    /// Forgets last step's holds.
+    pub fn begin_step(&mut self) {
+        self.tools.iter_mut().for_each(|t| *t = HoldState::default());
+    }
+
+    /// Tool `index` does not hold this step (away, or through the skin).
+    pub fn release(&mut self, index: usize) {
+        self.held_triangle[index] = None;
+    }
+
+    /// The live triangle the tool's axis crosses nearest its tip, anywhere along the
+    /// tool: whether the tool is through the skin.
+    pub fn first_crossing(&mut self, tool: &PlacedTool, nodes: &Nodes, topo: &Topology, grid: &PointGrid, max_edge_m: f64) -> Option<Crossing> {
+        let (min, max) = tool.bounds(max_edge_m);
+        self.gather_triangles(&min, &max, topo, grid);
+        nearest_crossing(tool, &self.candidates, &nodes.x, topo)
+    }
+
+    /// Holds the skin at tool `index`'s tip face for one substep; adds the reaction
+    /// (times `weight`, the substep's share of the step) to `feedback`. Returns false
+    /// when the tool turns out to be through the skin (it got under it from the side).
+    pub fn hold(&mut self, index: usize, tool: HeldTool, view: HoldView, feedback: &mut ToolFeedback, weight: f64) -> bool {
+        let HoldView { nodes, topo, grid, max_edge_m, margin_m, h, mut implicit } = view;
+        let HeldTool { placed: tool, velocity: tool_velocity, reach_m } = tool;
+        let push = -tool.axis;
+        let friction = self.friction;
+        let mut reaction = Reaction::default();
+
+        // 1. Nodes under the tip face.
+        let reach = tool.radius_m + margin_m;
+        let (min, max) = (tool.tip - Vec3::repeat(reach), tool.tip + Vec3::repeat(reach));
+        let (lo, hi) = (min.inf(&(min + tool.axis * tool.radius_m)), max.sup(&(max + tool.axis * tool.radius_m)));
+        grid.query_box(&lo, &hi, |id| {
+            let i = id as usize;
+            if nodes.inv_mass[i] == 0.0 {
+                return;
+            }
+            let Some(depth) = face_depth(tool, &nodes.x[i], reach_m) else { return };
+            nodes.x[i] += (push * depth).component_mul(&nodes.free[i]);
+            let mass = nodes.mass[i];
+            if let Some(implicit) = implicit.as_mut() {
+                let (dv, _) = contact_velocity_change(nodes.v[i], tool_velocity, push, mass, h, None);
+                nodes.v[i] += dv.component_mul(&nodes.free[i]);
+                implicit.contacts.push(Contact { node: id, normal: push, stiffness: implicit.stiffness_n_per_m });
+                let normal_n = nodes.f[i].dot(&tool.axis).max(0.0);
+                reaction.add(tool, nodes.x[i], tool.axis * normal_n, normal_n);
+                return;
+            }
+            let coming = nodes.v[i] + nodes.f[i] * (h / mass);
+            let (dv, normal_n) = contact_velocity_change(coming, tool_velocity, push, mass, h, friction);
+            let on_node = (dv * (mass / h)).component_mul(&nodes.free[i]);
+            nodes.f[i] += on_node;
+            reaction.add(tool, nodes.x[i], -on_node, normal_n);
+        });
+
+        // 2. The triangle the axis crosses nearest the tip. The search starts an edge
+        // below the tip: a held triangle that the skin's own motion carried just under
+        // it stays held (a contact resting, not pressed), instead of being lost.
+        let top = tool.tip + tool.axis * (tool.radius_m + 2.0 * max_edge_m).min(tool.length_m);
+        let bottom = tool.tip - tool.axis * max_edge_m;
+        let near_tip = PlacedTool { tip: bottom, top, length_m: (top - bottom).norm(), ..*tool };
+        let (min, max) = near_tip.bounds(max_edge_m);
+        self.gather_triangles(&min, &max, topo, grid);
+        if let Some(last) = self.held_triangle[index] {
+            for v in topo.tris[last as usize] {
+                self.candidates.extend(topo.node_tris[v as usize].iter().copied());
+            }
+            self.candidates.sort_unstable();
+            self.candidates.dedup();
+        }
+        let mut held = None;
+        let mut through = false;
+        // Pinned at the tip, the held point may sit on an edge or a corner, where the
+        // crossing test of every triangle around it can miss by a rounding error: a
+        // contact that goes on then keeps its triangle's point nearest the tip.
+        let crossing = nearest_crossing(&near_tip, &self.candidates, &nodes.x, topo).or_else(|| {
+            let last = self.held_triangle[index]?;
+            let [a, b, c] = topo.tris[last as usize].map(|v| nodes.x[v as usize]);
+            let point = closest_point_on_triangle(&tool.tip, &a, &b, &c);
+            (topo.tri_alive[last as usize] && (point - tool.tip).norm() <= max_edge_m).then_some(Crossing { point, blade_t: 0.0, triangle: last })
+        });
+        if let Some(hit) = crossing {
+            let ids = topo.tris[hit.triangle as usize];
+            let [a, b, c] = ids.map(|v| nodes.x[v as usize]);
+            let normal = (b - a).cross(&(c - a));
+            let facing = normal.norm() > 0.0 && normal.normalize().dot(&tool.axis).abs() >= MIN_HOLD_COSINE;
+            let w = barycentric_closest(&hit.point, &a, &b, &c);
+            // The point's inverse mass, as its nodes share it by their weights.
+            let point_inv_mass: f64 = (0..3).map(|k| w[k] * w[k] * nodes.inv_mass[ids[k] as usize]).sum();
+            let depth = (hit.point - tool.tip).dot(&tool.axis);
+            let goes_on = self.held_triangle[index].is_some();
+            through = !goes_on && depth > reach_m;
+            if depth < 0.0 && goes_on {
+                held = Some(Crossing { point: hit.point, blade_t: 0.0, triangle: hit.triangle });
+            } else if depth >= 0.0 && (goes_on || (facing && !through)) && point_inv_mass > 0.0 {
+                let share = |k: usize| w[k] * nodes.inv_mass[ids[k] as usize] / point_inv_mass;
+                for k in 0..3 {
+                    let i = ids[k] as usize;
+                    nodes.x[i] += (push * (depth * share(k))).component_mul(&nodes.free[i]);
+                }
+                held = Some(Crossing { point: tool.tip, blade_t: 0.0, triangle: hit.triangle });
+                if let Some(implicit) = implicit.as_mut() {
+                    let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
+                    let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push, 1.0 / point_inv_mass, h, None);
+                    for k in 0..3 {
+                        let i = ids[k] as usize;
+                        nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
+                        implicit.contacts.push(Contact { node: ids[k], normal: push, stiffness: implicit.stiffness_n_per_m * w[k] });
+                    }
+                    let normal_n = (0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum::<Vec3>().dot(&tool.axis).max(0.0);
+                    reaction.add(tool, tool.tip, tool.axis * normal_n, normal_n);
+                    return self.finish(index, held, reaction, feedback, weight, through);
+                }
+                // The point's velocity at the end of the substep, were it free.
+                let coming: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
+                let (dv, normal_n) = contact_velocity_change(coming, tool_velocity, push, 1.0 / point_inv_mass, h, friction);
+                // A force F at the point is w_k·F on its nodes: it changes the point's
+                // velocity by F·h·Σ w_k²/m_k, which is dv for F = dv/(h·that sum).
+                let on_point = dv / (point_inv_mass * h);
+                for k in 0..3 {
+                    let i = ids[k] as usize;
+                    nodes.f[i] += (on_point * w[k]).component_mul(&nodes.free[i]);
+                }
+                reaction.add(tool, tool.tip, -on_point, normal_n);
+            }
+        }
+        self.finish(index, held, reaction, feedback, weight, through)
+    }
+
+    /// Records what tool `index` held this substep and adds its reaction to `feedback`;
+    /// returns whether the tool may go on holding (it is not through the skin).
+    fn finish(&mut self, index: usize, held: Option<Crossing>, reaction: Reaction, feedback: &mut ToolFeedback, weight: f64, through: bool) -> bool {
+        self.held_triangle[index] = held.map(|c| c.triangle);
+        self.tools[index].force_n += reaction.normal_n * weight;
+        feedback.force_n += reaction.force * weight;
+        feedback.torque_nm += reaction.torque * weight;
+        feedback.contacts = feedback.contacts.max(reaction.points);
+        !through
+    }
+
+    fn gather_triangles(&mut self, min: &Vec3, max: &Vec3, topo: &Topology, grid: &PointGrid) {
+        self.candidates.clear();
+        let candidates = &mut self.candidates;
+        grid.query_box(min, max, |node| candidates.extend(topo.node_tris[node as usize].iter().copied()));
+        self.candidates.sort_unstable();
+        self.candidates.dedup();
+    }
+}
+
+/// The velocity change a point of `mass` held on the tip face needs over the substep h,
+/// given the velocity it would have at its end were it free (`coming`), and the normal
+/// force that takes, N. Its approach along `push` faster than the tool is removed (an
+/// inelastic contact); then Coulomb friction against the tool's velocity: the point
+/// sticks while the force that takes stays within the static coefficient times the
+/// normal force, else it slides against the dynamic coefficient times it.
+fn contact_velocity_change(coming: Vec3, tool_velocity: Vec3, push: Vec3, mass: f64, h: f64, friction: Option<Friction>) -> (Vec3, f64) {
+    let relative = coming - tool_velocity;
+    let approach = relative.dot(&push);
+    if approach >= 0.0 {
+        // Leaving the face (or resting on it): no force, no friction.
+        return (Vec3::zeros(), 0.0);
+    }
+    let normal_n = -approach * mass / h;
+    let mut dv = push * -approach;
+    if let Some((mu_static, mu_dynamic)) = friction {
+        let slip = relative - push * approach;
+        let stick_force = slip.norm() * mass / h;
+        if stick_force <= mu_static * normal_n {
+            dv -= slip;
+        } else {
+            dv -= slip * (mu_dynamic * normal_n / stick_force);
+        }
+    }
+    (dv, normal_n)
+}
+
+/// How far a node inside the cylinder lies above the tip face, when that face (not the
+/// side) is its nearest way out and it lies within `reach_m` of it (skin the face can
+/// have pressed since the last substep); None otherwise.
+pub(crate) fn face_depth(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<f64> {
+    let along = (x - tool.tip).dot(&tool.axis);
+    if along < 0.0 || along > reach_m.min(0.5 * tool.length_m) {
+        return None;
+    }
+    let radial = (x - tool.tip - tool.axis * along).norm();
+    (radial < tool.radius_m && along < tool.radius_m - radial).then_some(along)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tool() -> PlacedTool {
+        PlacedTool { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.1), axis: Vec3::z(), radius_m: 1e-3, length_m: 0.1 }
+    }
+
+    #[test]
+    fn the_face_holds_nodes_nearer_it_than_the_side() {
+        let t = tool();
+        assert_eq!(face_depth(&t, &Vec3::new(0.0, 2e-4, 3e-4), 1.0), Some(3e-4));
+        // Nearer the side: the side's penalty pushes it, not the face.
+        assert_eq!(face_depth(&t, &Vec3::new(0.0, 9e-4, 3e-4), 1.0), None);
+        // Below the tip, outside the radius, or up the shaft: not held.
+        assert_eq!(face_depth(&t, &Vec3::new(0.0, 0.0, -1e-6), 1.0), None);
+        assert_eq!(face_depth(&t, &Vec3::new(0.0, 1.1e-3, 1e-5), 1.0), None);
+        assert_eq!(face_depth(&t, &Vec3::new(0.0, 0.0, 0.06), 1.0), None);
+        // Deeper than the tip can have pressed since the last substep: got in from the side.
+        assert_eq!(face_depth(&t, &Vec3::new(0.0, 2e-4, 3e-4), 1e-4), None);
+    }
+
+    #[test]
+    fn only_the_approach_faster_than_the_tool_is_removed() {
+        let (push, mass, h) = (-Vec3::z(), 1e-3, 1e-4);
+        let tool_velocity = Vec3::new(0.0, 0.0, -0.01);
+        let v = Vec3::new(0.3, 0.0, 0.5);
+        let (dv, normal_n) = contact_velocity_change(v, tool_velocity, push, mass, h, None);
+        assert!((v + dv - Vec3::new(0.3, 0.0, -0.01)).norm() < 1e-15, "moves with the tool, keeps its slide: {:?}", v + dv);
+        assert!((normal_n - 0.51 * mass / h).abs() < 1e-9, "the force that stops it within the substep: {normal_n}");
+        let away = Vec3::new(0.0, 0.0, -0.5);
+        assert_eq!(contact_velocity_change(away, tool_velocity, push, mass, h, None), (Vec3::zeros(), 0.0), "moving away faster: untouched");
+    }
+
+    #[test]
+    fn coulomb_friction_sticks_within_the_static_cone_and_slides_beyond() {
+        let (push, h, mass) = (-Vec3::z(), 1e-4, 1e-3);
+        let friction = Some((0.6, 0.4));
+        // Pressed with 1 N (approaching at 0.1 m/s); sliding at 5 mm/s takes 0.05 N to stop: stuck.
+        let slow = Vec3::new(0.005, 0.0, 0.1);
+        let (dv, normal_n) = contact_velocity_change(slow, Vec3::zeros(), push, mass, h, friction);
+        assert!((normal_n - 1.0).abs() < 1e-12);
+        assert!((slow + dv).norm() < 1e-15, "sticks: {:?}", slow + dv);
+        // At 1 m/s it takes 10 N: it slides, slowed by μ_d·N over the substep.
+        let fast = Vec3::new(1.0, 0.0, 0.1);
+        let (dv, _) = contact_velocity_change(fast, Vec3::zeros(), push, mass, h, friction);
+        assert!((dv - Vec3::new(-0.4 * 1.0 * h / mass, 0.0, -0.1)).norm() < 1e-12, "{dv:?}");
+        // Not pressed, nothing holds it.
+        assert_eq!(contact_velocity_change(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), push, mass, h, friction).0, Vec3::zeros());
+    }
+}
