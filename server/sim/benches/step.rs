@@ -91,10 +91,11 @@ fn main() {
             let integrator = if explicit { "explicit" } else { "implicit" };
             let (steps, budget) = if quick { (200, Some(0.5)) } else { (5000, Some(3.0)) };
             let mut m = build(cx, cy, explicit);
-            // Intact, with the probe resting on the skin (contacts every step).
+            // Intact, with the probe lowered from 1 mm above onto the skin and pressing it
+            // 1.5 mm deep (held at its tip face every step).
             let mut m2 = m.clone();
             for k in 0..50 {
-                m2.step(&probe_at(0.0005 + 0.001 * k as f64 / 50.0), &mut [ToolFeedback::default(); 2]);
+                m2.step(&probe_at(-0.001 + 0.0025 * k as f64 / 50.0), &mut [ToolFeedback::default(); 2]);
             }
             let rows = [
                 measure(&format!("{label} {integrator} intact, probe in contact"), &mut m2, steps, budget, |_| probe_at(0.0015)),
