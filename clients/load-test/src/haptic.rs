@@ -9,7 +9,7 @@ use cutsim_proto::v1::haptics_client::HapticsClient;
 use tokio::sync::mpsc;
 
 /// Where the scalpel goes, from the session's bounds: lanes across x at a few y, cutting
-/// to half the tissue's depth (z up), four seconds a lane.
+/// to half the tissue's depth (at least 1 cm; z up), four seconds a lane.
 #[derive(Clone, Copy)]
 pub struct Trajectory {
     min: [f64; 3],
@@ -31,7 +31,10 @@ impl Trajectory {
         let size = [0, 1, 2].map(|k| self.max[k] - self.min[k]);
         let y = self.min[1] + size[1] * (0.2 + 0.15 * (lane.rem_euclid(5)) as f64);
         let (x0, x1) = (self.min[0] + 0.2 * size[0], self.max[0] - 0.2 * size[0]);
-        let (above, inside) = (self.max[2] + 0.01, self.max[2] - 0.5 * size[2]);
+        // Inside: half the tissue's depth, and at least 1 cm below its top, so that a
+        // scalpel pressed into a thin skin punctures it (at about 7 mm of indentation,
+        // docs/tool-tissue.md) before it is drawn along its lane.
+        let (above, inside) = (self.max[2] + 0.01, (self.max[2] - 0.5 * size[2]).min(self.max[2] - 0.01));
         let lerp = |a: f64, b: f64, s: f64| a + (b - a) * s.clamp(0.0, 1.0);
         if phase < 0.5 {
             ([x0, y, lerp(above, inside, phase / 0.5)], true)
