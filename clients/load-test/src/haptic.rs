@@ -181,7 +181,9 @@ mod tests {
         let (start, cut) = t.at(0.0);
         assert!(cut && (start[2] - 0.01).abs() < 1e-12, "starts 1 cm above the top: {start:?}");
         let (inside, _) = t.at(1.0);
-        assert!((inside[2] + 0.005).abs() < 1e-12, "cuts at half the depth: {inside:?}");
+        assert!((inside[2] + 0.01).abs() < 1e-12, "in 1 cm thin tissue it cuts 1 cm below the top (half would not puncture skin): {inside:?}");
+        let deep = Trajectory { min: [-0.05, -0.05, -0.1], max: [0.05, 0.05, 0.0] };
+        assert!((deep.at(1.0).0[2] + 0.05).abs() < 1e-12, "in deep tissue at half the depth: {:?}", deep.at(1.0).0);
         let (end, _) = t.at(2.999);
         assert!(end[0] > inside[0] && end[0] <= 0.03 + 1e-12, "moves across x within the middle: {end:?}");
         let (lifted, cut) = t.at(3.999);
