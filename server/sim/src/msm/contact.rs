@@ -115,10 +115,10 @@ pub(crate) fn apply_tool_contacts(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn tool() -> PlacedTool {
+    pub(crate) fn tool() -> PlacedTool {
         // Vertical tool: tip at the origin, axis +z, 10 cm long, 1 mm radius.
         PlacedTool { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.1), axis: Vec3::z(), radius_m: 1e-3, length_m: 0.1 }
     }

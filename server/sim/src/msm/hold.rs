@@ -223,14 +223,14 @@ impl Holder {
             let goes_on = self.held_triangle[index].is_some();
             through = !goes_on && depth > reach_m;
             if depth < 0.0 && goes_on {
-                held = Some(Crossing { point: hit.point, blade_t: 0.0, triangle: hit.triangle });
+                held = Some(hit.triangle);
             } else if depth >= 0.0 && (goes_on || (facing && !through)) && point_inv_mass > 0.0 {
                 let share = |k: usize| w[k] * nodes.inv_mass[ids[k] as usize] / point_inv_mass;
                 for k in 0..3 {
                     let i = ids[k] as usize;
                     nodes.x[i] += (push * (depth * share(k))).component_mul(&nodes.free[i]);
                 }
-                held = Some(Crossing { point: tool.tip, blade_t: 0.0, triangle: hit.triangle });
+                held = Some(hit.triangle);
                 if let Some(implicit) = implicit.as_mut() {
                     let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
                     let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push, 1.0 / point_inv_mass, h, None);
@@ -259,10 +259,10 @@ impl Holder {
         self.finish(index, held, reaction, feedback, weight, through)
     }
 
-    /// Records what tool `index` held this substep and adds its reaction to `feedback`;
+    /// Records the triangle tool `index` held this substep (if any) and adds its reaction to `feedback`;
     /// returns whether the tool may go on holding (it is not through the skin).
-    fn finish(&mut self, index: usize, held: Option<Crossing>, reaction: Reaction, feedback: &mut ToolFeedback, weight: f64, through: bool) -> bool {
-        self.held_triangle[index] = held.map(|c| c.triangle);
+    fn finish(&mut self, index: usize, held: Option<u32>, reaction: Reaction, feedback: &mut ToolFeedback, weight: f64, through: bool) -> bool {
+        self.held_triangle[index] = held;
         self.tools[index].force_n += reaction.normal_n * weight;
         feedback.force_n += reaction.force * weight;
         feedback.torque_nm += reaction.torque * weight;
@@ -322,9 +322,7 @@ pub(crate) fn face_depth(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<f6
 mod tests {
     use super::*;
 
-    fn tool() -> PlacedTool {
-        PlacedTool { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.1), axis: Vec3::z(), radius_m: 1e-3, length_m: 0.1 }
-    }
+    use crate::msm::contact::tests::tool;
 
     #[test]
     fn the_face_holds_nodes_nearer_it_than_the_side() {

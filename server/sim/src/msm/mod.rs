@@ -249,9 +249,8 @@ impl MassSpring {
     /// way through the skin is not swept: it passes by the paper's rule at its pose.
     fn sweep_tools(&mut self, s: f64) {
         for (((swept, now), before), &blade_through) in self.swept.iter_mut().zip(&self.placed).zip(&self.previous_placed).zip(&self.blade_through) {
-            let sweeps = !blade_through;
             *swept = match (now, before) {
-                (Some(now), Some(before)) if s < 1.0 && sweeps => {
+                (Some(now), Some(before)) if s < 1.0 && !blade_through => {
                     let tip = before.tip + (now.tip - before.tip) * s;
                     let top = before.top + (now.top - before.top) * s;
                     let axis = (top - tip).try_normalize(0.0).unwrap_or(now.axis);
@@ -410,7 +409,7 @@ impl MassSpring {
                         // crosses the skin then.
                         let hold = self.holder.tools[tool];
                         let puncture = resistance::puncture_force_n(self.fracture_toughness_j_per_m2, 2.0 * self.tools[tool].radius_m);
-                        self.pierced[tool] |= hold.force_n > 0.0 && hold.force_n >= puncture;
+                        self.pierced[tool] |= hold.force_n >= puncture;
                         None
                     } else {
                         cutter.crossing(&blade, &view)
