@@ -180,3 +180,70 @@ fn skin_tool_radius(scene: &Scene, tool: usize) -> f64 {
     let cutsim_sim::scene::ToolShapeSpec::Cylinder { radius_m, .. } = scene.tools[tool].shape;
     radius_m.get()
 }
+
+/// What a probe pressed into the skin and then drawn sideways drags along.
+struct Drag {
+    /// How far the skin point that was under the probe's centre moved with it, m.
+    skin_moved_m: f64,
+    /// The skin's force on the probe along the draw, N (negative: against it).
+    along_n: f64,
+    /// The skin's force on the probe along its axis, N.
+    normal_n: f64,
+}
+
+/// Presses the 6 mm probe (on a node at the centre) 4 mm into the skin, lets it settle,
+/// then draws it `travel_m` along +x at 10 mm/s at that depth.
+fn press_and_draw(scene: &Scene, travel_m: f64) -> Drag {
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    let mut skin = cutsim_sim::msm::build_from_scene(scene, spec).unwrap();
+    let centre = (0..skin.positions().len()).min_by(|&a, &b| skin.positions()[a].norm().total_cmp(&skin.positions()[b].norm())).unwrap();
+    let mut commands = vec![cutsim_sim::tool::ToolCommand::default(); scene.tools.len()];
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); scene.tools.len()];
+    let dt = scene.time_step_s.get();
+    let (depth, press_speed, draw_speed) = (0.004, 0.02, 0.01);
+    let press_steps = ((0.002 + depth) / (press_speed * dt)).ceil() as usize;
+    let draw_steps = (travel_m / (draw_speed * dt)).ceil() as usize;
+    let mut at = |x: f64, z: f64, skin: &mut cutsim_sim::msm::MassSpring| {
+        commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false };
+        skin.step(&commands, &mut feedback);
+        feedback[1]
+    };
+    for step in 0..press_steps + 200 {
+        at(0.0, (0.002 - press_speed * dt * step as f64).max(-depth), &mut skin);
+    }
+    let before = skin.positions()[centre].x;
+    let mut last = cutsim_sim::tool::ToolFeedback::default();
+    for step in 1..=draw_steps {
+        last = at((draw_speed * dt * step as f64).min(travel_m), -depth, &mut skin);
+    }
+    Drag { skin_moved_m: skin.positions()[centre].x - before, along_n: last.force_n.x, normal_n: last.force_n.z }
+}
+
+#[test]
+fn friction_drags_the_skin_under_a_probe_drawn_sideways_with_either_integrator() {
+    let explicit = default_scene();
+    let implicit = edit(&explicit, |s| s["model"]["msm"]["integrator"] = serde_json::json!({ "implicit-euler": {} }));
+    let ModelSpec::Msm(spec) = &explicit.model else { unreachable!() };
+    let mu_static = spec.material.friction.as_ref().unwrap().static_coefficient.get();
+    let travel = 0.0005;
+    for (name, scene) in [("explicit", explicit), ("implicit", implicit)] {
+        let frictionless = edit(&scene, |s| s["model"]["msm"]["material"].as_object_mut().unwrap().remove("friction").map(|_| ()).unwrap());
+        let (held, free) = (press_and_draw(&scene, travel), press_and_draw(&frictionless, travel));
+        println!(
+            "{name}: with friction the skin under the probe moved {:.2} mm of its {:.1} mm (force {:.2} N along, {:.2} N normal); without {:.2} mm ({:.2} N along)",
+            held.skin_moved_m * 1e3,
+            travel * 1e3,
+            held.along_n,
+            held.normal_n,
+            free.skin_moved_m * 1e3,
+            free.along_n
+        );
+        assert!(held.normal_n > 0.5, "{name}: the probe presses the skin ({:.2} N)", held.normal_n);
+        assert!(held.skin_moved_m > 0.8 * travel, "{name}: within the static cone the skin sticks to the probe: moved {:.3} mm", held.skin_moved_m * 1e3);
+        assert!(held.skin_moved_m < 1.02 * travel, "{name}: friction never drives the skin ahead of the probe: moved {:.3} mm", held.skin_moved_m * 1e3);
+        assert!(free.skin_moved_m < 0.5 * held.skin_moved_m, "{name}: without friction the probe slides over it: moved {:.3} mm", free.skin_moved_m * 1e3);
+        assert!(held.along_n < free.along_n - 0.05, "{name}: dragging the skin resists the draw: {:.2} N, frictionless {:.2} N", held.along_n, free.along_n);
+        assert!(held.along_n - free.along_n >= -mu_static * held.normal_n * 1.05, "{name}: friction stays within the static cone");
+    }
+}
+

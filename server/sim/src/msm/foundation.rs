@@ -16,6 +16,8 @@
 //! scene sets, not as elastic ringing. The stiffness enters the implicit system's matrix
 //! and the explicit stability bound.
 
+use nalgebra::Matrix3;
+
 use super::state::{Nodes, Topology};
 use crate::math::Vec3;
 
@@ -99,6 +101,13 @@ impl Foundation {
                 nodes.f[i] -= self.spring(i, nodes.x[i] - nodes.x_ref[i]) * a;
             }
         }
+    }
+
+    /// A_i (c_n P_n + c_t (I − P_n)), N·s/m: the drag's matrix at node `i`.
+    pub fn drag_matrix(&self, i: usize) -> Matrix3<f64> {
+        let n = self.normal[i];
+        let along = n * n.transpose();
+        (along * self.params.normal_damping_pa_s_per_m + (Matrix3::identity() - along) * self.params.shear_damping_pa_s_per_m) * self.area[i]
     }
 
     /// The velocity after the drag, integrated implicitly over `h`: `w` is the velocity

@@ -14,7 +14,10 @@
 //!    plane: a blade 0.5 mm thin between nodes 2.5 mm apart holds as a probe does.
 //!
 //! Projected nodes lose the velocity with which they approached the tool (relative to
-//! the tool's own velocity), so the contact is inelastic and adds no energy. The force
+//! the tool's own velocity), so the contact is inelastic and adds no energy; across the
+//! face, Coulomb friction (before the explicit integrator's substep, as a force that
+//! overcomes the point's mass and implicit drag; after the implicit integrator's solve,
+//! as a velocity filter). The force
 //! the tool feels is the force the rest of the skin presses the held points against its
 //! face with (their spring, foundation and gravity forces along the axis, never
 //! pulling): the force of the solved state, not a penalty depth. A tool that appeared
@@ -25,7 +28,10 @@
 //! Only crossings within 60° of the triangle's normal are held: a tool lying along the
 //! skin pushes it with its side (the penalty), not with its face.
 
+use nalgebra::Matrix3;
+
 use super::contact::Contact;
+use super::foundation::Foundation;
 use super::cut::{Crossing, nearest_crossing};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
@@ -57,6 +63,26 @@ pub(crate) struct Holder {
     held_triangle: Vec<Option<u32>>,
     friction: Option<Friction>,
     candidates: Vec<u32>,
+    /// The implicit integrator's held points, whose friction acts after its solve.
+    rubs: Vec<Rub>,
+}
+
+/// A point held by a tool under the implicit integrator: friction acts on it after the
+/// solve, as a velocity filter (Bridson, Fedkiw and Anderson 2002), so that a point
+/// that sticks moves exactly with the tool whatever the springs did within the step.
+#[derive(Debug, Clone, Copy)]
+struct Rub {
+    tool: usize,
+    /// Its nodes and their weights (a node alone: weights 1, 0, 0).
+    ids: [u32; 3],
+    w: [f64; 3],
+    push: Vec3,
+    /// From the tool's tip to the point, m.
+    lever: Vec3,
+    tool_velocity: Vec3,
+    normal_n: f64,
+    /// The substep's share of the step.
+    weight: f64,
 }
 
 /// The model state a hold reads and changes.
@@ -70,10 +96,32 @@ pub(crate) struct HoldView<'a> {
     pub margin_m: f64,
     /// The substep, s.
     pub h: f64,
+    pub drag: Drag<'a>,
     /// Implicit integration: the held points' constraint goes into the system matrix
     /// as a stiff contact along the axis (appended here, N/m) instead of as a force
     /// predicted from an explicit substep.
     pub implicit: Option<ImplicitHold<'a>>,
+}
+
+/// The damping both integrators take implicitly: the force that holds a point must
+/// overcome it too, or a skin point stuck to a tool by friction would lag it by the
+/// foundation's drag (ten times the mass over a substep on the default skin).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Drag<'a> {
+    pub mass_damping_per_s: f64,
+    pub foundation: Option<&'a Foundation>,
+}
+
+impl Drag<'_> {
+    /// R = m(1 + hα)·I + h·C_i: a force F over the substep h changes node `i`'s velocity
+    /// at its end by h·R⁻¹·F.
+    fn resistance(&self, nodes: &Nodes, i: usize, h: f64) -> Matrix3<f64> {
+        let inertia = Matrix3::identity() * (nodes.mass[i] * (1.0 + h * self.mass_damping_per_s));
+        match self.foundation {
+            Some(foundation) => inertia + foundation.drag_matrix(i) * h,
+            None => inertia,
+        }
+    }
 }
 
 /// Where the implicit integrator takes held points ([`HoldView::implicit`]).
@@ -127,12 +175,41 @@ impl Holder {
     /// For `tools` tools on a mesh of `triangles` triangles (the candidates' room: each
     /// triangle listed once per corner before duplicates go, so a step never allocates).
     pub fn new(tools: usize, friction: Option<Friction>, triangles: usize) -> Self {
-        Self { tools: vec![HoldState::default(); tools], held_triangle: vec![None; tools], friction, candidates: Vec::with_capacity(3 * triangles) }
+        Self {
+            tools: vec![HoldState::default(); tools],
+            held_triangle: vec![None; tools],
+            friction,
+            candidates: Vec::with_capacity(3 * triangles),
+            rubs: Vec::with_capacity(triangles),
+        }
     }
 
     /// Forgets last step's holds.
     pub fn begin_step(&mut self) {
         self.tools.iter_mut().for_each(|t| *t = HoldState::default());
+        self.rubs.clear();
+    }
+
+    /// Coulomb friction on the points the implicit integrator held this step, after its
+    /// solve: each sticks to its tool (its slip is removed) while the force that takes
+    /// stays within the static cone of its normal force, else slides against the dynamic
+    /// one. Moves the nodes by the velocity changes over the step h and adds the
+    /// reaction to the tools' feedback.
+    pub fn rub_after_solve(&mut self, nodes: &mut Nodes, drag: Drag, h: f64, feedback: &mut [ToolFeedback]) {
+        for rub in &self.rubs {
+            let Some((resists, _)) = point_dynamics(nodes, &drag, h, rub.ids, rub.w, Vec3::zeros()) else { continue };
+            let velocity: Vec3 = (0..3).map(|k| nodes.v[rub.ids[k] as usize] * rub.w[k]).sum();
+            let force = friction_force(velocity - rub.tool_velocity, rub.push, &resists, h, rub.normal_n, self.friction);
+            for k in 0..3 {
+                let i = rub.ids[k] as usize;
+                let Some(yields) = drag.resistance(nodes, i, h).try_inverse() else { continue };
+                let dv = (yields * force * (h * rub.w[k])).component_mul(&nodes.free[i]);
+                nodes.v[i] += dv;
+                nodes.x[i] += dv * h;
+            }
+            feedback[rub.tool].force_n -= force * rub.weight;
+            feedback[rub.tool].torque_nm -= rub.lever.cross(&force) * rub.weight;
+        }
     }
 
     /// Tool `index` does not hold this step (away, or through the skin).
@@ -152,7 +229,7 @@ impl Holder {
     /// (times `weight`, the substep's share of the step) to `feedback`. Returns false
     /// when the tool turns out to be through the skin (it got under it from the side).
     pub fn hold(&mut self, index: usize, tool: HeldTool, view: HoldView, feedback: &mut ToolFeedback, weight: f64) -> bool {
-        let HoldView { nodes, topo, grid, max_edge_m, margin_m, h, mut implicit } = view;
+        let HoldView { nodes, topo, grid, max_edge_m, margin_m, h, drag, mut implicit } = view;
         let HeldTool { placed: tool, velocity: tool_velocity, reach_m } = tool;
         let push = -tool.axis;
         let friction = self.friction;
@@ -169,18 +246,20 @@ impl Holder {
             }
             let Some(depth) = face_depth(tool, &nodes.x[i], reach_m) else { return };
             nodes.x[i] += (push * depth).component_mul(&nodes.free[i]);
-            let mass = nodes.mass[i];
             if let Some(implicit) = implicit.as_mut() {
-                let (dv, _) = contact_velocity_change(nodes.v[i], tool_velocity, push, mass, h, None);
+                let (dv, _) = contact_velocity_change(nodes.v[i], tool_velocity, push);
                 nodes.v[i] += dv.component_mul(&nodes.free[i]);
                 implicit.contacts.push(Contact { node: id, normal: push, stiffness: implicit.stiffness_n_per_m });
                 let normal_n = nodes.f[i].dot(&tool.axis).max(0.0);
                 reaction.add(tool, nodes.x[i], tool.axis * normal_n, normal_n);
+                let rub = Rub { tool: index, ids: [id; 3], w: [1.0, 0.0, 0.0], push, lever: nodes.x[i] - tool.tip, tool_velocity, normal_n, weight };
+                self.rubs.push(rub);
                 return;
             }
-            let coming = nodes.v[i] + nodes.f[i] * (h / mass);
-            let (dv, normal_n) = contact_velocity_change(coming, tool_velocity, push, mass, h, friction);
-            let on_node = (dv * (mass / h)).component_mul(&nodes.free[i]);
+            let mass = nodes.mass[i];
+            let (stop, normal_n) = contact_force(nodes.v[i] + nodes.f[i] * (h / mass), tool_velocity, push, mass, h);
+            let Some((resists, coming)) = point_dynamics(nodes, &drag, h, [id; 3], [1.0, 0.0, 0.0], stop) else { return };
+            let on_node = (stop + friction_force(coming - tool_velocity, push, &resists, h, normal_n, friction)).component_mul(&nodes.free[i]);
             nodes.f[i] += on_node;
             reaction.add(tool, nodes.x[i], -on_node, normal_n);
         });
@@ -233,7 +312,7 @@ impl Holder {
                 held = Some(hit.triangle);
                 if let Some(implicit) = implicit.as_mut() {
                     let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
-                    let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push, 1.0 / point_inv_mass, h, None);
+                    let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push);
                     for k in 0..3 {
                         let i = ids[k] as usize;
                         nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
@@ -241,14 +320,20 @@ impl Holder {
                     }
                     let normal_n = (0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum::<Vec3>().dot(&tool.axis).max(0.0);
                     reaction.add(tool, tool.tip, tool.axis * normal_n, normal_n);
+                    self.rubs.push(Rub { tool: index, ids, w: [w[0], w[1], w[2]], push, lever: Vec3::zeros(), tool_velocity, normal_n, weight });
                     return self.finish(index, held, reaction, feedback, weight, through);
                 }
-                // The point's velocity at the end of the substep, were it free.
-                let coming: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
-                let (dv, normal_n) = contact_velocity_change(coming, tool_velocity, push, 1.0 / point_inv_mass, h, friction);
-                // A force F at the point is w_k·F on its nodes: it changes the point's
-                // velocity by F·h·Σ w_k²/m_k, which is dv for F = dv/(h·that sum).
-                let on_point = dv / (point_inv_mass * h);
+                // The point's velocity at the end of the substep were it free, before
+                // the drag (its approach is stopped against its mass alone, as a node's:
+                // the face's position constraint does the rest).
+                let undamped: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
+                let (stop, normal_n) = contact_force(undamped, tool_velocity, push, 1.0 / point_inv_mass, h);
+                let Some((resists, coming)) = point_dynamics(nodes, &drag, h, ids, [w[0], w[1], w[2]], stop) else {
+                    return self.finish(index, held, reaction, feedback, weight, through);
+                };
+                let rub = friction_force(coming - tool_velocity, push, &resists, h, normal_n, friction);
+                let on_point = stop + rub;
+                // A force F at the point is w_k·F on its nodes.
                 for k in 0..3 {
                     let i = ids[k] as usize;
                     nodes.f[i] += (on_point * w[k]).component_mul(&nodes.free[i]);
@@ -279,31 +364,60 @@ impl Holder {
     }
 }
 
-/// The velocity change a point of `mass` held on the tip face needs over the substep h,
-/// given the velocity it would have at its end were it free (`coming`), and the normal
-/// force that takes, N. Its approach along `push` faster than the tool is removed (an
-/// inelastic contact); then Coulomb friction against the tool's velocity: the point
-/// sticks while the force that takes stays within the static coefficient times the
-/// normal force, else it slides against the dynamic coefficient times it.
-fn contact_velocity_change(coming: Vec3, tool_velocity: Vec3, push: Vec3, mass: f64, h: f64, friction: Option<Friction>) -> (Vec3, f64) {
-    let relative = coming - tool_velocity;
-    let approach = relative.dot(&push);
+/// The velocity change that removes a held point's approach along `push` faster than
+/// the tool (an inelastic contact), and the approach speed it removes.
+fn contact_velocity_change(velocity: Vec3, tool_velocity: Vec3, push: Vec3) -> (Vec3, f64) {
+    let approach = (velocity - tool_velocity).dot(&push);
     if approach >= 0.0 {
-        // Leaving the face (or resting on it): no force, no friction.
+        // Leaving the face (or resting on it): untouched.
         return (Vec3::zeros(), 0.0);
     }
-    let normal_n = -approach * mass / h;
-    let mut dv = push * -approach;
-    if let Some((mu_static, mu_dynamic)) = friction {
-        let slip = relative - push * approach;
-        let stick_force = slip.norm() * mass / h;
-        if stick_force <= mu_static * normal_n {
-            dv -= slip;
-        } else {
-            dv -= slip * (mu_dynamic * normal_n / stick_force);
+    (push * -approach, -approach)
+}
+
+/// A held point of nodes `ids` with weights `w`: its resistance R to a force over the
+/// substep h (its nodes' mass and drag, shared by their weights: R⁻¹ = Σ w_k² R_k⁻¹)
+/// and its velocity at the substep's end with the force `on_point` on it and nothing
+/// else holding it. None when none of its nodes can move.
+fn point_dynamics(nodes: &Nodes, drag: &Drag, h: f64, ids: [u32; 3], w: [f64; 3], on_point: Vec3) -> Option<(Matrix3<f64>, Vec3)> {
+    let mut yields = Matrix3::zeros();
+    let mut coming = Vec3::zeros();
+    for k in 0..3 {
+        let i = ids[k] as usize;
+        if nodes.inv_mass[i] == 0.0 || w[k] == 0.0 {
+            continue;
         }
+        let node_yields = drag.resistance(nodes, i, h).try_inverse()?;
+        yields += node_yields * (w[k] * w[k]);
+        coming += node_yields * (nodes.v[i] * nodes.mass[i] + (nodes.f[i] + on_point * w[k]) * h) * w[k];
     }
-    (dv, normal_n)
+    Some((yields.try_inverse()?, coming))
+}
+
+/// The force on a held point of `mass` over the substep h that stops its approach to
+/// the tool face (an inelastic contact), and its size, the normal force, N. `coming`
+/// is the velocity the point would have at the substep's end were it free.
+fn contact_force(coming: Vec3, tool_velocity: Vec3, push: Vec3, mass: f64, h: f64) -> (Vec3, f64) {
+    let (dv, approach) = contact_velocity_change(coming, tool_velocity, push);
+    (dv * (mass / h), approach * mass / h)
+}
+
+/// Coulomb friction on a point pressed against the tool face with `normal_n`, moving
+/// relative to it at `relative` at the substep's end were nothing to hold it
+/// sideways: the point sticks (the force that stops its slip) while that force stays
+/// within the static coefficient times the normal force, else it slides against the
+/// dynamic coefficient times it. `resists` is the point's resistance R to a force over
+/// the substep (a force F changes its end velocity by h·R⁻¹·F: its mass, and the drag
+/// the integrator takes implicitly), so stopping the slip takes R·slip/h.
+fn friction_force(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, normal_n: f64, friction: Option<Friction>) -> Vec3 {
+    let Some((mu_static, mu_dynamic)) = friction else { return Vec3::zeros() };
+    if normal_n <= 0.0 {
+        return Vec3::zeros();
+    }
+    let slip = relative - push * relative.dot(&push);
+    let stick = -(resists * slip) / h;
+    let sideways = (stick - push * stick.dot(&push)).norm();
+    if sideways <= mu_static * normal_n { stick } else { stick * (mu_dynamic * normal_n / sideways) }
 }
 
 /// How far a node inside the cylinder lies above the tip face, when that face (not the
@@ -343,27 +457,40 @@ mod tests {
         let (push, mass, h) = (-Vec3::z(), 1e-3, 1e-4);
         let tool_velocity = Vec3::new(0.0, 0.0, -0.01);
         let v = Vec3::new(0.3, 0.0, 0.5);
-        let (dv, normal_n) = contact_velocity_change(v, tool_velocity, push, mass, h, None);
-        assert!((v + dv - Vec3::new(0.3, 0.0, -0.01)).norm() < 1e-15, "moves with the tool, keeps its slide: {:?}", v + dv);
+        let (f, normal_n) = contact_force(v, tool_velocity, push, mass, h);
+        assert!((v + f * (h / mass) - Vec3::new(0.3, 0.0, -0.01)).norm() < 1e-12, "moves with the tool, keeps its slide: {:?}", v + f * (h / mass));
         assert!((normal_n - 0.51 * mass / h).abs() < 1e-9, "the force that stops it within the substep: {normal_n}");
         let away = Vec3::new(0.0, 0.0, -0.5);
-        assert_eq!(contact_velocity_change(away, tool_velocity, push, mass, h, None), (Vec3::zeros(), 0.0), "moving away faster: untouched");
+        assert_eq!(contact_force(away, tool_velocity, push, mass, h), (Vec3::zeros(), 0.0), "moving away faster: untouched");
     }
 
     #[test]
     fn coulomb_friction_sticks_within_the_static_cone_and_slides_beyond() {
         let (push, h, mass) = (-Vec3::z(), 1e-4, 1e-3);
+        let resists = Matrix3::identity() * mass;
         let friction = Some((0.6, 0.4));
-        // Pressed with 1 N (approaching at 0.1 m/s); sliding at 5 mm/s takes 0.05 N to stop: stuck.
-        let slow = Vec3::new(0.005, 0.0, 0.1);
-        let (dv, normal_n) = contact_velocity_change(slow, Vec3::zeros(), push, mass, h, friction);
-        assert!((normal_n - 1.0).abs() < 1e-12);
-        assert!((slow + dv).norm() < 1e-15, "sticks: {:?}", slow + dv);
-        // At 1 m/s it takes 10 N: it slides, slowed by μ_d·N over the substep.
-        let fast = Vec3::new(1.0, 0.0, 0.1);
-        let (dv, _) = contact_velocity_change(fast, Vec3::zeros(), push, mass, h, friction);
-        assert!((dv - Vec3::new(-0.4 * 1.0 * h / mass, 0.0, -0.1)).norm() < 1e-12, "{dv:?}");
-        // Not pressed, nothing holds it.
-        assert_eq!(contact_velocity_change(Vec3::new(1.0, 0.0, 0.0), Vec3::zeros(), push, mass, h, friction).0, Vec3::zeros());
+        // Pressed with 1 N; sliding at 5 mm/s takes 0.05 N to stop: stuck.
+        let slow = Vec3::new(0.005, 0.0, 0.0);
+        let f = friction_force(slow, push, &resists, h, 1.0, friction);
+        assert!((slow + f * (h / mass)).norm() < 1e-12, "sticks: {:?}", slow + f * (h / mass));
+        // At 1 m/s it takes 10 N: it slides, against μ_d·N.
+        let fast = Vec3::new(1.0, 0.0, 0.0);
+        assert!((friction_force(fast, push, &resists, h, 1.0, friction) - Vec3::new(-0.4, 0.0, 0.0)).norm() < 1e-12);
+        // Only the slip across the face counts; not pressed, nothing holds it.
+        assert!((friction_force(Vec3::new(0.005, 0.0, 3.0), push, &resists, h, 1.0, friction) - f).norm() < 1e-12);
+        assert_eq!(friction_force(slow, push, &resists, h, 0.0, friction), Vec3::zeros());
+        assert_eq!(friction_force(slow, push, &resists, h, 1.0, None), Vec3::zeros());
+    }
+
+    #[test]
+    fn a_point_stuck_by_friction_moves_with_the_tool_against_the_drag_too() {
+        // The skin's drag across its plane resists nine times its mass over a substep:
+        // sticking takes ten times the force that the mass alone would.
+        let (push, h, mass) = (-Vec3::z(), 1e-4, 1e-3);
+        let resists = Matrix3::from_diagonal(&Vec3::new(10.0 * mass, 10.0 * mass, 1.1 * mass));
+        let relative = Vec3::new(-0.01, 0.0, 0.0);
+        let f = friction_force(relative, push, &resists, h, 2.0, Some((0.6, 0.4)));
+        assert!((f.x - 10.0 * mass * 0.01 / h).abs() < 1e-12, "{f:?}");
+        assert!((relative + resists.try_inverse().unwrap() * f * h).norm() < 1e-12, "moves with the tool");
     }
 }

@@ -176,7 +176,10 @@ impl MassSpring {
                 self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                 self.timed(|s| s.add_contacts(commands, feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 self.timed(|s| s.hold_skin(feedback, 1.0), |t, ns| t.contacts_ns += ns);
-                self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns)
+                let check = self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns);
+                let drag = hold::Drag { mass_damping_per_s: self.mass_damping_per_s, foundation: self.foundation.as_ref() };
+                self.holder.rub_after_solve(&mut self.nodes, drag, self.dt_s, feedback);
+                check
             }
         };
         if !finite_check.is_finite() {
@@ -277,6 +280,7 @@ impl MassSpring {
                 max_edge_m: self.max_edge_m,
                 margin_m: 0.5 * self.grid.cell_size_m(),
                 h,
+                drag: hold::Drag { mass_damping_per_s: self.mass_damping_per_s, foundation: self.foundation.as_ref() },
                 implicit: implicit.then_some(hold::ImplicitHold {
                     contacts: &mut self.contacts,
                     stiffness_n_per_m: HELD_STIFFNESS_OVER_CONTACT * self.tools[i].contact_stiffness_n_per_m,
