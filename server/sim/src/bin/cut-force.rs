@@ -5,7 +5,7 @@
 //! the scalpel every step, and writes DIR/cut-force.svg (force against time, the
 //! fracture estimate J·t and a desktop device's limit drawn in) and DIR/cut-force.md (the
 //! steady cutting force against J·t). The same blade drawn sideways (its flat leading) is
-//! run beside it: it must not cut.
+//! run beside it: it must not cut, and its flat pushes the skin.
 //!
 //!     cargo run --release -p cutsim-sim --bin cut-force [-- --out DIR]
 
@@ -95,6 +95,7 @@ fn run(out: &Path) -> Result<(), String> {
     for t in [&along, &sideways] {
         let _ = writeln!(md, "| {}: cut updates, incision length | {}, {:.1} mm |", t.label, t.cut.cut_updates, t.cut.incision_length_m * 1e3);
     }
+    let _ = writeln!(md, "| blade drawn sideways: largest force (its flat drags the skin; the device's force is clamped at the tool's limit) | {:.2} N |", sideways.cut.peak_n());
     let files = [("cut-force.md", md.clone()), ("cut-force.svg", svg(&[&along, &sideways], estimate))];
     for (name, text) in files {
         let path = out.join(name);

@@ -213,6 +213,7 @@ impl MassSpring {
             pierced: vec![false; tools.len()],
             holding: vec![false; tools.len()],
             blade_through: vec![false; tools.len()],
+            holes: vec![None; tools.len()],
             holder: super::hold::Holder::new(tools.len(), params.friction, topo.tris.len()),
             blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),

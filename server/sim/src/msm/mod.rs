@@ -6,7 +6,8 @@
 //! implicit Euler with CG ([`implicit`]); three-stage cutting ([`cut`]).
 //!
 //! [`MassSpring::step`] reads as the outline of one physics step: place the tools,
-//! then per (sub)step accumulate forces, add contacts and integrate; contain a
+//! then per (sub)step accumulate forces, add contacts, hold the skin at tip faces
+//! ([`hold`]) and at the flats of blades through it ([`flat`]), and integrate; contain a
 //! blow-up if one is detected; then let cutting tools cut. Nothing in a step without a
 //! cut allocates.
 
@@ -16,6 +17,7 @@ pub mod calibration;
 pub mod contact;
 pub mod cut;
 pub mod explicit;
+pub(crate) mod flat;
 pub(crate) mod forces;
 pub mod foundation;
 pub(crate) mod hold;
@@ -42,6 +44,15 @@ use crate::math::Vec3;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{Tissue, TissueCounters};
 use crate::tool::{PlacedTool, ToolCommand, ToolFeedback, ToolShape};
+
+/// A blade through the skin this step: where it passes through it, and its flat's
+/// normal and its edge's direction (unit, across its axis).
+#[derive(Debug, Clone, Copy)]
+struct BladeHole {
+    hole: flat::Hole,
+    flat_normal: Vec3,
+    edge: Vec3,
+}
 
 #[derive(Debug, Clone)]
 enum Integrator {
@@ -124,6 +135,9 @@ pub struct MassSpring {
     holding: Vec<bool>,
     /// Which tools are blades through the skin with their cut button held this step.
     blade_through: Vec<bool>,
+    /// Blades through the skin: where they pass through it (taken at the step's start)
+    /// and their flat's normal this step ([`flat`]).
+    holes: Vec<Option<BladeHole>>,
     holder: hold::Holder,
     /// Each blade's velocity through the skin, smoothed over
     /// [`BLADE_VELOCITY_TIME_CONSTANT_S`] (zero outside a resisted stroke).
@@ -164,6 +178,7 @@ impl MassSpring {
                     self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                     self.timed(|s| s.add_contacts(commands, feedback, weight), |t, ns| t.contacts_ns += ns);
                     self.timed(|s| s.hold_skin(feedback, weight), |t, ns| t.contacts_ns += ns);
+                    self.timed(|s| s.push_with_flats(feedback, weight), |t, ns| t.contacts_ns += ns);
                     check = self.timed(
                         |s| explicit::substep(&mut s.nodes, h, s.mass_damping_per_s, s.foundation.as_ref()),
                         |t, ns| t.integrate_ns += ns,
@@ -176,6 +191,7 @@ impl MassSpring {
                 self.timed(|s| s.accumulate_forces(), |t, ns| t.forces_ns += ns);
                 self.timed(|s| s.add_contacts(commands, feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 self.timed(|s| s.hold_skin(feedback, 1.0), |t, ns| t.contacts_ns += ns);
+                self.timed(|s| s.push_with_flats(feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 let check = self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns);
                 let drag = hold::Drag { mass_damping_per_s: self.mass_damping_per_s, foundation: self.foundation.as_ref() };
                 self.holder.rub_after_solve(&mut self.nodes, drag, self.dt_s, feedback);
@@ -239,7 +255,31 @@ impl MassSpring {
             let paper_blade = self.cuts_by_crossing(i, command);
             self.holding[i] = self.placed[i].is_some() && !self.pierced[i] && !paper_blade;
             self.blade_through[i] = !self.holding[i] && self.tools[i].can_cut && command.cut;
+            self.holes[i] = self.hole(i, command);
         }
+    }
+
+    /// Where blade `i`, through the skin, passes through it, with its flat's normal and
+    /// its edge's direction at this step's pose: the hole it held last step, while the
+    /// flat still holds it; else the skin's material point its axis crossed at last
+    /// step's pose, on the mesh as the last cut left it. None for a tool that is not a
+    /// blade or not through the skin, or one cutting by the paper's rule (it cuts
+    /// whatever it crosses).
+    fn hole(&mut self, i: usize, command: &ToolCommand) -> Option<BladeHole> {
+        if !self.pierced[i] || !self.tools[i].can_cut || self.cuts_by_crossing(i, command) {
+            return None;
+        }
+        let (now, before) = (self.placed[i]?, self.previous_placed[i]?);
+        let edge = command.pose.orientation * self.tools[i].edge_local;
+        let flat_normal = now.axis.cross(&edge).try_normalize(1e-9)?;
+        let hole = match self.holes[i] {
+            Some(kept) => kept.hole,
+            None => {
+                let crossing = self.holder.first_crossing(&before, &self.nodes, &self.topo, &self.grid, self.max_edge_m)?;
+                flat::Hole::at(&crossing, &self.nodes, &self.topo)
+            }
+        };
+        Some(BladeHole { hole, flat_normal, edge: flat_normal.cross(&now.axis) })
     }
 
     /// Whether tool `i` cuts wherever its axis crosses the skin (the paper's rule, for a
@@ -291,6 +331,21 @@ impl MassSpring {
             if !self.holder.hold(i, held_tool, view, &mut feedback[i], weight) {
                 // Got under the skin from the side: through it, from the next step on.
                 self.pierced[i] = true;
+            }
+        }
+    }
+
+    /// Every blade through the skin pushes it with its flat ([`flat`]).
+    fn push_with_flats(&mut self, feedback: &mut [ToolFeedback], weight: f64) {
+        let h = self.substep_s();
+        let implicit = matches!(self.integrator, Integrator::ImplicitEuler(_));
+        for i in 0..self.tools.len() {
+            let (Some(BladeHole { hole, flat_normal, edge }), Some(tool)) = (self.holes[i], self.swept[i]) else { continue };
+            let blade = flat::Blade { placed: &tool, flat_normal, edge, velocity: self.tool_velocity[i] };
+            let stiffness = HELD_STIFFNESS_OVER_CONTACT * self.tools[i].contact_stiffness_n_per_m;
+            let contacts = implicit.then_some((stiffness, &mut self.contacts));
+            if !flat::push_with_flat(&hole, blade, &mut self.nodes, &self.topo, h, contacts, &mut feedback[i], weight) {
+                self.holes[i] = None;
             }
         }
     }
