@@ -73,7 +73,7 @@ fn the_default_scripted_cut_resists_with_toughness_times_thickness() {
 }
 
 #[test]
-fn a_blade_drawn_sideways_does_not_cut_and_without_toughness_it_would() {
+fn a_blade_drawn_sideways_or_backwards_does_not_cut_but_pushes_and_without_toughness_it_would_cut() {
     let sideways = Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
     let cut = scripted_cut(&default_scene(), sideways);
     assert_eq!((cut.cut_updates, cut.incision_length_m), (0, 0.0), "the flat of the blade leading must not cut");
@@ -82,6 +82,13 @@ fn a_blade_drawn_sideways_does_not_cut_and_without_toughness_it_would() {
     let dragged = cut.samples.iter().filter(|s| s.0 <= 0.05).map(|s| s.1).fold(0.0, f64::max);
     println!("blade drawn sideways: {dragged:.2} N within its first 5 mm, {:.2} N at most", cut.peak_n());
     assert!(dragged > 1.0, "the flat pushes the skin: {dragged:.2} N within 5 mm");
+    // Drawn backwards (turned half a turn: its back leading) it does not cut either, and
+    // its back pushes the rim of the hole it made.
+    let backwards = scripted_cut(&default_scene(), Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::PI));
+    assert_eq!((backwards.cut_updates, backwards.incision_length_m), (0, 0.0), "the back of the blade leading must not cut");
+    let pushed = backwards.samples.iter().filter(|s| s.0 <= 0.05).map(|s| s.1).fold(0.0, f64::max);
+    println!("blade drawn backwards: {pushed:.2} N within its first 5 mm");
+    assert!(pushed > 1.0, "the back pushes the skin: {pushed:.2} N within 5 mm");
     // The paper's rule (no fracture toughness): any crossing cuts, whatever the edge.
     let paper = edit(&default_scene(), |s| s["model"]["msm"]["material"]["fracture_toughness_j_per_m2"] = serde_json::json!(0));
     let cut = scripted_cut(&paper, sideways);
@@ -251,5 +258,3 @@ fn friction_drags_the_skin_under_a_probe_drawn_sideways_with_either_integrator()
         assert!(held.along_n - free.along_n >= -mu_static * held.normal_n * 1.05, "{name}: friction stays within the static cone");
     }
 }
-
-

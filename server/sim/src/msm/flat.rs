@@ -14,10 +14,8 @@
 //! point is free. The blade feels the opposite force: the skin dragged sideways.
 //!
 //! The hole is kept from step to step while the blade spans it; once the blade has
-//! moved on along its edge past it (cutting), or its triangle is cut away, a new one is
-//! taken where the axis crosses the skin.
-
-use nalgebra::Vector3;
+//! moved on along its edge past it by more than its width (cutting), or its triangle is
+//! cut away, a new one is taken where the axis crosses the skin.
 
 use super::contact::Contact;
 use super::cut::Crossing;
@@ -78,9 +76,10 @@ pub(crate) fn push_with_flat(
     let w = hole.w;
     let point: Vec3 = (0..3).map(|k| nodes.x[ids[k] as usize] * w[k]).sum();
     let along = (point - tool.tip).dot(&tool.axis);
-    // Off the blade: below its tip, above its top, or beyond its edge or its back (the
-    // blade moved on along its edge, cutting, and left the point on the wound's side).
-    if along < 0.0 || along > tool.length_m || (point - tool.tip).dot(&edge).abs() > tool.radius_m {
+    let ahead = (point - tool.tip).dot(&edge);
+    // Off the blade: below its tip, above its top, or left behind its back by more than
+    // its width (the blade moved on along its edge, cutting: the point is on the wound).
+    if along < 0.0 || along > tool.length_m || ahead < -2.0 * tool.radius_m {
         return false;
     }
     let point_inv_mass: f64 = (0..3).map(|k| w[k] * w[k] * nodes.inv_mass[ids[k] as usize]).sum();
@@ -88,30 +87,41 @@ pub(crate) fn push_with_flat(
         return true;
     }
     let share = |k: usize| w[k] * nodes.inv_mass[ids[k] as usize] / point_inv_mass;
-    // Onto the flat's plane through the axis.
-    let off = (point - tool.tip).dot(&n);
+    // The blade fills its hole: drawn back (its back leading) it pushes the hole's
+    // rim with its back, dragging the point along, rather than passing through uncut
+    // skin.
+    let back = ahead > 0.0;
+    // Onto the flat's plane through the axis (and back to the axis along the edge).
+    let off = n * (point - tool.tip).dot(&n) + if back { edge * ahead } else { Vec3::zeros() };
     for k in 0..3 {
         let i = ids[k] as usize;
-        nodes.x[i] -= (n * (off * share(k))).component_mul(&nodes.free[i]);
+        nodes.x[i] -= (off * share(k)).component_mul(&nodes.free[i]);
     }
+    // The relative velocity the blade stops: across its flat, and into its back.
+    let stopped = |relative: Vec3| n * relative.dot(&n) + if back { edge * relative.dot(&edge).max(0.0) } else { Vec3::zeros() };
     let lever = point - tool.tip;
     match implicit_contacts {
         Some((stiffness, contacts)) => {
             let velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
-            let dv = n * -(velocity - tool_velocity).dot(&n);
+            let dv = -stopped(velocity - tool_velocity);
             for k in 0..3 {
                 let i = ids[k] as usize;
                 nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
                 contacts.push(Contact { node: ids[k], normal: n, stiffness: stiffness * w[k] });
+                if back {
+                    contacts.push(Contact { node: ids[k], normal: edge, stiffness: stiffness * w[k] });
+                }
             }
-            // The force the rest of the skin pulls the point off the flat with.
-            let across: Vector3<f64> = n * (0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum::<Vec3>().dot(&n);
-            feedback.force_n += across * weight;
-            feedback.torque_nm += lever.cross(&across) * weight;
+            // The force the rest of the skin pulls the point off the flat (and against
+            // the back) with.
+            let skin: Vec3 = (0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum();
+            let held = n * skin.dot(&n) + if back { edge * skin.dot(&edge).max(0.0) } else { Vec3::zeros() };
+            feedback.force_n += held * weight;
+            feedback.torque_nm += lever.cross(&held) * weight;
         }
         None => {
             let coming: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
-            let on_point = n * (-(coming - tool_velocity).dot(&n) / (point_inv_mass * h));
+            let on_point = -stopped(coming - tool_velocity) / (point_inv_mass * h);
             for k in 0..3 {
                 let i = ids[k] as usize;
                 nodes.f[i] += (on_point * w[k]).component_mul(&nodes.free[i]);
