@@ -1,8 +1,9 @@
 //! [`BranchedGrid`]: the branched-grid tissue behind the session's [`Tissue`] interface.
 //!
 //! One step: place the tools in the grid's frame; gather penalty contacts between each
-//! tool's outer capsule and the surface vertices near it (the reaction is the haptic
-//! force); take one implicit step with those contacts; contain a blow-up if one shows;
+//! tool's outer capsule and the surface vertices near it; take one implicit step with
+//! those contacts (their forces at the step's end, as solved, are the haptic force);
+//! contain a blow-up if one shows;
 //! then let every cutting tool remove the voxels whose deformed centres its inner
 //! capsule contains, updating the grid and the surface locally and recording a
 //! topology delta. Nothing in a step without a cut allocates once the contact list has
@@ -66,6 +67,8 @@ pub struct BranchedGrid {
     contacts: Vec<PointContact>,
     /// Per tool: its contacts' range in `contacts`.
     contact_ranges: Vec<(usize, usize)>,
+    /// Per contact: from its tool's tip to the contact point, m (grid frame).
+    contact_levers: Vec<Vec3>,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -142,6 +145,7 @@ impl BranchedGrid {
             max_voxels_per_step,
             contacts: Vec::new(),
             contact_ranges: vec![(0, 0); tool_count],
+            contact_levers: Vec::new(),
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -162,6 +166,7 @@ impl BranchedGrid {
     pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
         debug_assert_eq!(commands.len(), self.tools.len());
         self.contacts.clear();
+        self.contact_levers.clear();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
@@ -189,6 +194,8 @@ impl BranchedGrid {
                 fb.force_n = Vec3::zeros();
                 fb.torque_nm = Vec3::zeros();
             }
+        } else {
+            self.solved_contact_forces(feedback);
         }
         if self.max_voxels_per_step.is_some() {
             self.cut(commands, feedback);
@@ -200,6 +207,21 @@ impl BranchedGrid {
             }
         }
         self.step_index += 1;
+    }
+
+    /// Each tool's force and torque from its contacts at the end of the step, as the
+    /// solve left them (the force of the solved state, not the penalty before it).
+    fn solved_contact_forces(&self, feedback: &mut [ToolFeedback]) {
+        for (fb, &(start, end)) in feedback.iter_mut().zip(&self.contact_ranges) {
+            let (mut force, mut torque) = (Vec3::zeros(), Vec3::zeros());
+            for (c, lever) in self.contacts[start..end].iter().zip(&self.contact_levers[start..end]) {
+                let on_tool = -c.force_after(&self.topo, self.dt_s);
+                force += on_tool;
+                torque += lever.cross(&on_tool);
+            }
+            fb.force_n = self.frame.rotation * force;
+            fb.torque_nm = self.frame.rotation * torque;
+        }
     }
 
     /// Penalty contacts of tool `i`'s outer capsule with the surface vertices.
@@ -235,6 +257,7 @@ impl BranchedGrid {
                     continue;
                 }
                 self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue });
+                self.contact_levers.push(p - tip);
                 force -= on_tissue;
                 torque += (p - tip).cross(&(-on_tissue));
                 count += 1;

@@ -13,9 +13,10 @@
 //! within 0.15 s; the stability sweep in tests/branched_grid.rs covers it).
 //!
 //! One step of h (linearised backward Euler, rotations frozen over the step):
-//! `(M + hC + h²(K_R + K_c)) Δv = h (f(x) − C v − h K_R v)`, `v += Δv`, `x += h v`,
-//! with `K_R = R K Rᵀ` per element, `C = αM + βK_R`, `K_c` the contacts' normal
-//! stiffness and `f` the elastic, gravity and contact forces.
+//! `(M + hC + h²(K_R + K_c)) Δv = h (f(x) − C v − h K_R v − h K_c v)`, `v += Δv`,
+//! `x += h v`, with `K_R = R K Rᵀ` per element, `C = αM + βK_R`, `K_c` the contacts'
+//! normal stiffness and `f` the elastic, gravity and contact forces (the contacts' with
+//! the tools already where they end the step).
 
 use nalgebra::SVector;
 
@@ -76,8 +77,25 @@ pub struct PointContact {
     pub weights: [f64; 8],
     pub normal: Vec3,
     pub stiffness: f64,
-    /// The contact force, N (already `k · depth · n`).
+    /// The contact force, N (already `k · depth · n`, with the tool where it ends the
+    /// step).
     pub force: Vec3,
+}
+
+impl PointContact {
+    /// The point's velocity, interpolated from its element's nodes.
+    pub fn point_velocity(&self, topo: &Topology) -> Vec3 {
+        let nodes = &topo.elements.nodes[self.element as usize];
+        (0..8).map(|i| topo.nodes.v[nodes[i] as usize] * self.weights[i]).sum()
+    }
+
+    /// The contact force at the end of a step of h whose velocities `topo` holds (the
+    /// linearisation the implicit step solves with: the point moved by h v), N; zero
+    /// once it has let go.
+    pub fn force_after(&self, topo: &Topology, h: f64) -> Vec3 {
+        let along = self.force.dot(&self.normal) - self.stiffness * h * self.point_velocity(topo).dot(&self.normal);
+        self.normal * along.max(0.0)
+    }
 }
 
 /// Buffers and per-element state of the solver; sized to the topology (resized only when
@@ -225,8 +243,12 @@ impl Dynamics {
             let nodes = &topo.elements.nodes[c.element as usize];
             let blocks = &self.scatter.blocks[c.element as usize];
             let nn = c.normal * c.normal.transpose() * (a_contact * c.stiffness);
+            // The contact force at the step's end, linearised: f_c − h k ((v + Δv)·n) n (the
+            // tool is already where it ends the step); the Δv term is the h² K_c in the
+            // matrix, the v term goes on the right-hand side.
+            let approach = -c.normal * (h * c.stiffness * c.point_velocity(topo).dot(&c.normal));
             for i in 0..8 {
-                self.force[nodes[i] as usize] += c.force * c.weights[i];
+                self.force[nodes[i] as usize] += (c.force + approach) * c.weights[i];
                 for j in 0..8 {
                     self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
                 }
