@@ -132,3 +132,82 @@ pub(crate) fn push_with_flat(
     }
     true
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    use crate::msm::contact::tests::tool;
+
+    /// One horizontal triangle 5 mm below the top of the vertical test tool (tip at the
+    /// origin, 1 mm radius), its nodes of 1 g, the tool's axis through its centroid.
+    fn skin() -> (Nodes, Topology, Hole) {
+        let mut nodes = Nodes::default();
+        let mut topo = Topology::default();
+        for p in [Vec3::new(-2e-3, -1e-3, 5e-3), Vec3::new(2e-3, -1e-3, 5e-3), Vec3::new(0.0, 2e-3, 5e-3)] {
+            let id = nodes.push(p, Vec3::zeros());
+            nodes.set_mass(id, 1e-3);
+            topo.node_tris.push(Vec::new());
+        }
+        topo.push_tri([0, 1, 2], 6e-6);
+        let hole = Hole { triangle: 0, w: [1.0 / 3.0; 3] };
+        (nodes, topo, hole)
+    }
+
+    fn point(nodes: &Nodes, hole: &Hole) -> Vec3 {
+        (0..3).map(|k| nodes.x[k] * hole.w[k]).sum()
+    }
+
+    /// The test tool moved by `by`, with its edge facing +x (its flat's normal +y).
+    fn step(nodes: &mut Nodes, topo: &Topology, hole: &Hole, by: Vec3) -> (bool, ToolFeedback) {
+        let mut placed = tool();
+        placed.tip += by;
+        placed.top += by;
+        let blade = Blade { placed: &placed, flat_normal: Vec3::y(), edge: Vec3::x(), velocity: by / 1e-3 };
+        let mut feedback = ToolFeedback::default();
+        let held = push_with_flat(hole, blade, nodes, topo, 1e-3, None, &mut feedback, 1.0);
+        (held, feedback)
+    }
+
+    #[test]
+    fn the_flat_takes_the_hole_along_across_it_and_pushes_back_on_the_blade() {
+        let (mut nodes, topo, hole) = skin();
+        let (held, feedback) = step(&mut nodes, &topo, &hole, Vec3::new(0.0, 3e-4, 0.0));
+        assert!(held);
+        assert!((point(&nodes, &hole).y - 3e-4).abs() < 1e-15, "on the flat's plane: {:?}", point(&nodes, &hole));
+        // The force that gives the point (3 g over its weights: 1/Σw²/m = 3 g) the
+        // blade's 0.3 m/s across the flat within the millisecond, opposite on the blade.
+        assert!((feedback.force_n - Vec3::new(0.0, -0.9, 0.0)).norm() < 1e-9, "{:?}", feedback.force_n);
+        assert!((0..3).all(|k| (nodes.f[k] - Vec3::new(0.0, 0.3, 0.0)).norm() < 1e-9));
+    }
+
+    #[test]
+    fn forward_along_the_edge_and_along_the_axis_the_hole_is_free() {
+        let (mut nodes, topo, hole) = skin();
+        let before = point(&nodes, &hole);
+        for by in [Vec3::new(5e-4, 0.0, 0.0), Vec3::new(0.0, 0.0, -1e-3)] {
+            let (held, feedback) = step(&mut nodes, &topo, &hole, by);
+            assert!(held);
+            assert_eq!((point(&nodes, &hole), feedback.force_n), (before, Vec3::zeros()), "moved by {by:?}");
+        }
+        // Cut on past the hole by more than the blade's width: let go.
+        assert!(!step(&mut nodes, &topo, &hole, Vec3::new(2.5e-3, 0.0, 0.0)).0);
+    }
+
+    #[test]
+    fn drawn_back_the_blade_pushes_the_hole_with_its_back() {
+        let (mut nodes, topo, hole) = skin();
+        let (held, feedback) = step(&mut nodes, &topo, &hole, Vec3::new(-4e-4, 0.0, 0.0));
+        assert!(held);
+        assert!((point(&nodes, &hole).x + 4e-4).abs() < 1e-15, "back at the axis: {:?}", point(&nodes, &hole));
+        assert!(feedback.force_n.x > 0.0, "the skin resists: {:?}", feedback.force_n);
+    }
+
+    #[test]
+    fn a_hole_cut_away_or_off_the_blade_is_let_go() {
+        let (mut nodes, mut topo, hole) = skin();
+        assert!(!step(&mut nodes, &topo, &hole, Vec3::new(0.0, 0.0, 6e-3)).0, "below the tip");
+        topo.kill_tri(0);
+        assert!(!step(&mut nodes, &topo, &hole, Vec3::zeros()).0, "cut away");
+    }
+}
