@@ -224,7 +224,8 @@ impl BranchedGrid {
         }
     }
 
-    /// Penalty contacts of tool `i`'s outer capsule with the surface vertices.
+    /// Penalty contacts of tool `i`'s outer capsule with the surface vertices (their
+    /// count goes into `fb`).
     fn add_tool_contacts(&mut self, i: usize, command: &ToolCommand, fb: &mut ToolFeedback) {
         let tool = &self.tools[i];
         let tip = self.frame.to_local(&command.pose.position_m);
@@ -232,8 +233,6 @@ impl BranchedGrid {
         let top = tip + axis * tool.length_m;
         let (radius, k) = (tool.radius_m, tool.contact_stiffness_n_per_m);
         let (lo, hi) = (tip.inf(&top) - Vec3::repeat(radius), tip.sup(&top) + Vec3::repeat(radius));
-        let mut force = Vec3::zeros();
-        let mut torque = Vec3::zeros();
         let mut count = 0u32;
         for cell in 0..self.surface.cell_vertices.len() {
             if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
@@ -258,13 +257,10 @@ impl BranchedGrid {
                 }
                 self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue });
                 self.contact_levers.push(p - tip);
-                force -= on_tissue;
-                torque += (p - tip).cross(&(-on_tissue));
                 count += 1;
             }
         }
-        fb.force_n = self.frame.rotation * force;
-        fb.torque_nm = self.frame.rotation * torque;
+        // The force the tool feels is the contacts' after the solve (solved_contact_forces).
         fb.contacts = count;
     }
 

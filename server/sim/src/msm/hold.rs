@@ -32,7 +32,7 @@ use nalgebra::Matrix3;
 
 use super::contact::Contact;
 use super::foundation::Foundation;
-use super::cut::{Crossing, nearest_crossing};
+use super::cut::{Crossing, nearest_crossing, triangles_near};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
 use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle};
@@ -221,7 +221,7 @@ impl Holder {
     /// tool: whether the tool is through the skin.
     pub fn first_crossing(&mut self, tool: &PlacedTool, nodes: &Nodes, topo: &Topology, grid: &PointGrid, max_edge_m: f64) -> Option<Crossing> {
         let (min, max) = tool.bounds(max_edge_m);
-        self.gather_triangles(&min, &max, topo, grid);
+        triangles_near(grid, topo, &min, &max, &mut self.candidates);
         nearest_crossing(tool, &self.candidates, &nodes.x, topo)
     }
 
@@ -245,23 +245,8 @@ impl Holder {
                 return;
             }
             let Some(depth) = face_depth(tool, &nodes.x[i], reach_m) else { return };
-            nodes.x[i] += (push * depth).component_mul(&nodes.free[i]);
-            if let Some(implicit) = implicit.as_mut() {
-                let (dv, _) = contact_velocity_change(nodes.v[i], tool_velocity, push);
-                nodes.v[i] += dv.component_mul(&nodes.free[i]);
-                implicit.contacts.push(Contact { node: id, normal: push, stiffness: implicit.stiffness_n_per_m });
-                let normal_n = nodes.f[i].dot(&tool.axis).max(0.0);
-                reaction.add(tool, nodes.x[i], tool.axis * normal_n, normal_n);
-                let rub = Rub { tool: index, ids: [id; 3], w: [1.0, 0.0, 0.0], push, lever: nodes.x[i] - tool.tip, tool_velocity, normal_n, weight };
-                self.rubs.push(rub);
-                return;
-            }
-            let mass = nodes.mass[i];
-            let (stop, normal_n) = contact_force(nodes.v[i] + nodes.f[i] * (h / mass), tool_velocity, push, mass, h);
-            let Some((resists, coming)) = point_dynamics(nodes, &drag, h, [id; 3], [1.0, 0.0, 0.0], stop) else { return };
-            let on_node = (stop + friction_force(coming - tool_velocity, push, &resists, h, normal_n, friction)).component_mul(&nodes.free[i]);
-            nodes.f[i] += on_node;
-            reaction.add(tool, nodes.x[i], -on_node, normal_n);
+            let at = HeldPoint { ids: [id; 3], w: [1.0, 0.0, 0.0], push, depth };
+            hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
         });
 
         // 2. The triangle the axis crosses nearest the tip. The search starts an edge
@@ -271,7 +256,7 @@ impl Holder {
         let bottom = tool.tip - tool.axis * max_edge_m;
         let near_tip = PlacedTool { tip: bottom, top, length_m: (top - bottom).norm(), ..*tool };
         let (min, max) = near_tip.bounds(max_edge_m);
-        self.gather_triangles(&min, &max, topo, grid);
+        triangles_near(grid, topo, &min, &max, &mut self.candidates);
         if let Some(last) = self.held_triangle[index] {
             for v in topo.tris[last as usize] {
                 self.candidates.extend(topo.node_tris[v as usize].iter().copied());
@@ -304,41 +289,9 @@ impl Holder {
             if depth < 0.0 && goes_on {
                 held = Some(hit.triangle);
             } else if depth >= 0.0 && (goes_on || (facing && !through)) && point_inv_mass > 0.0 {
-                let share = |k: usize| w[k] * nodes.inv_mass[ids[k] as usize] / point_inv_mass;
-                for k in 0..3 {
-                    let i = ids[k] as usize;
-                    nodes.x[i] += (push * (depth * share(k))).component_mul(&nodes.free[i]);
-                }
                 held = Some(hit.triangle);
-                if let Some(implicit) = implicit.as_mut() {
-                    let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
-                    let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push);
-                    for k in 0..3 {
-                        let i = ids[k] as usize;
-                        nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
-                        implicit.contacts.push(Contact { node: ids[k], normal: push, stiffness: implicit.stiffness_n_per_m * w[k] });
-                    }
-                    let normal_n = (0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum::<Vec3>().dot(&tool.axis).max(0.0);
-                    reaction.add(tool, tool.tip, tool.axis * normal_n, normal_n);
-                    self.rubs.push(Rub { tool: index, ids, w: [w[0], w[1], w[2]], push, lever: Vec3::zeros(), tool_velocity, normal_n, weight });
-                    return self.finish(index, held, reaction, feedback, weight, through);
-                }
-                // The point's velocity at the end of the substep were it free, before
-                // the drag (its approach is stopped against its mass alone, as a node's:
-                // the face's position constraint does the rest).
-                let undamped: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
-                let (stop, normal_n) = contact_force(undamped, tool_velocity, push, 1.0 / point_inv_mass, h);
-                let Some((resists, coming)) = point_dynamics(nodes, &drag, h, ids, [w[0], w[1], w[2]], stop) else {
-                    return self.finish(index, held, reaction, feedback, weight, through);
-                };
-                let rub = friction_force(coming - tool_velocity, push, &resists, h, normal_n, friction);
-                let on_point = stop + rub;
-                // A force F at the point is w_k·F on its nodes.
-                for k in 0..3 {
-                    let i = ids[k] as usize;
-                    nodes.f[i] += (on_point * w[k]).component_mul(&nodes.free[i]);
-                }
-                reaction.add(tool, tool.tip, -on_point, normal_n);
+                let at = HeldPoint { ids, w: [w[0], w[1], w[2]], push, depth };
+                hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
             }
         }
         self.finish(index, held, reaction, feedback, weight, through)
@@ -355,13 +308,76 @@ impl Holder {
         !through
     }
 
-    fn gather_triangles(&mut self, min: &Vec3, max: &Vec3, topo: &Topology, grid: &PointGrid) {
-        self.candidates.clear();
-        let candidates = &mut self.candidates;
-        grid.query_box(min, max, |node| candidates.extend(topo.node_tris[node as usize].iter().copied()));
-        self.candidates.sort_unstable();
-        self.candidates.dedup();
+}
+
+/// A point held at a tool's face: its nodes and their weights (a node alone: itself
+/// with weight 1), the way out and how far it lies inside.
+#[derive(Debug, Clone, Copy)]
+struct HeldPoint {
+    ids: [u32; 3],
+    w: [f64; 3],
+    push: Vec3,
+    depth: f64,
+}
+
+/// Puts a held point on the tool's face (its nodes sharing the move by their weights
+/// over their masses) and gives it the force that stops its approach, with friction
+/// (explicit integrator); or removes its approach and enters it in the system as a
+/// stiff contact, its friction left to after the solve (implicit). Adds the reaction.
+/// `tool` is (the tool, its index, its velocity, the substep's share of the step).
+#[allow(clippy::too_many_arguments)]
+fn hold_point(
+    nodes: &mut Nodes,
+    drag: &Drag,
+    h: f64,
+    implicit: Option<&mut ImplicitHold>,
+    rubs: &mut Vec<Rub>,
+    friction: Option<Friction>,
+    (tool, index, tool_velocity, weight): (&PlacedTool, usize, Vec3, f64),
+    at: HeldPoint,
+    reaction: &mut Reaction,
+) {
+    let HeldPoint { ids, w, push, depth } = at;
+    let point_inv_mass: f64 = (0..3).map(|k| w[k] * w[k] * nodes.inv_mass[ids[k] as usize]).sum();
+    if point_inv_mass <= 0.0 {
+        return;
     }
+    let share = |k: usize| w[k] * nodes.inv_mass[ids[k] as usize] / point_inv_mass;
+    for k in 0..3 {
+        let i = ids[k] as usize;
+        nodes.x[i] += (push * (depth * share(k))).component_mul(&nodes.free[i]);
+    }
+    // Where the point now lies on the face (for a node: the node; for the triangle the
+    // axis crosses: the tip).
+    let point: Vec3 = (0..3).map(|k| nodes.x[ids[k] as usize] * w[k]).sum();
+    if let Some(implicit) = implicit {
+        let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
+        let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push);
+        for k in (0..3).filter(|&k| w[k] != 0.0) {
+            let i = ids[k] as usize;
+            nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
+            implicit.contacts.push(Contact { node: ids[k], normal: push, stiffness: implicit.stiffness_n_per_m * w[k] });
+        }
+        let normal_n = (-(0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum::<Vec3>().dot(&push)).max(0.0);
+        reaction.add(tool, point, -push * normal_n, normal_n);
+        rubs.push(Rub { tool: index, ids, w, push, lever: point - tool.tip, tool_velocity, normal_n, weight });
+        return;
+    }
+    // The point's velocity at the end of the substep were it free, before the drag (its
+    // approach is stopped against its mass alone: the position constraint does the rest).
+    let undamped: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
+    let (stop, normal_n) = contact_force(undamped, tool_velocity, push, 1.0 / point_inv_mass, h);
+    let Some((resists, coming)) = point_dynamics(nodes, drag, h, ids, w, stop) else { return };
+    let on_point = stop + friction_force(coming - tool_velocity, push, &resists, h, normal_n, friction);
+    // A force F at the point is w_k·F on its nodes; the tool feels what they take.
+    let mut taken = Vec3::zeros();
+    for k in (0..3).filter(|&k| w[k] != 0.0) {
+        let i = ids[k] as usize;
+        let on_node = (on_point * w[k]).component_mul(&nodes.free[i]);
+        nodes.f[i] += on_node;
+        taken += on_node;
+    }
+    reaction.add(tool, point, -taken, normal_n);
 }
 
 /// The velocity change that removes a held point's approach along `push` faster than

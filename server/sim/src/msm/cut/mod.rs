@@ -276,11 +276,7 @@ impl Cutter {
     /// The first point (from the tip) where the blade's axis crosses a live triangle.
     pub fn crossing(&mut self, blade: &PlacedTool, view: &CutView) -> Option<Crossing> {
         let (min, max) = blade.bounds(view.max_edge_m);
-        self.candidates.clear();
-        let candidates = &mut self.candidates;
-        view.grid.query_box(&min, &max, |node| candidates.extend(view.topo.node_tris[node as usize].iter().copied()));
-        self.candidates.sort_unstable();
-        self.candidates.dedup();
+        triangles_near(view.grid, view.topo, &min, &max, &mut self.candidates);
         nearest_crossing(blade, &self.candidates, view.x, view.topo)
     }
 
@@ -312,6 +308,15 @@ impl Cutter {
         });
         tris
     }
+}
+
+/// The triangles around the nodes within [min, max] (the broad phase's cells), each
+/// once, into `out` (cleared first; it keeps its room, so a step does not allocate).
+pub(crate) fn triangles_near(grid: &PointGrid, topo: &Topology, min: &Vec3, max: &Vec3, out: &mut Vec<u32>) {
+    out.clear();
+    grid.query_box(min, max, |node| out.extend(topo.node_tris[node as usize].iter().copied()));
+    out.sort_unstable();
+    out.dedup();
 }
 
 /// Where the tool's axis crosses one of the live `candidates` triangles nearest its tip.
