@@ -25,12 +25,22 @@ async fn session_health(server: &Server, id: &str) -> i32 {
     health.check(HealthCheckRequest { service: format!("cutsim.v1.Session/{id}") }).await.map_or(-1, |r| r.into_inner().status)
 }
 
+/// The health service takes a session's changes from its own task: within moments of
+/// the change, not at once.
+async fn health_becomes(server: &Server, id: &str, status: ServingStatus) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while session_health(server, id).await != status as i32 {
+        assert!(Instant::now() < deadline, "session {id}'s health says {status:?} within 10 s");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_physics_panic_fails_that_session_only() {
     let server = Server::start_with_env(&["--no-session"], &[("CUTSIM_FAULT_INJECTION", "1")]);
     let healthy = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let doomed = create_inline(&server, inline("skin-patch", |s| s["fault_injection"] = serde_json::json!({"panic_at_step": 600})), pb::SessionMode::Realtime).await.unwrap();
-    assert_eq!(session_health(&server, &doomed.id).await, ServingStatus::Serving as i32);
+    health_becomes(&server, &doomed.id, ServingStatus::Serving).await;
     let mut viewer = Viewer::connect(&server.http, &doomed.id, &doomed.observe).await.unwrap();
     let (tx, feedback) = open(&server, &doomed.id, &doomed.control).await;
     let mut feedback = feedback.unwrap();
@@ -60,7 +70,7 @@ async fn a_physics_panic_fails_that_session_only() {
     let failed = info(&server, &doomed.id).await.unwrap();
     assert_eq!(failed.status, pb::SessionStatus::Failed as i32);
     assert!(failed.failure.contains("panic_at_step 600"), "{}", failed.failure);
-    assert_eq!(session_health(&server, &doomed.id).await, ServingStatus::NotServing as i32);
+    health_becomes(&server, &doomed.id, ServingStatus::NotServing).await;
     assert_eq!(session_health(&server, &healthy.id).await, ServingStatus::Serving as i32);
     let mut health = HealthClient::new(server.channel().await);
     let overall = health.check(HealthCheckRequest { service: String::new() }).await;

@@ -555,12 +555,15 @@ impl Registry {
                 // A panic in the physics stops this session only: it is marked failed
                 // and everything waiting on it is told why.
                 if let Err(panic) = std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)) {
+                    // Counted and sent to the health service before the session says
+                    // FAILED, so whoever sees the status finds the count already
+                    // there; the health service applies it moments later (its own task).
                     let step = session.frame.load().total_steps;
-                    session.fail(format!("the physics stopped at step {step}: {}", panic_message(panic.as_ref())));
                     if let Some(registry) = registry.upgrade() {
                         registry.failed_total.fetch_add(1, Ordering::Relaxed);
                         registry.report_health(&session.id, SessionHealth::Failed);
                     }
+                    session.fail(format!("the physics stopped at step {step}: {}", panic_message(panic.as_ref())));
                 }
             })
             .map_err(|e| ApiError::Internal(format!("cannot start a physics thread: {e}")))?;
