@@ -131,6 +131,10 @@ bounded!(/// Scale from a mesh file's units to metres (0.001 for a file in mm).
     ScaleMPerUnit: f64, "number", what = "scale", unit = "m per file unit", range = [1e-9, 1e3]);
 bounded!(/// A tool radius.
     RadiusM: f64, "number", what = "radius", unit = "m", range = [1e-5, 0.1]);
+bounded!(/// The width of a scalpel blade's plate, across its axis along its edge's direction.
+    BladeWidthM: f64, "number", what = "blade width", unit = "m", range = [1e-4, 0.05]);
+bounded!(/// The thickness of a scalpel blade's plate, across its flat.
+    BladeThicknessM: f64, "number", what = "blade thickness", unit = "m", range = [1e-5, 0.005]);
 bounded!(/// A tool length.
     ToolLengthM: f64, "number", what = "tool length", unit = "m", range = [1e-4, 1.0]);
 bounded!(/// Penalty contact stiffness between a tool and the tissue nodes.

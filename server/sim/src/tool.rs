@@ -1,15 +1,20 @@
 //! Tools: their shapes (from the scene), the commands that move them each step, and
 //! the feedback (force, torque, contacts) the tissue returns for the haptic device.
 
-use crate::math::{Pose, Vec3};
+use crate::math::{Pose, Vec3, any_perpendicular};
+use crate::scene::ToolShapeSpec;
 
-/// A cylindrical tool (a scalpel blade or a probe): the segment from its tip along its
-/// local +z axis, with a radius. Built once from the scene.
+/// A tool: the segment from its tip along its local +z axis, with a cross-section (a
+/// disc: a probe or a blade idealised as a cylinder; a rectangle: a scalpel blade's
+/// plate). Built once from the scene.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ToolShape {
     pub name: String,
+    /// The farthest the cross-section reaches from the axis, m: a cylinder's radius, a
+    /// plate's half-diagonal (what bounds the tool for broad phases).
     pub radius_m: f64,
     pub length_m: f64,
+    pub section: Section,
     /// Penalty stiffness of the contact between the tool and a tissue node, N/m.
     pub contact_stiffness_n_per_m: f64,
     /// Whether the tool may cut (a blade) or only push (a probe).
@@ -23,7 +28,43 @@ pub struct ToolShape {
     pub edge_local: Vec3,
 }
 
+/// A tool's cross-section across its axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Section {
+    /// A disc of the tool's radius.
+    Round,
+    /// A rectangle: `half_width_m` along the edge's direction, `half_thickness_m` across
+    /// the flat (its normal: axis × edge).
+    Plate { half_width_m: f64, half_thickness_m: f64 },
+}
+
+impl Section {
+    /// How wide a tool of this section (and `radius_m`) is along its edge's direction,
+    /// m: the crack it must open to pass through the skin (a cylinder's diameter, a
+    /// plate's width).
+    fn width_m(self, radius_m: f64) -> f64 {
+        match self {
+            Section::Round => 2.0 * radius_m,
+            Section::Plate { half_width_m, .. } => 2.0 * half_width_m,
+        }
+    }
+}
+
 impl ToolShape {
+    /// How wide the tool is along its edge's direction, m ([`Section`]).
+    pub fn width_m(&self) -> f64 {
+        self.section.width_m(self.radius_m)
+    }
+
+    /// Half the width of the path its edge cuts, m: a cylinder's radius, half a plate's
+    /// thickness.
+    pub fn cut_half_width_m(&self) -> f64 {
+        match self.section {
+            Section::Round => self.radius_m,
+            Section::Plate { half_thickness_m, .. } => half_thickness_m,
+        }
+    }
+
     /// The inner (cutting) capsule of a branched-grid tool, (radius, length) in m: the
     /// scene's `cutting_shape`, else half the tool's radius and its full length.
     pub fn cutting_capsule(&self) -> (f64, f64) {
@@ -70,13 +111,66 @@ pub struct PlacedTool {
     pub axis: Vec3,
     pub radius_m: f64,
     pub length_m: f64,
+    /// Unit direction its edge faces, across the axis.
+    pub edge: Vec3,
+    pub section: Section,
 }
 
 impl PlacedTool {
     pub fn new(shape: &ToolShape, pose: &Pose) -> Self {
         let axis = pose.axis();
         let tip = pose.position_m;
-        Self { tip, top: tip + axis * shape.length_m, axis, radius_m: shape.radius_m, length_m: shape.length_m }
+        let edge = across(&axis, &(pose.orientation * shape.edge_local));
+        Self { tip, top: tip + axis * shape.length_m, axis, radius_m: shape.radius_m, length_m: shape.length_m, edge, section: shape.section }
+    }
+
+    /// A round tool of `radius_m` (its edge facing any way across the axis).
+    pub fn round(tip: Vec3, axis: Vec3, radius_m: f64, length_m: f64) -> Self {
+        Self { tip, top: tip + axis * length_m, axis, radius_m, length_m, edge: any_perpendicular(&axis), section: Section::Round }
+    }
+
+    /// The same tool with its tip at `tip` and its axis along `axis` (unit), its edge
+    /// turned with it.
+    pub fn moved(&self, tip: Vec3, axis: Vec3) -> Self {
+        Self { tip, top: tip + axis * self.length_m, axis, edge: across(&axis, &self.edge), ..*self }
+    }
+
+    /// How wide the tool is along its edge's direction, m ([`Section`]).
+    pub fn width_m(&self) -> f64 {
+        self.section.width_m(self.radius_m)
+    }
+
+    /// Unit normal of its flat (a plate's; for a round tool, the plane of its edge).
+    pub fn flat_normal(&self) -> Vec3 {
+        self.axis.cross(&self.edge)
+    }
+
+    /// Where a point at `offset` from the axis (across it) lies in the cross-section:
+    /// how far it is from the way out and the way out (unit, across the axis); None
+    /// outside. A plate's way out is through the nearer of its flat or its edge (back).
+    pub fn section_exit(&self, offset: &Vec3) -> Option<(f64, Vec3)> {
+        match self.section {
+            Section::Round => {
+                let d = offset.norm();
+                if d >= self.radius_m {
+                    return None;
+                }
+                // On the axis itself the way out is undefined: any perpendicular will
+                // do, chosen deterministically.
+                let direction = if d > 1e-12 * self.radius_m { offset / d } else { any_perpendicular(&self.axis) };
+                Some((self.radius_m - d, direction))
+            }
+            Section::Plate { half_width_m, half_thickness_m } => {
+                let normal = self.flat_normal();
+                let (a, b) = (offset.dot(&self.edge), offset.dot(&normal));
+                if a.abs() >= half_width_m || b.abs() >= half_thickness_m {
+                    return None;
+                }
+                let sign = |c: f64| if c < 0.0 { -1.0 } else { 1.0 };
+                let (through_flat, through_side) = (half_thickness_m - b.abs(), half_width_m - a.abs());
+                Some(if through_flat <= through_side { (through_flat, normal * sign(b)) } else { (through_side, self.edge * sign(a)) })
+            }
+        }
     }
 
     /// Axis-aligned box around the tool grown by `margin` m: (min, max).
@@ -86,21 +180,38 @@ impl PlacedTool {
     }
 }
 
+/// `direction` made square to the unit `axis` and unit (any perpendicular if it lies
+/// along the axis).
+fn across(axis: &Vec3, direction: &Vec3) -> Vec3 {
+    (direction - axis * direction.dot(axis)).try_normalize(1e-9).unwrap_or_else(|| any_perpendicular(axis))
+}
+
 /// The scene's tools as shapes.
 pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
     scene
         .tools
         .iter()
         .map(|t| {
-            let crate::scene::ToolShapeSpec::Cylinder { radius_m, length_m } = t.shape;
+            let (radius_m, section) = match t.shape {
+                ToolShapeSpec::Cylinder { radius_m, .. } => (radius_m.get(), Section::Round),
+                ToolShapeSpec::Blade { width_m, thickness_m, .. } => {
+                    let (half_width_m, half_thickness_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get());
+                    (half_width_m.hypot(half_thickness_m), Section::Plate { half_width_m, half_thickness_m })
+                }
+            };
             ToolShape {
                 name: t.name.clone(),
-                radius_m: radius_m.get(),
-                length_m: length_m.get(),
+                radius_m,
+                length_m: t.shape.length_m(),
+                section,
                 contact_stiffness_n_per_m: t.contact_stiffness_n_per_m.get(),
                 can_cut: t.can_cut,
                 max_force_n: t.max_force_n.get(),
-                cutting_shape: t.cutting_shape.as_ref().map(|crate::scene::ToolShapeSpec::Cylinder { radius_m, length_m }| (radius_m.get(), length_m.get())),
+                // Validated at load: a cutting shape is a cylinder.
+                cutting_shape: t.cutting_shape.as_ref().and_then(|inner| match inner {
+                    ToolShapeSpec::Cylinder { radius_m, length_m } => Some((radius_m.get(), length_m.get())),
+                    ToolShapeSpec::Blade { .. } => None,
+                }),
                 edge_local: t.edge.local(),
             }
         })
@@ -118,5 +229,65 @@ impl ToolFeedback {
             self.resistance_n *= scale;
             self.force_clamped = true;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::Quat;
+
+    /// A #10-like blade's plate, 6 mm wide and 0.4 mm thick, its edge facing +x at the
+    /// identity pose, turned `turn` about its (vertical) axis.
+    fn blade(turn: f64) -> PlacedTool {
+        let shape = ToolShape {
+            name: "blade".into(),
+            radius_m: 3e-3_f64.hypot(2e-4),
+            length_m: 0.04,
+            section: Section::Plate { half_width_m: 3e-3, half_thickness_m: 2e-4 },
+            contact_stiffness_n_per_m: 200.0,
+            can_cut: true,
+            max_force_n: 10.0,
+            cutting_shape: None,
+            edge_local: Vec3::x(),
+        };
+        PlacedTool::new(&shape, &Pose::new(Vec3::zeros(), Quat::from_axis_angle(&Vec3::z_axis(), turn)))
+    }
+
+    #[test]
+    fn a_plate_is_left_through_its_nearer_flat_or_side() {
+        let b = blade(0.0);
+        assert_eq!((b.edge, b.flat_normal(), b.width_m()), (Vec3::x(), Vec3::y(), 6e-3));
+        // Beside the flat: out across it, whichever side.
+        let (depth, out) = b.section_exit(&Vec3::new(1e-3, 1.5e-4, 0.0)).unwrap();
+        assert!((depth - 5e-5).abs() < 1e-15 && out == Vec3::y(), "{depth} {out:?}");
+        assert_eq!(b.section_exit(&Vec3::new(1e-3, -1.5e-4, 0.0)).unwrap().1, -Vec3::y());
+        // Just inside the edge, on the flat's mid-plane: out through the edge.
+        let (depth, out) = b.section_exit(&Vec3::new(2.95e-3, 0.0, 0.0)).unwrap();
+        assert!((depth - 5e-5).abs() < 1e-15 && out == Vec3::x(), "{depth} {out:?}");
+        // Beyond the flat or beyond the edge: outside, though within the bounding radius.
+        assert!(b.section_exit(&Vec3::new(0.0, 2.5e-4, 0.0)).is_none());
+        assert!(b.section_exit(&Vec3::new(3.05e-3, 0.0, 0.0)).is_none());
+    }
+
+    #[test]
+    fn a_plate_turns_with_its_tool_and_keeps_its_edge_across_the_axis_when_swept() {
+        let b = blade(std::f64::consts::FRAC_PI_2);
+        assert!((b.edge - Vec3::y()).norm() < 1e-15, "{:?}", b.edge);
+        assert!(b.section_exit(&Vec3::new(0.0, 2e-3, 0.0)).is_some() && b.section_exit(&Vec3::new(2e-3, 0.0, 0.0)).is_none());
+        // Tilted by the sweep between two poses, the edge stays square to the axis.
+        let axis = Vec3::new(0.3, 0.0, 1.0).normalize();
+        let moved = blade(0.0).moved(Vec3::new(0.0, 0.0, 1e-3), axis);
+        assert!(moved.edge.dot(&axis).abs() < 1e-15 && (moved.edge.norm() - 1.0).abs() < 1e-15);
+        assert!((moved.top - moved.tip - axis * 0.04).norm() < 1e-15);
+    }
+
+    #[test]
+    fn a_round_tool_is_left_radially() {
+        let rod = PlacedTool::round(Vec3::zeros(), Vec3::z(), 1e-3, 0.1);
+        let (depth, out) = rod.section_exit(&Vec3::new(0.0, 9e-4, 0.0)).unwrap();
+        assert!((depth - 1e-4).abs() < 1e-15 && out == Vec3::y());
+        assert_eq!(rod.width_m(), 2e-3);
+        assert!(rod.section_exit(&Vec3::new(8e-4, 8e-4, 0.0)).is_none());
     }
 }

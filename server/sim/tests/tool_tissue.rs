@@ -161,16 +161,17 @@ fn press(scene: &Scene, tool: usize, xy: (f64, f64), cut: bool, speed: f64, unti
 
 #[test]
 fn a_probe_pressed_to_its_rated_force_never_goes_through() {
-    let scene = default_scene();
-    // The 6 mm blunt probe on a node, and the 1 mm scalpel (cut off) between nodes.
-    for (tool, xy) in [(1, (0.0, 0.0)), (0, (0.0013, 0.0011))] {
+    let (scene, plate) = (default_scene(), with_blade_plate(0.003));
+    // The 6 mm blunt probe on a node, the 1 mm scalpel (cut off) between nodes, and a
+    // 3 mm × 0.4 mm blade's plate (cut off) there.
+    for (scene, name, tool, xy) in [(&scene, "probe", 1, (0.0, 0.0)), (&scene, "scalpel", 0, (0.0013, 0.0011)), (&plate, "blade plate", 0, (0.0013, 0.0011))] {
         let rated = scene.tools[tool].max_force_n.get();
-        let trace = press(&scene, tool, xy, false, 0.05, 0.99 * rated, 0.08);
+        let trace = press(scene, tool, xy, false, 0.05, 0.99 * rated, 0.08);
         let last = trace.last().unwrap();
         let deepest_through = trace.iter().filter_map(|s| s.skin_z.map(|z| z - s.tip_z)).fold(f64::NEG_INFINITY, f64::max);
-        println!("{}: {:.2} N at {:.1} mm deep, skin at most {:.4} mm above the tip", scene.tools[tool].name, last.force_n, -last.tip_z * 1e3, deepest_through * 1e3);
-        assert!(last.force_n >= 0.99 * rated, "{} reached only {:.2} N at {:.1} mm", scene.tools[tool].name, last.force_n, -last.tip_z * 1e3);
-        assert!(deepest_through < 1e-4, "{} went {:.2} mm through the skin", scene.tools[tool].name, deepest_through * 1e3);
+        println!("{name}: {:.2} N at {:.1} mm deep, skin at most {:.4} mm above the tip", last.force_n, -last.tip_z * 1e3, deepest_through * 1e3);
+        assert!(last.force_n >= 0.99 * rated, "{name} reached only {:.2} N at {:.1} mm", last.force_n, -last.tip_z * 1e3);
+        assert!(deepest_through < 1e-4, "{name} went {:.2} mm through the skin", deepest_through * 1e3);
     }
 }
 
@@ -178,7 +179,7 @@ fn a_probe_pressed_to_its_rated_force_never_goes_through() {
 fn a_blade_goes_in_only_when_it_presses_with_the_puncture_force() {
     let scene = default_scene();
     let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
-    let puncture = cutsim_sim::msm::resistance::puncture_force_n(spec.material.fracture_toughness_j_per_m2.get(), 2.0 * skin_tool_radius(&scene, 0));
+    let puncture = cutsim_sim::msm::resistance::puncture_force_n(spec.material.fracture_toughness_j_per_m2.get(), tool_width(&scene, 0));
     let trace = press(&scene, 0, (0.0013, 0.0011), true, 0.02, f64::INFINITY, 0.03);
     let peak = trace.iter().map(|s| s.force_n).fold(0.0, f64::max);
     let gone_in = trace.iter().position(|s| s.skin_z.is_some_and(|z| z > s.tip_z + 1e-3)).expect("the blade goes through");
@@ -188,9 +189,58 @@ fn a_blade_goes_in_only_when_it_presses_with_the_puncture_force() {
     assert!(trace.last().unwrap().force_n < 0.25 * puncture, "once in, the blade passes");
 }
 
-fn skin_tool_radius(scene: &Scene, tool: usize) -> f64 {
-    let cutsim_sim::scene::ToolShapeSpec::Cylinder { radius_m, .. } = scene.tools[tool].shape;
-    radius_m.get()
+/// How wide tool `tool` is along its edge: a cylinder's diameter, a blade plate's width.
+fn tool_width(scene: &Scene, tool: usize) -> f64 {
+    cutsim_sim::tool::tool_shapes(scene)[tool].width_m()
+}
+
+/// The default scene with its scalpel a blade's plate: `width_m` wide, 0.4 mm thick,
+/// its edge as long as the cylinder was (40 mm).
+fn with_blade_plate(width_m: f64) -> Scene {
+    edit(&default_scene(), |s| s["tools"][0]["shape"] = serde_json::json!({ "blade": { "width_m": width_m, "thickness_m": 0.0004, "length_m": 0.04 } }))
+}
+
+#[test]
+fn a_blade_plate_goes_in_at_toughness_times_its_width_cuts_with_its_edge_and_pushes_with_its_flat() {
+    let scene = with_blade_plate(0.003);
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    // Three times the cylinder's width: three times its puncture force.
+    let puncture = cutsim_sim::msm::resistance::puncture_force_n(spec.material.fracture_toughness_j_per_m2.get(), tool_width(&scene, 0));
+    let trace = press(&scene, 0, (0.0013, 0.0011), true, 0.02, f64::INFINITY, 0.03);
+    let gone_in = trace.iter().position(|s| s.skin_z.is_some_and(|z| z > s.tip_z + 1e-3)).expect("the blade goes through");
+    let before = trace[..gone_in].iter().map(|s| s.force_n).fold(0.0, f64::max);
+    println!("3 mm blade plate: puncture force {puncture:.2} N: pressed with {before:.2} N, in at {:.1} mm", -trace[gone_in].tip_z * 1e3);
+    assert!(before >= puncture && before < 1.5 * puncture, "pressed with {before:.2} N before going in; puncture force {puncture:.2} N");
+    // Drawn along its edge it cuts, resisting with J × depth as the cylinder does (the
+    // resistance does not depend on the blade's width).
+    let cut = scripted_cut(&scene, Quat::identity());
+    let estimate = toughness_times_thickness(&scene);
+    let mean = cut.steady().expect("the plate cuts").mean_n;
+    println!("3 mm blade plate: {} cut updates, incision {:.1} mm, steady force {mean:.2} N (J·t = {estimate:.2} N)", cut.cut_updates, cut.incision_length_m * 1e3);
+    assert!(cut.cut_updates >= 1 && (cut.incision_length_m - 0.04).abs() < 0.006, "{} updates, {:.1} mm", cut.cut_updates, cut.incision_length_m * 1e3);
+    assert!(mean > 0.5 * estimate && mean < 2.0 * estimate, "steady force {mean:.2} N against J·t = {estimate:.2} N");
+    // Drawn across its flat it does not cut; its flat drags the skin.
+    let sideways = scripted_cut(&scene, Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2));
+    let dragged = sideways.samples.iter().filter(|s| s.0 <= 0.05).map(|s| s.1).fold(0.0, f64::max);
+    println!("3 mm blade plate drawn sideways: {dragged:.2} N within its first 5 mm");
+    assert_eq!((sideways.cut_updates, sideways.incision_length_m), (0, 0.0), "the flat leading must not cut");
+    assert!(dragged > 1.0, "the flat pushes the skin: {dragged:.2} N within 5 mm");
+}
+
+#[test]
+fn a_blade_plate_is_thinner_than_wide_and_the_branched_grid_refuses_it() {
+    let plate = |width: f64, thickness: f64| serde_json::json!({ "blade": { "width_m": width, "thickness_m": thickness, "length_m": 0.04 } });
+    let mut json = serde_json::to_value(default_scene()).unwrap();
+    json["tools"][0]["shape"] = plate(0.001, 0.002);
+    let e = Scene::from_json_str(&json.to_string(), "thick blade", None).unwrap_err();
+    assert_eq!(e.path, "tools[0].shape.blade.thickness_m", "{e}");
+    assert!(e.message.contains("thinner than it is wide"), "{e}");
+    let mut liver: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root().join("server/scenes/liver.json")).unwrap()).unwrap();
+    liver["tools"][0]["shape"] = plate(0.003, 0.0004);
+    liver["tools"][0].as_object_mut().unwrap().remove("cutting_shape");
+    let e = Scene::from_json_str(&liver.to_string(), "liver with a blade plate", Some(&root().join("server/scenes"))).unwrap_err();
+    assert_eq!(e.path, "tools[0].shape", "{e}");
+    assert!(e.message.contains("mass-spring skin only"), "{e}");
 }
 
 /// What a probe pressed into the skin and then drawn sideways drags along.

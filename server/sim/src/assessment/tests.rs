@@ -249,6 +249,7 @@ fn tools() -> Vec<ToolShape> {
         name: name.into(),
         radius_m: 0.001,
         length_m: 0.05,
+        section: crate::tool::Section::Round,
         contact_stiffness_n_per_m: 100.0,
         can_cut,
         max_force_n: 10.0,

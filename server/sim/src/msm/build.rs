@@ -188,9 +188,10 @@ impl MassSpring {
             }
         }
         let cutter = params.cutting.map(|(sweep, advance)| {
-            let blade_radius = tools.iter().filter(|t| t.can_cut).map(|t| t.radius_m).fold(0.0, f64::max);
+            // A blade's plate cuts a path as wide as it is thick, not as wide as it is.
+            let blade_half_width = tools.iter().filter(|t| t.can_cut).map(|t| t.cut_half_width_m()).fold(0.0, f64::max);
             let cut = CuttingParams {
-                sweep_radius_m: sweep.unwrap_or_else(|| blade_radius.max(0.5 * mean_edge_m)),
+                sweep_radius_m: sweep.unwrap_or_else(|| blade_half_width.max(0.5 * mean_edge_m)),
                 min_advance_m: advance.unwrap_or(1.5 * mean_edge_m),
                 vertex_spacing_m: mean_edge_m,
             };

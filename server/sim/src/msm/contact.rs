@@ -1,4 +1,4 @@
-//! Cylinder tool collision (paper Section 2.2).
+//! Tool collision with the skin's nodes (paper Section 2.2).
 //!
 //! The tool is the segment tip–top with radius r. A node N is inside when its
 //! projection on the axis falls between the two ends (the paper's two angles ≤ 90°)
@@ -9,13 +9,17 @@
 //! so that pressing is felt. A blade that is cutting uses the paper's radial rule only,
 //! so it passes through the skin instead of pushing it ahead.
 //!
+//! A scalpel blade's plate ([`crate::tool::Section::Plate`]) is the same test with a
+//! rectangular cross-section: a node inside it goes out through the nearer of its
+//! flats or its sides ([`PlacedTool::section_exit`]).
+//!
 //! The response is a penalty force k_c·depth on the node; the tool receives the
 //! opposite force, and the sum over nodes is the haptic force. Only nodes the broad
 //! phase returns near the tool are tested.
 
 use super::state::Nodes;
 use crate::broad_phase::PointGrid;
-use crate::math::{Vec3, any_perpendicular};
+use crate::math::Vec3;
 use crate::tool::{PlacedTool, ToolFeedback};
 
 /// How a node sits inside the tool, and the way out.
@@ -27,20 +31,15 @@ pub struct Penetration {
     pub depth_m: f64,
 }
 
-/// Tests one point against the cylinder. `radial_only`: the paper's rule (always push
-/// along N − p); otherwise the shortest way out, radial or through an end face.
-pub fn cylinder_penetration(tool: &PlacedTool, x: &Vec3, radial_only: bool) -> Option<Penetration> {
+/// Tests one point against the tool. `radial_only`: the paper's rule (always push
+/// across the axis: along N − p for a cylinder, through the nearer flat or side for a
+/// blade's plate); otherwise the shortest way out, across or through an end face.
+pub fn tool_penetration(tool: &PlacedTool, x: &Vec3, radial_only: bool) -> Option<Penetration> {
     let along = (x - tool.tip).dot(&tool.axis);
     if !(0.0..=tool.length_m).contains(&along) {
         return None;
     }
-    let axis_point = tool.tip + tool.axis * along;
-    let radial = x - axis_point;
-    let d = radial.norm();
-    if d >= tool.radius_m {
-        return None;
-    }
-    let radial_depth = tool.radius_m - d;
+    let (radial_depth, direction) = tool.section_exit(&(x - tool.tip - tool.axis * along))?;
     if !radial_only {
         let (cap_depth, cap_dir) =
             if along <= tool.length_m - along { (along, -tool.axis) } else { (tool.length_m - along, tool.axis) };
@@ -48,9 +47,6 @@ pub fn cylinder_penetration(tool: &PlacedTool, x: &Vec3, radial_only: bool) -> O
             return Some(Penetration { direction: cap_dir, depth_m: cap_depth });
         }
     }
-    // On the axis itself the radial direction is undefined: any perpendicular will do,
-    // chosen deterministically.
-    let direction = if d > 1e-12 * tool.radius_m { radial / d } else { any_perpendicular(&tool.axis) };
     Some(Penetration { direction, depth_m: radial_depth })
 }
 
@@ -100,7 +96,7 @@ pub(crate) fn apply_tool_contacts(
         {
             return;
         }
-        if let Some(pen) = cylinder_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut) {
+        if let Some(pen) = tool_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut) {
             let on_node = pen.direction * (stiffness * pen.depth_m);
             nodes.f[i] += on_node;
             force -= on_node;
@@ -120,56 +116,56 @@ pub(crate) mod tests {
 
     pub(crate) fn tool() -> PlacedTool {
         // Vertical tool: tip at the origin, axis +z, 10 cm long, 1 mm radius.
-        PlacedTool { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.1), axis: Vec3::z(), radius_m: 1e-3, length_m: 0.1 }
+        PlacedTool::round(Vec3::zeros(), Vec3::z(), 1e-3, 0.1)
     }
 
     #[test]
     fn node_just_inside_and_just_outside_the_side() {
         let t = tool();
-        let inside = cylinder_penetration(&t, &Vec3::new(0.999e-3, 0.0, 0.05), true).unwrap();
+        let inside = tool_penetration(&t, &Vec3::new(0.999e-3, 0.0, 0.05), true).unwrap();
         assert!((inside.depth_m - 1e-6).abs() < 1e-12);
         assert!((inside.direction - Vec3::x()).norm() < 1e-12, "pushed along N − p");
-        assert!(cylinder_penetration(&t, &Vec3::new(1.001e-3, 0.0, 0.05), true).is_none());
+        assert!(tool_penetration(&t, &Vec3::new(1.001e-3, 0.0, 0.05), true).is_none());
     }
 
     #[test]
     fn end_caps_bound_the_cylinder() {
         let t = tool();
         // Beyond the tip face and beyond the top face: outside, however close to the axis.
-        assert!(cylinder_penetration(&t, &Vec3::new(1e-4, 0.0, -1e-6), true).is_none());
-        assert!(cylinder_penetration(&t, &Vec3::new(1e-4, 0.0, 0.1 + 1e-6), true).is_none());
+        assert!(tool_penetration(&t, &Vec3::new(1e-4, 0.0, -1e-6), true).is_none());
+        assert!(tool_penetration(&t, &Vec3::new(1e-4, 0.0, 0.1 + 1e-6), true).is_none());
         // Just inside either face: inside; the paper's rule pushes it radially.
-        let near_tip = cylinder_penetration(&t, &Vec3::new(0.0, 5e-4, 1e-6), true).unwrap();
+        let near_tip = tool_penetration(&t, &Vec3::new(0.0, 5e-4, 1e-6), true).unwrap();
         assert!((near_tip.direction - Vec3::y()).norm() < 1e-12);
         assert!((near_tip.depth_m - 5e-4).abs() < 1e-12);
-        let near_top = cylinder_penetration(&t, &Vec3::new(0.0, 5e-4, 0.1 - 1e-6), true).unwrap();
+        let near_top = tool_penetration(&t, &Vec3::new(0.0, 5e-4, 0.1 - 1e-6), true).unwrap();
         assert!((near_top.direction - Vec3::y()).norm() < 1e-12);
     }
 
     #[test]
     fn pressing_tip_first_pushes_out_through_the_tip_face() {
         let t = tool();
-        let p = cylinder_penetration(&t, &Vec3::new(0.0, 5e-4, 1e-4), false).unwrap();
+        let p = tool_penetration(&t, &Vec3::new(0.0, 5e-4, 1e-4), false).unwrap();
         assert!((p.direction + Vec3::z()).norm() < 1e-12, "out through the tip, along −axis");
         assert!((p.depth_m - 1e-4).abs() < 1e-12);
         // Deeper than the radial way out: radial again.
-        let p = cylinder_penetration(&t, &Vec3::new(0.0, 5e-4, 0.01), false).unwrap();
+        let p = tool_penetration(&t, &Vec3::new(0.0, 5e-4, 0.01), false).unwrap();
         assert!((p.direction - Vec3::y()).norm() < 1e-12);
     }
 
     #[test]
     fn force_direction_follows_n_minus_p_for_a_tilted_tool() {
         let axis = Vec3::new(1.0, 1.0, 0.0).normalize();
-        let t = PlacedTool { tip: Vec3::zeros(), top: axis * 0.1, axis, radius_m: 2e-3, length_m: 0.1 };
+        let t = PlacedTool::round(Vec3::zeros(), axis, 2e-3, 0.1);
         let n = Vec3::new(0.05, 0.05, 1e-3) + Vec3::new(1.0, -1.0, 0.0).normalize() * 1e-3;
-        let pen = cylinder_penetration(&t, &n, true).unwrap();
+        let pen = tool_penetration(&t, &n, true).unwrap();
         let p = t.tip + axis * (n - t.tip).dot(&axis);
         assert!((pen.direction - (n - p).normalize()).norm() < 1e-12);
     }
 
     #[test]
     fn node_on_the_axis_gets_a_finite_direction() {
-        let pen = cylinder_penetration(&tool(), &Vec3::new(0.0, 0.0, 0.05), true).unwrap();
+        let pen = tool_penetration(&tool(), &Vec3::new(0.0, 0.0, 0.05), true).unwrap();
         assert!((pen.direction.norm() - 1.0).abs() < 1e-12);
         assert!(pen.direction.dot(&Vec3::z()).abs() < 1e-12);
     }

@@ -79,7 +79,7 @@ pub(crate) fn push_with_flat(
     let ahead = (point - tool.tip).dot(&edge);
     // Off the blade: below its tip, above its top, or left behind its back by more than
     // its width (the blade moved on along its edge, cutting: the point is on the wound).
-    if along < 0.0 || along > tool.length_m || ahead < -2.0 * tool.radius_m {
+    if along < 0.0 || along > tool.length_m || ahead < -tool.width_m() {
         return false;
     }
     let point_inv_mass: f64 = (0..3).map(|k| w[k] * w[k] * nodes.inv_mass[ids[k] as usize]).sum();

@@ -436,7 +436,7 @@ fn friction_force(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, no
     if sideways <= mu_static * normal_n { stick } else { stick * (mu_dynamic * normal_n / sideways) }
 }
 
-/// How far a node inside the cylinder lies above the tip face, when that face (not the
+/// How far a node inside the tool lies above the tip face, when that face (not the
 /// side) is its nearest way out and it lies within `reach_m` of it (skin the face can
 /// have pressed since the last substep); None otherwise.
 pub(crate) fn face_depth(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<f64> {
@@ -444,8 +444,8 @@ pub(crate) fn face_depth(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<f6
     if along < 0.0 || along > reach_m.min(0.5 * tool.length_m) {
         return None;
     }
-    let radial = (x - tool.tip - tool.axis * along).norm();
-    (radial < tool.radius_m && along < tool.radius_m - radial).then_some(along)
+    let (through_side, _) = tool.section_exit(&(x - tool.tip - tool.axis * along))?;
+    (along < through_side).then_some(along)
 }
 
 #[cfg(test)]

@@ -270,8 +270,6 @@ impl MassSpring {
             return None;
         }
         let (now, before) = (self.placed[i]?, self.previous_placed[i]?);
-        let edge = command.pose.orientation * self.tools[i].edge_local;
-        let flat_normal = now.axis.cross(&edge).try_normalize(1e-9)?;
         let hole = match self.holes[i] {
             Some(kept) => kept.hole,
             None => {
@@ -279,7 +277,7 @@ impl MassSpring {
                 flat::Hole::at(&crossing, &self.nodes, &self.topo)
             }
         };
-        Some(BladeHole { hole, flat_normal, edge: flat_normal.cross(&now.axis) })
+        Some(BladeHole { hole, flat_normal: now.flat_normal(), edge: now.edge })
     }
 
     /// Whether tool `i` cuts wherever its axis crosses the skin (the paper's rule, for a
@@ -297,7 +295,7 @@ impl MassSpring {
                     let tip = before.tip + (now.tip - before.tip) * s;
                     let top = before.top + (now.top - before.top) * s;
                     let axis = (top - tip).try_normalize(0.0).unwrap_or(now.axis);
-                    Some(PlacedTool { tip, top: tip + axis * now.length_m, axis, ..*now })
+                    Some(now.moved(tip, axis))
                 }
                 _ => *now,
             };
@@ -467,7 +465,7 @@ impl MassSpring {
                         // skin springs back up along it, and its stroke begins where it
                         // crosses the skin then.
                         let hold = self.holder.tools[tool];
-                        let puncture = resistance::puncture_force_n(self.fracture_toughness_j_per_m2, 2.0 * self.tools[tool].radius_m);
+                        let puncture = resistance::puncture_force_n(self.fracture_toughness_j_per_m2, self.tools[tool].width_m());
                         self.pierced[tool] |= hold.force_n >= puncture;
                         None
                     } else {
@@ -476,8 +474,7 @@ impl MassSpring {
                     // The skin resists a blade already through it (a stroke under way).
                     let resisted = match (hit, self.previous_placed[tool]) {
                         (Some(hit), Some(before)) if cutter.in_stroke(tool) && self.fracture_toughness_j_per_m2 > 0.0 => {
-                            let edge = commands[tool].pose.orientation * self.tools[tool].edge_local;
-                            let mut motion = blade_motion(&blade, &before, &hit, edge, &self.nodes, &self.topo, self.dt_s);
+                            let mut motion = blade_motion(&blade, &before, &hit, blade.edge, &self.nodes, &self.topo, self.dt_s);
                             let smoothed = &mut self.blade_velocity[tool];
                             *smoothed += (motion.relative_velocity - *smoothed) * (self.dt_s / (BLADE_VELOCITY_TIME_CONSTANT_S + self.dt_s));
                             motion.relative_velocity = *smoothed;

@@ -100,6 +100,15 @@ impl Scene {
             if tool.name.trim().is_empty() {
                 return Err(SceneError::new(origin, format!("tools[{i}].name"), "a tool needs a non-empty name"));
             }
+            if let super::ToolShapeSpec::Blade { width_m, thickness_m, .. } = &tool.shape
+                && thickness_m.get() >= width_m.get()
+            {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].shape.blade.thickness_m"),
+                    format!("a blade is a plate thinner than it is wide: thickness {} m, width {} m", thickness_m.get(), width_m.get()),
+                ));
+            }
             if let Some(j) = self.tools[..i].iter().position(|t| t.name == tool.name) {
                 return Err(SceneError::new(
                     origin,
@@ -179,9 +188,17 @@ impl Scene {
             }
         }
         for (i, tool) in self.tools.iter().enumerate() {
+            let super::ToolShapeSpec::Cylinder { radius_m, length_m } = &tool.shape else {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].shape"),
+                    "the branched grid's tools are cylinders (capsules against its voxels); a blade plate is built for the mass-spring skin only",
+                ));
+            };
             let Some(inner) = &tool.cutting_shape else { continue };
-            let super::ToolShapeSpec::Cylinder { radius_m, length_m } = &tool.shape;
-            let super::ToolShapeSpec::Cylinder { radius_m: r_in, length_m: l_in } = inner;
+            let super::ToolShapeSpec::Cylinder { radius_m: r_in, length_m: l_in } = inner else {
+                return Err(SceneError::new(origin, format!("tools[{i}].cutting_shape"), "a cutting shape is a cylinder"));
+            };
             if r_in.get() >= radius_m.get() || l_in.get() > length_m.get() {
                 return Err(SceneError::new(
                     origin,

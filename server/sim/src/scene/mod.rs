@@ -442,6 +442,21 @@ fn default_max_force() -> ForceN {
 pub enum ToolShapeSpec {
     /// A segment from the tip along the tool's +z axis, with a radius.
     Cylinder { radius_m: RadiusM, length_m: ToolLengthM },
+    /// A scalpel blade: a flat plate from the tip along the tool's +z axis, `length_m`
+    /// long (its cutting edge's length), `width_m` across the axis along the tool's
+    /// `edge` direction and `thickness_m` across its flat. Its cutting edge is the long
+    /// side facing `edge`; its tip is a flat end (a pointed tip is not modelled). The
+    /// mass-spring skin only.
+    Blade { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM },
+}
+
+impl ToolShapeSpec {
+    /// The shape's length along the tool's axis, m.
+    pub fn length_m(&self) -> f64 {
+        match self {
+            ToolShapeSpec::Cylinder { length_m, .. } | ToolShapeSpec::Blade { length_m, .. } => length_m.get(),
+        }
+    }
 }
 
 /// Settings of the branched-grid model (see docs/branched-grid.md).
