@@ -8,7 +8,7 @@ use super::solver::{MassModel, Preconditioning, SolverSettings};
 use super::surface::GridSurface;
 use super::topology::{Layout, Topology};
 use crate::math::Vec3;
-use crate::scene::{BranchedGridSpec, FidelitySpec, GridFixedSpec, MassSpec, PreconditionerSpec, Scene, SceneError, VolumeSource, VolumetricSpec};
+use crate::scene::{BranchedGridSpec, FidelitySpec, MassSpec, PreconditionerSpec, Scene, SceneError, VolumeSource, VolumetricSpec};
 use crate::volume::procedural::{UTube, ellipsoid, solid_box, u_tube};
 use crate::volume::{LabelVolume, nifti, voxelize, vti};
 
@@ -141,7 +141,7 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
         let (lo, hi) = rest_bounds(&topo);
         frame.translation -= frame.to_world(&((lo + hi) * 0.5));
     }
-    fix_nodes(scene, spec, &mut topo, &frame)?;
+    super::support::hold_regions(scene, spec, &mut topo, &frame)?;
 
     let settings = SolverSettings {
         dt_s: scene.time_step_s.get(),
@@ -298,7 +298,7 @@ fn check_poisson(scene: &Scene, spec: &BranchedGridSpec) -> Result<(), SceneErro
 }
 
 /// The box around the live nodes' rest positions (grid frame).
-fn rest_bounds(topo: &Topology) -> (Vec3, Vec3) {
+pub(super) fn rest_bounds(topo: &Topology) -> (Vec3, Vec3) {
     let mut lo = Vec3::repeat(f64::INFINITY);
     let mut hi = Vec3::repeat(f64::NEG_INFINITY);
     for n in 0..topo.nodes.len() {
@@ -310,54 +310,3 @@ fn rest_bounds(topo: &Topology) -> (Vec3, Vec3) {
     (lo, hi)
 }
 
-fn fix_nodes(scene: &Scene, spec: &BranchedGridSpec, topo: &mut Topology, frame: &Frame) -> Result<(), SceneError> {
-    let (lo, hi) = rest_bounds(topo);
-    for (i, fixed) in spec.fixed.iter().enumerate() {
-        let mut held = 0;
-        match fixed {
-            GridFixedSpec::Box { min_m, max_m } => {
-                let (min, max) = (min_m.map(|c| c.get()), max_m.map(|c| c.get()));
-                for n in 0..topo.nodes.len() {
-                    let w = frame.to_world(&topo.nodes.rest[n]);
-                    if topo.nodes.alive[n] && (0..3).all(|a| w[a] >= min[a] && w[a] <= max[a]) {
-                        topo.nodes.fixed[n] = true;
-                        held += 1;
-                    }
-                }
-            }
-            GridFixedSpec::Side { side } => {
-                let axis = match &side[1..] {
-                    "x" => 0,
-                    "y" => 1,
-                    _ => 2,
-                };
-                let (target, tolerance) = (if side.starts_with('-') { lo[axis] } else { hi[axis] }, 1e-9);
-                for n in 0..topo.nodes.len() {
-                    if topo.nodes.alive[n] && (topo.nodes.rest[n][axis] - target).abs() < tolerance {
-                        topo.nodes.fixed[n] = true;
-                        held += 1;
-                    }
-                }
-            }
-            GridFixedSpec::Labels { labels } => {
-                let indices: Vec<u16> = labels.iter().filter_map(|l| spec.materials.iter().position(|m| m.label == *l).map(|i| i as u16 + 1)).collect();
-                for v in 0..topo.material.len() {
-                    if indices.contains(&topo.material[v]) {
-                        let e = topo.voxel_element[v] as usize;
-                        for k in 0..8 {
-                            let node = topo.elements.nodes[e][k] as usize;
-                            if !topo.nodes.fixed[node] {
-                                topo.nodes.fixed[node] = true;
-                                held += 1;
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        if held == 0 {
-            return Err(SceneError::new(&scene.origin, format!("model.branched-grid.fixed[{i}]"), "holds no node: check the region against the body's position (with \"centre\": true the body is centred on the origin)"));
-        }
-    }
-    Ok(())
-}

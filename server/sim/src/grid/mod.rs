@@ -9,6 +9,7 @@ pub mod marching;
 pub mod preconditioning;
 mod model;
 pub mod solver;
+pub mod support;
 pub mod surface;
 pub mod topology;
 

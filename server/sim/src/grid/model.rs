@@ -99,7 +99,7 @@ pub struct LastUpdate {
 impl BranchedGrid {
     /// The top of the body where it is broad: the highest voxel whose 5 × 5 neighbourhood
     /// in x and y is all material (so a tool meets a flat top, not a ridge) and whose
-    /// element holds no fixed node; world, m, at the voxel's upper face. Benchmarks and
+    /// element holds no fixed node or support point; world, m, at the voxel's upper face. Benchmarks and
     /// the fidelity calibration press a probe there. None for a body without one.
     pub fn broad_top(&self) -> Option<Vec3> {
         let t = &self.topo;
@@ -111,7 +111,7 @@ impl BranchedGrid {
                     if (i - 2..=i + 2).all(|a| (j - 2..=j + 2).all(|b| full(a, b, k))) {
                         let v = t.layout.voxel_index([i, j, k]);
                         let element = t.voxel_element[v] as usize;
-                        if t.elements.nodes[element].iter().any(|&n| t.nodes.fixed[n as usize]) {
+                        if t.elements.nodes[element].iter().any(|&n| t.nodes.fixed[n as usize]) || t.supports.live(t).any(|(e, _)| e == element) {
                             continue; // pressing on a held region measures nothing
                         }
                         let top = t.voxel_centre(v) + Vec3::new(0.0, 0.0, t.layout.spacing_m[2] * 0.5);

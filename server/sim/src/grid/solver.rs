@@ -254,6 +254,11 @@ impl Dynamics {
                 }
             }
         }
+        // The supports' springs at coarse levels (super::support), linearised like the
+        // contacts: their stiffness in the element's blocks, −h K_s v in the force.
+        topo.supports.add_forces(topo, &topo.nodes.x, &topo.nodes.v, h, &mut self.force);
+        let (system, scatter) = (&mut self.system, &self.scatter);
+        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
         // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.
         mass_times(topo, settings.mass, &topo.nodes.v, &mut self.q);
         for i in 0..n {
@@ -483,7 +488,8 @@ pub fn mass_times(topo: &Topology, model: MassModel, x: &[Vec3], out: &mut [Vec3
 }
 
 /// Solves the linear static problem K u = f for the free nodes (no rotation; small
-/// displacements), with fixed nodes held at their current displacement. Returns the
+/// displacements), with fixed nodes held at their current displacement and the
+/// supports' embedded points on their springs. Returns the
 /// CG iterations taken and the relative residual. Used by tests and accuracy studies.
 pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_iterations: u32) -> (u32, f64) {
     let n = topo.nodes.len();
@@ -493,7 +499,9 @@ pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_ite
     // Residual r = f − K u for the free nodes.
     let mut ku = vec![Vec3::zeros(); n];
     stiffness_times(topo, &rotations, &u0, &mut ku);
+    topo.supports.add_stiffness_times(topo, &u0, &mut ku);
     let mut diag = vec![Vec3::zeros(); n];
+    topo.supports.add_diagonal(topo, &mut diag);
     for e in 0..topo.elements.len() {
         if topo.elements.alive[e] {
             for c in 0..8 {
@@ -516,6 +524,7 @@ pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_ite
     let mut r2: f64 = r.iter().map(|v| v.norm_squared()).sum();
     while iterations < max_iterations && r2 > tolerance * tolerance * b_norm2 {
         stiffness_times(topo, &rotations, &p, &mut q);
+        topo.supports.add_stiffness_times(topo, &p, &mut q);
         for i in 0..n {
             if !free[i] {
                 q[i] = Vec3::zeros();

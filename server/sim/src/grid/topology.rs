@@ -228,6 +228,8 @@ pub struct Topology {
     voxel_matrices: VoxelMatrices,
     /// Added to every element's stiffness in the solver (zero unless set).
     ghost: Mat24,
+    /// The held level-0 points that are not nodes (coarse levels), on springs.
+    pub supports: super::support::Supports,
 }
 
 impl Topology {
@@ -243,6 +245,7 @@ impl Topology {
             nodes: Nodes::default(),
             voxel_matrices,
             ghost: Mat24::zeros(),
+            supports: Default::default(),
         };
         for cell in 0..t.layout.cell_count() {
             for component in t.components(cell) {

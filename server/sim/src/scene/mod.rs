@@ -498,6 +498,9 @@ pub struct BranchedGridSpec {
     /// Nodes held fixed.
     #[serde(default)]
     pub fixed: Vec<GridFixedSpec>,
+    /// How a coarse level holds the `fixed` regions (docs/branched-grid.md, "Supports").
+    #[serde(default)]
+    pub support: SupportSpec,
     #[serde(default)]
     pub surface: GridSurfaceSpec,
     /// Cutting by voxel removal. Absent: the scene cannot be cut.
@@ -670,6 +673,25 @@ impl Default for GridSolverSpec {
     fn default() -> Self {
         Self { cg_max_iterations: default_grid_cg_iterations(), cg_tolerance: default_grid_cg_tolerance(), preconditioner: PreconditionerSpec::default() }
     }
+}
+
+/// How a coarse level of the branched grid holds its fixed regions.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum SupportSpec {
+    /// The level's nodes in the region (a box: whose rest position is inside it; a
+    /// side: on that face of the level's bounds; labels: every node of an element
+    /// holding them). Coarser levels hold fewer nodes, farther apart; a small region may
+    /// hold no node at a coarse level (refused).
+    #[default]
+    CoarseNodes,
+    /// The level-0 points of the region, as at level 0: those at a coarse element's
+    /// corner hold that node, the others where the region meets the material it does
+    /// not hold are embedded in their coarse elements by their trilinear weights and held
+    /// by stiff springs. The same support at every level; any region holding a voxel
+    /// corner holds at every level. Stiffer at coarse levels (measured in
+    /// docs/branched-grid.md).
+    Embedded,
 }
 
 /// How the branched grid's elements resist volume change.
