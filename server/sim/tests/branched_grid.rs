@@ -405,3 +405,52 @@ fn an_embedded_support_holds_level_0_points_where_a_coarse_level_has_no_node() {
     assert_eq!((sag_a, held_a), (sag_b, held_b));
     assert_eq!(held_b, 0.0);
 }
+
+/// What the block's probe, pressed 2 mm into the top and drawn 1 mm along +x at 10 mm/s
+/// (the cut button off), feels and drags: (how far the surface vertex under the probe's
+/// lowest point moved along x, the force along x, the force along z), m and N.
+fn press_and_draw_on_block(friction: Option<(f64, f64)>) -> (f64, f64, f64) {
+    let mut json: serde_json::Value = serde_json::from_str(&block_with_tools()).unwrap();
+    if let Some((mu_s, mu_d)) = friction {
+        json["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": mu_s, "dynamic_coefficient": mu_d });
+    }
+    let mut g = grid(&json.to_string());
+    let (mut commands, mut feedback) = (vec![ToolCommand::default(); 2], vec![ToolFeedback::default(); 2]);
+    let mut at = |x: f64, z: f64, g: &mut BranchedGrid| {
+        commands[1] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false };
+        g.step(&commands, &mut feedback);
+        feedback[1]
+    };
+    // The capsule's round end reaches its radius (6 mm) below its tip: from 0.5 mm above
+    // the top (z = 8 mm) down to 2 mm into it.
+    let (start, depth, radius) = (0.0145, 0.012, 0.006);
+    for step in 0..700 {
+        at(0.0, (start - 1e-5 * f64::from(step)).max(depth), &mut g);
+    }
+    let position = |g: &BranchedGrid, id| g.snapshot().vertices.iter().find(|v| v.id == id).map(|v| Vec3::new(v.position_m[0].into(), v.position_m[1].into(), v.position_m[2].into())).unwrap();
+    let lowest = Vec3::new(0.0, 0.0, depth - radius);
+    let under = g.snapshot().vertices.iter().min_by(|a, b| {
+        let d = |v: &cutsim_sim::surface::SurfaceVertex| (Vec3::new(v.position_m[0].into(), v.position_m[1].into(), v.position_m[2].into()) - lowest).norm();
+        d(a).total_cmp(&d(b))
+    }).unwrap().id;
+    let before = position(&g, under).x;
+    let mut last = ToolFeedback::default();
+    for step in 1..=100 {
+        last = at(1e-5 * f64::from(step), depth, &mut g);
+    }
+    (position(&g, under).x - before, last.force_n.x, last.force_n.z)
+}
+
+#[test]
+fn friction_drags_the_grids_surface_under_a_probe_drawn_sideways() {
+    let mu_s = 0.5;
+    let (held, along, normal) = press_and_draw_on_block(Some((mu_s, 0.4)));
+    let (free, free_along, free_normal) = press_and_draw_on_block(None);
+    println!("with friction the surface under the probe moved {:.3} mm of 1 mm ({along:.3} N along, {normal:.3} N normal); without {:.3} mm ({free_along:.3} N along, {free_normal:.3} N normal)", held * 1e3, free * 1e3);
+    assert!(normal > 0.05, "the probe presses: {normal:.3} N");
+    assert!(held > 0.8e-3, "within the static cone the surface sticks to the probe: {:.3} mm", held * 1e3);
+    assert!(held < 1.02e-3, "never ahead of the probe: {:.3} mm", held * 1e3);
+    assert!(free < 0.5 * held, "without friction the probe slides over it: {:.3} mm", free * 1e3);
+    assert!(along < free_along - 0.01, "dragging the surface resists the draw: {along:.3} N, frictionless {free_along:.3} N");
+    assert!(free_along - along <= mu_s * normal * 1.05, "within the static cone: {:.3} N for {:.3} N normal", free_along - along, normal);
+}

@@ -3,6 +3,7 @@
 mod build;
 pub mod condense;
 pub mod fidelity;
+pub mod friction;
 pub mod hierarchy;
 pub mod hex;
 pub mod marching;

@@ -42,6 +42,7 @@ pub struct GridMaterial {
     pub young_pa: f64,
     pub poisson: f64,
     pub density_kg_per_m3: f64,
+    pub friction: super::friction::Friction,
 }
 
 /// Per tool: the current cut stroke (the cut button held).
@@ -69,6 +70,13 @@ pub struct BranchedGrid {
     contact_ranges: Vec<(usize, usize)>,
     /// Per contact: from its tool's tip to the contact point, m (grid frame).
     contact_levers: Vec<Vec3>,
+    /// Per contact: the friction of its voxel's material and its surface vertex.
+    contact_friction: Vec<(super::friction::Friction, u32)>,
+    /// Per tool: its tip last step (grid frame), for its velocity.
+    previous_tips: Vec<Option<Vec3>>,
+    /// Per surface vertex: where it stuck to a tool (super::friction); cleared when the
+    /// surface changes.
+    anchors: Vec<Option<super::friction::Anchor>>,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -146,6 +154,9 @@ impl BranchedGrid {
             contacts: Vec::new(),
             contact_ranges: vec![(0, 0); tool_count],
             contact_levers: Vec::new(),
+            contact_friction: Vec::new(),
+            previous_tips: vec![None; tool_count],
+            anchors: Vec::new(),
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -167,6 +178,7 @@ impl BranchedGrid {
         debug_assert_eq!(commands.len(), self.tools.len());
         self.contacts.clear();
         self.contact_levers.clear();
+        self.contact_friction.clear();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
@@ -196,6 +208,10 @@ impl BranchedGrid {
             }
         } else {
             self.solved_contact_forces(feedback);
+            self.move_anchors(commands);
+        }
+        for (previous, command) in self.previous_tips.iter_mut().zip(commands) {
+            *previous = (command.active && command.pose.is_finite()).then(|| self.frame.to_local(&command.pose.position_m));
         }
         if self.max_voxels_per_step.is_some() {
             self.cut(commands, feedback);
@@ -215,12 +231,41 @@ impl BranchedGrid {
         for (fb, &(start, end)) in feedback.iter_mut().zip(&self.contact_ranges) {
             let (mut force, mut torque) = (Vec3::zeros(), Vec3::zeros());
             for (c, lever) in self.contacts[start..end].iter().zip(&self.contact_levers[start..end]) {
-                let on_tool = -c.force_after(&self.topo, self.dt_s);
+                let on_tool = -(c.force_after(&self.topo, self.dt_s) + super::friction::stick_force_after(c, &self.topo, self.dt_s));
                 force += on_tool;
                 torque += lever.cross(&on_tool);
             }
             fb.force_n = self.frame.rotation * force;
             fb.torque_nm = self.frame.rotation * torque;
+        }
+    }
+
+    /// After the solve, each frictional contact's anchor: kept (moving with its tool)
+    /// while the solved stick force is within the static cone, moved to the dynamic
+    /// cone where the vertex slides, dropped where the contact let go.
+    fn move_anchors(&mut self, commands: &[ToolCommand]) {
+        use super::friction::{Anchor, slid_anchor, stick_force_after};
+        let h = self.dt_s;
+        for (i, &(start, end)) in self.contact_ranges.iter().enumerate() {
+            let tip = self.frame.to_local(&commands[i].pose.position_m);
+            for c in start..end {
+                let (friction, vertex) = self.contact_friction[c];
+                if friction.static_coefficient <= 0.0 {
+                    continue;
+                }
+                let contact = &self.contacts[c];
+                let normal_n = contact.force_after(&self.topo, h).norm();
+                let force = stick_force_after(contact, &self.topo, h);
+                let point = self.surface.position(&self.topo, vertex as usize);
+                let anchor = &mut self.anchors[vertex as usize];
+                let Some(kept) = anchor.as_mut() else { continue };
+                if normal_n <= 0.0 {
+                    *anchor = None;
+                } else if force.norm() > friction.static_coefficient * normal_n {
+                    let sliding = force * (friction.dynamic_coefficient * normal_n / force.norm());
+                    *kept = Anchor { tool: i, from_tip: slid_anchor(&point, &sliding, contact.stiffness) - tip, step: self.step_index };
+                }
+            }
         }
     }
 
@@ -232,6 +277,12 @@ impl BranchedGrid {
         let axis = self.frame.rotation.transpose() * command.pose.axis();
         let top = tip + axis * tool.length_m;
         let (radius, k) = (tool.radius_m, tool.contact_stiffness_n_per_m);
+        let tool_velocity = self.previous_tips[i].map_or(Vec3::zeros(), |before| (tip - before) / self.dt_s);
+        if self.anchors.len() != self.surface.voxel.len() {
+            // After a cut (which cleared them): the same capacity, as long as the surface.
+            self.anchors.clear();
+            self.anchors.resize(self.surface.voxel.len(), None);
+        }
         let (lo, hi) = (tip.inf(&top) - Vec3::repeat(radius), tip.sup(&top) + Vec3::repeat(radius));
         let mut count = 0u32;
         for cell in 0..self.surface.cell_vertices.len() {
@@ -255,13 +306,37 @@ impl BranchedGrid {
                 if element == NONE {
                     continue;
                 }
-                self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue });
+                let friction = self.materials[usize::from(self.topo.material[voxel as usize]) - 1].friction;
+                let (stick_stiffness, stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * (radius - distance), friction);
+                self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue, stick_stiffness, stick_force, tool_velocity });
                 self.contact_levers.push(p - tip);
+                self.contact_friction.push((friction, v as u32));
                 count += 1;
             }
         }
         // The force the tool feels is the contacts' after the solve (solved_contact_forces).
         fb.contacts = count;
+    }
+
+    /// Friction's stick spring for surface vertex `v` (at `p`) touching tool `i` (tip at
+    /// `tip`) with normal force `normal_n`: (its stiffness, its force on the tissue now).
+    /// A vertex in contact with the same tool last step keeps its anchor; a new contact
+    /// sticks where it is. Sliding (beyond the static cone), the force is the dynamic
+    /// one and constant over the step (stiffness 0).
+    #[allow(clippy::too_many_arguments)]
+    fn stick(anchors: &mut [Option<super::friction::Anchor>], step_index: u64, i: usize, v: usize, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction) -> (f64, Vec3) {
+        use super::friction::{Anchor, slid_anchor, stick_force};
+        if friction.static_coefficient <= 0.0 {
+            return (0.0, Vec3::zeros());
+        }
+        let anchor = match anchors[v] {
+            Some(a) if a.tool == i && a.step + 1 >= step_index => tip + a.from_tip,
+            _ => *p,
+        };
+        let (force, sliding) = stick_force(p, &anchor, normal, k, normal_n, friction);
+        let anchor = if sliding { slid_anchor(p, &force, k) } else { anchor };
+        anchors[v] = Some(Anchor { tool: i, from_tip: anchor - tip, step: step_index });
+        (if sliding { 0.0 } else { k }, force)
     }
 
     /// Whether the box around cell `cell`'s current nodes overlaps [lo, hi].
@@ -369,6 +444,8 @@ impl BranchedGrid {
         self.counters.removed_triangles += change.removed_triangles.len() as u64;
         self.counters.added_triangles += change.added_triangles.len() as u64;
         self.topology_version += 1;
+        // The surface is rebuilt: its vertices are not the anchored ones any more.
+        self.anchors.clear();
         let added_vertices = change.added_vertices.iter().map(|&v| self.surface_vertex(v as usize)).collect();
         let added_triangles = change.added_triangles.iter().map(|&t| SurfaceTriangle { id: t, vertices: self.surface.triangles[t as usize] }).collect();
         let moved_vertices = change.moved_vertices;

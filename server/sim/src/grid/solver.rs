@@ -80,6 +80,12 @@ pub struct PointContact {
     /// The contact force, N (already `k · depth · n`, with the tool where it ends the
     /// step).
     pub force: Vec3,
+    /// Friction's stick spring across the normal (super::friction): its stiffness, N/m
+    /// (0: none, or sliding with a constant force), its force at the step's start, N,
+    /// and the tool's velocity its anchor moves with, m/s.
+    pub stick_stiffness: f64,
+    pub stick_force: Vec3,
+    pub tool_velocity: Vec3,
 }
 
 impl PointContact {
@@ -242,11 +248,14 @@ impl Dynamics {
         for c in contacts {
             let nodes = &topo.elements.nodes[c.element as usize];
             let blocks = &self.scatter.blocks[c.element as usize];
-            let nn = c.normal * c.normal.transpose() * (a_contact * c.stiffness);
+            let across = super::friction::across(&c.normal);
+            let nn = (c.normal * c.normal.transpose() * c.stiffness + across * c.stick_stiffness) * a_contact;
             // The contact force at the step's end, linearised: f_c − h k ((v + Δv)·n) n (the
             // tool is already where it ends the step); the Δv term is the h² K_c in the
-            // matrix, the v term goes on the right-hand side.
-            let approach = -c.normal * (h * c.stiffness * c.point_velocity(topo).dot(&c.normal));
+            // matrix, the v term goes on the right-hand side. Friction's stick spring
+            // likewise, its anchor moving with the tool: f_t − h k_t P (v + Δv − u).
+            let v = c.point_velocity(topo);
+            let approach = -c.normal * (h * c.stiffness * v.dot(&c.normal)) + c.stick_force - across * (v - c.tool_velocity) * (h * c.stick_stiffness);
             for i in 0..8 {
                 self.force[nodes[i] as usize] += (c.force + approach) * c.weights[i];
                 for j in 0..8 {

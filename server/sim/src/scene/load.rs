@@ -187,6 +187,20 @@ impl Scene {
                 }
             }
         }
+        for (i, material) in grid.materials.iter().enumerate() {
+            if let Some(friction) = &material.friction
+                && friction.dynamic_coefficient.get() > friction.static_coefficient.get()
+            {
+                return Err(at(
+                    format!("materials[{i}].friction.dynamic_coefficient"),
+                    format!(
+                        "the dynamic friction coefficient ({}) must not exceed the static one ({}): tissue that slides would hold harder than tissue that sticks",
+                        friction.dynamic_coefficient.get(),
+                        friction.static_coefficient.get()
+                    ),
+                ));
+            }
+        }
         for (i, tool) in self.tools.iter().enumerate() {
             let super::ToolShapeSpec::Cylinder { radius_m, length_m } = &tool.shape else {
                 return Err(SceneError::new(

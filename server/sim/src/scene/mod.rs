@@ -598,6 +598,10 @@ pub struct LabelMaterialSpec {
     #[serde(default = "soft_tissue_poisson")]
     pub poisson: Poisson,
     pub density_kg_per_m3: DensityKgPerM3,
+    /// Coulomb friction of its surface against the tools (docs/branched-grid.md,
+    /// "Tools"). Absent: frictionless.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub friction: Option<FrictionSpec>,
 }
 
 fn soft_tissue_poisson() -> Poisson {

@@ -1,0 +1,96 @@
+//! Coulomb friction between a tool and the branched grid's surface: a stick spring
+//! inside the implicit solve.
+//!
+//! Where a surface vertex touches a tool whose material has friction, an anchor is
+//! kept: the point of the tool the vertex stuck to (stored relative to the tool's tip,
+//! so it moves with the tool). A spring across the contact normal pulls the vertex
+//! toward it, `f_t = k_t P (a − p)` with `P = I − n nᵀ`; its stiffness enters the
+//! system matrix and, with the anchor moving with the tool over the step,
+//! `−h k_t P (v − u)` the right-hand side (u the tool's velocity) — the same
+//! linearisation as the normal penalty, so a stuck vertex follows the tool whatever
+//! the damping and elastic forces of the solve (a velocity filter after the solve was
+//! tried: the next solve undid it). While `|f_t|` stays within the static cone
+//! `μ_s f_n` the vertex sticks; beyond it, it slides: the anchor is moved to where the
+//! spring pulls with the dynamic force `μ_d f_n` along the slip. An anchor lives while
+//! its vertex stays in contact with its tool.
+
+use super::solver::PointContact;
+use super::topology::Topology;
+use crate::math::{Matrix3, Vec3};
+
+/// A material's friction coefficients.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Friction {
+    pub static_coefficient: f64,
+    pub dynamic_coefficient: f64,
+}
+
+/// Where a vertex stuck to a tool.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Anchor {
+    pub tool: usize,
+    /// From the tool's tip to the anchor, m (grid frame).
+    pub from_tip: Vec3,
+    /// The step it was last in contact.
+    pub step: u64,
+}
+
+/// `I − n nᵀ`: the projection across the unit normal `n`.
+pub fn across(n: &Vec3) -> Matrix3<f64> {
+    Matrix3::identity() - n * n.transpose()
+}
+
+/// The stick spring's force on the tissue at `point` toward `anchor`, across `normal`,
+/// within the static cone of `normal_n`: (force, sliding). Beyond the cone the force is
+/// the dynamic one along the same direction and the anchor must move (see
+/// [`slid_anchor`]).
+pub fn stick_force(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, normal_n: f64, friction: Friction) -> (Vec3, bool) {
+    let pull = across(normal) * (anchor - point) * stiffness;
+    let size = pull.norm();
+    if size <= friction.static_coefficient * normal_n {
+        (pull, false)
+    } else {
+        (pull * (friction.dynamic_coefficient * normal_n / size), true)
+    }
+}
+
+/// Where the anchor goes when the vertex slides: so far from `point` that the spring
+/// pulls with `force` (the dynamic force).
+pub fn slid_anchor(point: &Vec3, force: &Vec3, stiffness: f64) -> Vec3 {
+    point + force / stiffness
+}
+
+/// The stick spring's force of `contact` at the end of a step of h whose velocities
+/// `topo` holds (the linearisation the solve used), N.
+pub fn stick_force_after(contact: &PointContact, topo: &Topology, h: f64) -> Vec3 {
+    if contact.stick_stiffness == 0.0 {
+        return contact.stick_force;
+    }
+    let slip = contact.point_velocity(topo) - contact.tool_velocity;
+    contact.stick_force - across(&contact.normal) * slip * (h * contact.stick_stiffness)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const FRICTION: Friction = Friction { static_coefficient: 0.5, dynamic_coefficient: 0.4 };
+
+    #[test]
+    fn within_the_static_cone_the_spring_pulls_across_the_normal_toward_the_anchor() {
+        // 1 mm off along x and 1 mm along the normal: only the 1 mm across counts.
+        let (force, sliding) = stick_force(&Vec3::zeros(), &Vec3::new(1e-3, 0.0, 1e-3), &Vec3::z(), 100.0, 1.0, FRICTION);
+        assert!(!sliding && (force - Vec3::new(0.1, 0.0, 0.0)).norm() < 1e-15, "{force:?}");
+    }
+
+    #[test]
+    fn beyond_it_the_vertex_slides_with_the_dynamic_force_and_the_anchor_follows() {
+        let point = Vec3::new(0.0, 0.0, 0.0);
+        let (force, sliding) = stick_force(&point, &Vec3::new(0.01, 0.0, 0.0), &Vec3::z(), 100.0, 1.0, FRICTION);
+        assert!(sliding && (force - Vec3::new(0.4, 0.0, 0.0)).norm() < 1e-15, "{force:?}");
+        let anchor = slid_anchor(&point, &force, 100.0);
+        assert!((anchor - Vec3::new(4e-3, 0.0, 0.0)).norm() < 1e-15);
+        let (again, still) = stick_force(&point, &anchor, &Vec3::z(), 100.0, 1.0, FRICTION);
+        assert!(!still && (again - force).norm() < 1e-15, "at the moved anchor it pulls with the dynamic force and sticks");
+    }
+}
