@@ -20,6 +20,13 @@ async fn create_list_get_close() {
     assert_eq!(a.info.model, "msm");
     assert_eq!(a.info.rate_hz, 1000.0);
     assert_eq!(a.info.tools.iter().map(|t| t.name.as_str()).collect::<Vec<_>>(), ["scalpel", "probe"]);
+    assert_eq!((a.info.tools[0].radius_m, a.info.tools[0].width_m), (0.0005, 0.0), "a cylinder has no plate");
+    // A blade's plate is described to clients: width, thickness, the way its edge faces.
+    let plate = create_inline(&server, inline("skin-patch", |s| s["tools"][0]["shape"] = serde_json::json!({ "blade": { "width_m": 0.003, "thickness_m": 0.0004, "length_m": 0.04 } })), pb::SessionMode::Lockstep).await.unwrap();
+    let blade = &plate.info.tools[0];
+    assert_eq!((blade.width_m, blade.thickness_m, blade.edge.as_ref().map(|e| (e.x, e.y, e.z))), (0.003, 0.0004, Some((1.0, 0.0, 0.0))));
+    assert!((blade.radius_m - 0.0015f64.hypot(0.0002)).abs() < 1e-12, "bounded by its corners: {}", blade.radius_m);
+    client.close_session(operator(pb::CloseSessionRequest { session_id: plate.id.clone() })).await.unwrap();
 
     // An inline scene works too.
     let text = std::fs::read_to_string(repo("server/scenes/skin-patch.json")).unwrap().replace("\"skin-patch\"", "\"inline-patch\"");

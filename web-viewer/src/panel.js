@@ -359,8 +359,15 @@ export class SessionPanel {
     this.toolInfo = s.tools;
     this.toolGroup.clear();
     this.toolMeshes = s.tools.map((t) => {
-      const geometry = new THREE.CylinderGeometry(t.radius_m, t.radius_m, t.length_m, 24);
-      geometry.rotateX(Math.PI / 2); // three.js cylinders stand on y; our tools point along +z
+      let geometry;
+      if (t.width_m > 0) {
+        // A blade's plate: its width along its edge's direction (the tool frame's x or y).
+        const alongX = Math.abs(t.edge?.x ?? 1) > 0.5;
+        geometry = new THREE.BoxGeometry(alongX ? t.width_m : t.thickness_m, alongX ? t.thickness_m : t.width_m, t.length_m);
+      } else {
+        geometry = new THREE.CylinderGeometry(t.radius_m, t.radius_m, t.length_m, 24);
+        geometry.rotateX(Math.PI / 2); // three.js cylinders stand on y; our tools point along +z
+      }
       geometry.translate(0, 0, t.length_m / 2); // from the tip upwards
       const mesh = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial({ color: t.can_cut ? 0xc0c8d0 : 0x4a7bd0, metalness: 0.6, roughness: 0.3 }));
       mesh.visible = false;

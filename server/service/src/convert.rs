@@ -168,12 +168,21 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         tools: s
             .tools
             .iter()
-            .map(|t| pb::ToolInfo {
-                name: t.name.clone(),
-                radius_m: t.radius_m,
-                length_m: t.length_m,
-                can_cut: t.can_cut,
-                max_force_n: t.max_force_n,
+            .map(|t| {
+                let (width_m, thickness_m) = match t.section {
+                    cutsim_sim::tool::Section::Round => (0.0, 0.0),
+                    cutsim_sim::tool::Section::Plate { half_width_m, half_thickness_m } => (2.0 * half_width_m, 2.0 * half_thickness_m),
+                };
+                pb::ToolInfo {
+                    name: t.name.clone(),
+                    radius_m: t.radius_m,
+                    length_m: t.length_m,
+                    can_cut: t.can_cut,
+                    max_force_n: t.max_force_n,
+                    width_m,
+                    thickness_m,
+                    edge: Some(vec3(&t.edge_local)),
+                }
             })
             .collect(),
         state_hash: String::new(),
