@@ -36,7 +36,7 @@ pub struct Anchor {
 }
 
 /// `I − n nᵀ`: the projection across the unit normal `n`.
-pub fn across(n: &Vec3) -> Matrix3<f64> {
+pub fn tangent_projection(n: &Vec3) -> Matrix3<f64> {
     Matrix3::identity() - n * n.transpose()
 }
 
@@ -45,7 +45,7 @@ pub fn across(n: &Vec3) -> Matrix3<f64> {
 /// the dynamic one along the same direction and the anchor must move (see
 /// [`slid_anchor`]).
 pub fn stick_force(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, normal_n: f64, friction: Friction) -> (Vec3, bool) {
-    let pull = across(normal) * (anchor - point) * stiffness;
+    let pull = tangent_projection(normal) * (anchor - point) * stiffness;
     let size = pull.norm();
     if size <= friction.static_coefficient * normal_n {
         (pull, false)
@@ -67,7 +67,7 @@ pub fn stick_force_after(contact: &PointContact, topo: &Topology, h: f64) -> Vec
         return contact.stick_force;
     }
     let slip = contact.point_velocity(topo) - contact.tool_velocity;
-    contact.stick_force - across(&contact.normal) * slip * (h * contact.stick_stiffness)
+    contact.stick_force - tangent_projection(&contact.normal) * slip * (h * contact.stick_stiffness)
 }
 
 #[cfg(test)]

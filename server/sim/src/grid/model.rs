@@ -70,8 +70,8 @@ pub struct BranchedGrid {
     contact_ranges: Vec<(usize, usize)>,
     /// Per contact: from its tool's tip to the contact point, m (grid frame).
     contact_levers: Vec<Vec3>,
-    /// Per contact: the friction of its voxel's material and its surface vertex.
-    contact_friction: Vec<(super::friction::Friction, u32)>,
+    /// Per contact: its surface vertex.
+    contact_vertices: Vec<u32>,
     /// Per tool: its tip last step (grid frame), for its velocity.
     previous_tips: Vec<Option<Vec3>>,
     /// Per surface vertex: where it stuck to a tool (super::friction); cleared when the
@@ -154,7 +154,7 @@ impl BranchedGrid {
             contacts: Vec::new(),
             contact_ranges: vec![(0, 0); tool_count],
             contact_levers: Vec::new(),
-            contact_friction: Vec::new(),
+            contact_vertices: Vec::new(),
             previous_tips: vec![None; tool_count],
             anchors: Vec::new(),
             backup_x: vec![Vec3::zeros(); n],
@@ -178,7 +178,7 @@ impl BranchedGrid {
         debug_assert_eq!(commands.len(), self.tools.len());
         self.contacts.clear();
         self.contact_levers.clear();
-        self.contact_friction.clear();
+        self.contact_vertices.clear();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
@@ -249,7 +249,8 @@ impl BranchedGrid {
         for (i, &(start, end)) in self.contact_ranges.iter().enumerate() {
             let tip = self.frame.to_local(&commands[i].pose.position_m);
             for c in start..end {
-                let (friction, vertex) = self.contact_friction[c];
+                let vertex = self.contact_vertices[c];
+                let friction = self.friction_at(vertex as usize);
                 if friction.static_coefficient <= 0.0 {
                     continue;
                 }
@@ -306,16 +307,21 @@ impl BranchedGrid {
                 if element == NONE {
                     continue;
                 }
-                let friction = self.materials[usize::from(self.topo.material[voxel as usize]) - 1].friction;
+                let friction = self.friction_at(v);
                 let (stick_stiffness, stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * (radius - distance), friction);
                 self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue, stick_stiffness, stick_force, tool_velocity });
                 self.contact_levers.push(p - tip);
-                self.contact_friction.push((friction, v as u32));
+                self.contact_vertices.push(v as u32);
                 count += 1;
             }
         }
         // The force the tool feels is the contacts' after the solve (solved_contact_forces).
         fb.contacts = count;
+    }
+
+    /// The friction of surface vertex `v`'s material.
+    fn friction_at(&self, v: usize) -> super::friction::Friction {
+        self.materials[usize::from(self.topo.material[self.surface.voxel[v] as usize]) - 1].friction
     }
 
     /// Friction's stick spring for surface vertex `v` (at `p`) touching tool `i` (tip at

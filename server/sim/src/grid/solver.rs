@@ -248,7 +248,7 @@ impl Dynamics {
         for c in contacts {
             let nodes = &topo.elements.nodes[c.element as usize];
             let blocks = &self.scatter.blocks[c.element as usize];
-            let across = super::friction::across(&c.normal);
+            let across = super::friction::tangent_projection(&c.normal);
             let nn = (c.normal * c.normal.transpose() * c.stiffness + across * c.stick_stiffness) * a_contact;
             // The contact force at the step's end, linearised: f_c − h k ((v + Δv)·n) n (the
             // tool is already where it ends the step); the Δv term is the h² K_c in the
@@ -265,7 +265,7 @@ impl Dynamics {
         }
         // The supports' springs at coarse levels (super::support), linearised like the
         // contacts: their stiffness in the element's blocks, −h K_s v in the force.
-        topo.supports.add_forces(topo, &topo.nodes.x, &topo.nodes.v, h, &mut self.force);
+        topo.supports.add_forces(topo, h, &mut self.force);
         let (system, scatter) = (&mut self.system, &self.scatter);
         topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
         // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.

@@ -66,13 +66,13 @@ impl Supports {
         })
     }
 
-    /// Adds the springs' forces at positions `x` and velocities `v` to `force` (with
-    /// `h` > 0, the linearised force at the end of a step of h: `−k (w·x − p) − h k (w·v)`).
-    pub fn add_forces(&self, topo: &Topology, x: &[Vec3], v: &[Vec3], h: f64, force: &mut [Vec3]) {
+    /// Adds the springs' forces to `force`: at the end of a step of h, linearised,
+    /// `−k (w·x − p) − h k (w·v)` with the nodes' positions and velocities now.
+    pub fn add_forces(&self, topo: &Topology, h: f64, force: &mut [Vec3]) {
         for (e, p) in self.live(topo) {
             let nodes = &topo.elements.nodes[e];
-            let at: Vec3 = (0..8).map(|k| x[nodes[k] as usize] * p.weights[k]).sum();
-            let moving: Vec3 = (0..8).map(|k| v[nodes[k] as usize] * p.weights[k]).sum();
+            let at: Vec3 = (0..8).map(|k| topo.nodes.x[nodes[k] as usize] * p.weights[k]).sum();
+            let moving: Vec3 = (0..8).map(|k| topo.nodes.v[nodes[k] as usize] * p.weights[k]).sum();
             let pull = -(at - p.rest + moving * h) * self.stiffness_n_per_m;
             for k in 0..8 {
                 force[nodes[k] as usize] += pull * p.weights[k];
@@ -222,6 +222,10 @@ fn hold_embedded(spec: &BranchedGridSpec, topo: &mut Topology, frame: &Frame) ->
     let mut points = Vec::new();
     let mut holds = Vec::new();
     for region in &spec.fixed {
+        let labelled = match region {
+            GridFixedSpec::Labels { labels } => material_indices(spec, labels),
+            _ => Vec::new(),
+        };
         let held_by = |v: usize, p: [usize; 3]| -> bool {
             match region {
                 GridFixedSpec::Box { min_m, max_m } => {
@@ -232,7 +236,7 @@ fn hold_embedded(spec: &BranchedGridSpec, topo: &mut Topology, frame: &Frame) ->
                     let (axis, target) = side_plane(side, &lo, &hi);
                     p[axis] == target
                 }
-                GridFixedSpec::Labels { labels } => material_indices(spec, labels).contains(&topo.material[v]),
+                GridFixedSpec::Labels { .. } => labelled.contains(&topo.material[v]),
             }
         };
         let mut held: BTreeSet<[usize; 3]> = BTreeSet::new();

@@ -38,15 +38,11 @@ impl Hole {
     }
 }
 
-/// A blade as the flat sees it for one substep.
+/// A blade as the flat sees it for one substep: where it is (its edge and flat with
+/// it) and its velocity, m/s.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Blade<'a> {
     pub placed: &'a PlacedTool,
-    /// Unit normal of its flat (across its axis and its edge).
-    pub flat_normal: Vec3,
-    /// Unit direction its edge faces (across its axis, in its flat).
-    pub edge: Vec3,
-    /// Its velocity, m/s.
     pub velocity: Vec3,
 }
 
@@ -71,7 +67,8 @@ pub(crate) fn push_with_flat(
     if !topo.tri_alive[t] {
         return false;
     }
-    let Blade { placed: tool, flat_normal: n, edge, velocity: tool_velocity } = blade;
+    let Blade { placed: tool, velocity: tool_velocity } = blade;
+    let (n, edge) = (tool.flat_normal(), tool.edge);
     let ids = topo.tris[t];
     let w = hole.w;
     let point: Vec3 = (0..3).map(|k| nodes.x[ids[k] as usize] * w[k]).sum();
@@ -163,7 +160,9 @@ mod tests {
         let mut placed = tool();
         placed.tip += by;
         placed.top += by;
-        let blade = Blade { placed: &placed, flat_normal: Vec3::y(), edge: Vec3::x(), velocity: by / 1e-3 };
+        placed.edge = Vec3::x();
+        assert_eq!(placed.flat_normal(), Vec3::y());
+        let blade = Blade { placed: &placed, velocity: by / 1e-3 };
         let mut feedback = ToolFeedback::default();
         let held = push_with_flat(hole, blade, nodes, topo, 1e-3, None, &mut feedback, 1.0);
         (held, feedback)

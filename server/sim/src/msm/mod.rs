@@ -45,15 +45,6 @@ use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDe
 use crate::tissue::{Tissue, TissueCounters};
 use crate::tool::{PlacedTool, ToolCommand, ToolFeedback, ToolShape};
 
-/// A blade through the skin this step: where it passes through it, and its flat's
-/// normal and its edge's direction (unit, across its axis).
-#[derive(Debug, Clone, Copy)]
-struct BladeHole {
-    hole: flat::Hole,
-    flat_normal: Vec3,
-    edge: Vec3,
-}
-
 #[derive(Debug, Clone)]
 enum Integrator {
     SymplecticEuler { substeps: u32 },
@@ -94,13 +85,13 @@ pub const BLADE_VELOCITY_TIME_CONSTANT_S: f64 = 0.01;
 /// (from its pose last step) against the tissue beneath, which holds still. Measured
 /// against the skin's own nodes instead, the cut would feed back on itself: the skin the
 /// blade drags would change the very motion that decides whether it cuts.
-fn blade_motion(blade: &PlacedTool, before: &PlacedTool, hit: &cut::Crossing, edge: Vec3, nodes: &state::Nodes, topo: &Topology, dt_s: f64) -> resistance::BladeMotion {
+fn blade_motion(blade: &PlacedTool, before: &PlacedTool, hit: &cut::Crossing, nodes: &state::Nodes, topo: &Topology, dt_s: f64) -> resistance::BladeMotion {
     let along = hit.blade_t * blade.length_m;
     let then = before.tip + before.axis * along;
     let [a, b, c] = topo.tris[hit.triangle as usize].map(|v| nodes.x[v as usize]);
     let normal = (b - a).cross(&(c - a));
     let normal = if normal.norm() > 0.0 { normal.normalize() } else { blade.axis };
-    resistance::BladeMotion { relative_velocity: (blade.tip + blade.axis * along - then) / dt_s, normal, edge, axis: blade.axis }
+    resistance::BladeMotion { relative_velocity: (blade.tip + blade.axis * along - then) / dt_s, normal, edge: blade.edge, axis: blade.axis }
 }
 
 /// The mass-spring skin.
@@ -135,9 +126,9 @@ pub struct MassSpring {
     holding: Vec<bool>,
     /// Which tools are blades through the skin with their cut button held this step.
     blade_through: Vec<bool>,
-    /// Blades through the skin: where they pass through it (taken at the step's start)
-    /// and their flat's normal this step ([`flat`]).
-    holes: Vec<Option<BladeHole>>,
+    /// Blades through the skin: where they pass through it (taken at the step's start;
+    /// [`flat`]).
+    holes: Vec<Option<flat::Hole>>,
     holder: hold::Holder,
     /// Each blade's velocity through the skin, smoothed over
     /// [`BLADE_VELOCITY_TIME_CONSTANT_S`] (zero outside a resisted stroke).
@@ -259,25 +250,22 @@ impl MassSpring {
         }
     }
 
-    /// Where blade `i`, through the skin, passes through it, with its flat's normal and
-    /// its edge's direction at this step's pose: the hole it held last step, while the
-    /// flat still holds it; else the skin's material point its axis crossed at last
+    /// Where blade `i`, through the skin, passes through it: the hole it held last step,
+    /// while the flat still holds it; else the skin's material point its axis crossed at last
     /// step's pose, on the mesh as the last cut left it. None for a tool that is not a
     /// blade or not through the skin, or one cutting by the paper's rule (it cuts
     /// whatever it crosses).
-    fn hole(&mut self, i: usize, command: &ToolCommand) -> Option<BladeHole> {
+    fn hole(&mut self, i: usize, command: &ToolCommand) -> Option<flat::Hole> {
         if !self.pierced[i] || !self.tools[i].can_cut || self.cuts_by_crossing(i, command) {
             return None;
         }
-        let (now, before) = (self.placed[i]?, self.previous_placed[i]?);
-        let hole = match self.holes[i] {
-            Some(kept) => kept.hole,
-            None => {
-                let crossing = self.holder.first_crossing(&before, &self.nodes, &self.topo, &self.grid, self.max_edge_m)?;
-                flat::Hole::at(&crossing, &self.nodes, &self.topo)
-            }
-        };
-        Some(BladeHole { hole, flat_normal: now.flat_normal(), edge: now.edge })
+        self.placed[i]?;
+        let before = self.previous_placed[i]?;
+        if let Some(kept) = self.holes[i] {
+            return Some(kept);
+        }
+        let crossing = self.holder.first_crossing(&before, &self.nodes, &self.topo, &self.grid, self.max_edge_m)?;
+        Some(flat::Hole::at(&crossing, &self.nodes, &self.topo))
     }
 
     /// Whether tool `i` cuts wherever its axis crosses the skin (the paper's rule, for a
@@ -338,8 +326,8 @@ impl MassSpring {
         let h = self.substep_s();
         let implicit = matches!(self.integrator, Integrator::ImplicitEuler(_));
         for i in 0..self.tools.len() {
-            let (Some(BladeHole { hole, flat_normal, edge }), Some(tool)) = (self.holes[i], self.swept[i]) else { continue };
-            let blade = flat::Blade { placed: &tool, flat_normal, edge, velocity: self.tool_velocity[i] };
+            let (Some(hole), Some(tool)) = (self.holes[i], self.swept[i]) else { continue };
+            let blade = flat::Blade { placed: &tool, velocity: self.tool_velocity[i] };
             let stiffness = HELD_STIFFNESS_OVER_CONTACT * self.tools[i].contact_stiffness_n_per_m;
             let contacts = implicit.then_some((stiffness, &mut self.contacts));
             if !flat::push_with_flat(&hole, blade, &mut self.nodes, &self.topo, h, contacts, &mut feedback[i], weight) {
@@ -474,7 +462,7 @@ impl MassSpring {
                     // The skin resists a blade already through it (a stroke under way).
                     let resisted = match (hit, self.previous_placed[tool]) {
                         (Some(hit), Some(before)) if cutter.in_stroke(tool) && self.fracture_toughness_j_per_m2 > 0.0 => {
-                            let mut motion = blade_motion(&blade, &before, &hit, blade.edge, &self.nodes, &self.topo, self.dt_s);
+                            let mut motion = blade_motion(&blade, &before, &hit, &self.nodes, &self.topo, self.dt_s);
                             let smoothed = &mut self.blade_velocity[tool];
                             *smoothed += (motion.relative_velocity - *smoothed) * (self.dt_s / (BLADE_VELOCITY_TIME_CONSTANT_S + self.dt_s));
                             motion.relative_velocity = *smoothed;
