@@ -207,7 +207,7 @@ impl<T: Scalar> BlockMatrix<T> {
 
     /// `y = A x` over the rows where `active` is true (other rows of y are zero; columns
     /// of inactive nodes must hold zero in x). Returns `xᵀ y`. Values are widened to f64;
-    /// each row accumulates column by column in block order (vectorized, see kernels).
+    /// each row accumulates in six fixed sums (vectorized, see kernels::row_generic).
     pub fn multiply(&self, x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64
     where
         T: super::kernels::RowProduct,
@@ -247,17 +247,7 @@ impl BlockMatrix<f32> {
     /// Adds `scale ·` a 24 × 24 element matrix in planar layout (see
     /// `kernels::Planar24`) to the blocks its corners map to.
     pub fn add_element(&mut self, blocks: &[u32; 64], m: &super::kernels::Planar24, scale: f32) {
-        for i in 0..8 {
-            for j in 0..8 {
-                let v = &mut self.values[blocks[8 * i + j] as usize];
-                for r in 0..3 {
-                    let row = &m[3 * i + r];
-                    for c in 0..3 {
-                        v[at(r, c)] += scale * row[c].0[j];
-                    }
-                }
-            }
-        }
+        super::kernels::scatter_element(&mut self.values, blocks, m, scale);
     }
 }
 

@@ -129,14 +129,40 @@ dispatch! {
     }
 }
 
+dispatch! {
+    /// `values[blocks[8 i + j]] += scale · (block (i, j) of m)` for the 64 corner pairs of
+    /// an element matrix in planar layout. Plane c of corner i's three rows holds column
+    /// c of its eight blocks in its lanes; each block's column is gathered into four
+    /// lanes (the fourth zero, as every block's padding) and added as one vector.
+    pub fn scatter_element(values: &mut [[f32; 12]], blocks: &[u32; 64], m: &Planar24, scale: f32) {
+        for i in 0..8 {
+            let rows = [&m[3 * i], &m[3 * i + 1], &m[3 * i + 2]];
+            for j in 0..8 {
+                let v = &mut values[blocks[8 * i + j] as usize];
+                for c in 0..3 {
+                    let column = [rows[0][c].0[j], rows[1][c].0[j], rows[2][c].0[j], 0.0];
+                    for r in 0..4 {
+                        v[4 * c + r] += scale * column[r];
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// `Σ_k A_k x_{cols[k]}` over blocks `range` of a block row, skipping column `skip`
-/// (`usize::MAX`: none), accumulated in f64 column by column in block order: lane `r`
-/// of the result is row `r` (lane 3 is zero). `FUSED`: with fused multiply-adds (the
-/// f32 system's path, matching its AVX2 clone bit for bit); else a multiply and an add
-/// (f64 coarse levels, where a software fused multiply-add would only be slow).
+/// (`usize::MAX`: none), accumulated in f64: lane `r` of the result is row `r` (lane 3
+/// is zero). Six independent sums — one per block column, for the blocks at even and
+/// at odd positions in the range — are added at the end in one fixed order
+/// (`((e₀ + o₀) + (e₁ + o₁)) + (e₂ + o₂)`): a single running sum made every block wait
+/// for the previous multiply-add's latency (three times per block); six keep the vector
+/// units busy. `FUSED`: with fused multiply-adds (the f32 system's path, matching its
+/// AVX2 clone bit for bit); else a multiply and an add (f64 coarse levels, where a
+/// software fused multiply-add would only be slow).
 #[inline(always)]
 fn row_generic<T: Scalar, const FUSED: bool>(values: &[[T; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
-    let mut s = [0f64; 4];
+    let mut s = [[[0f64; 4]; 3]; 2];
+    let start = range.start;
     for k in range {
         let j = cols[k] as usize;
         if j == skip {
@@ -144,39 +170,57 @@ fn row_generic<T: Scalar, const FUSED: bool>(values: &[[T; 12]], cols: &[u32], r
         }
         let a = &values[k];
         let xj = x[j];
+        let chains = &mut s[(k - start) & 1];
         for (c, xc) in [xj.x, xj.y, xj.z].into_iter().enumerate() {
             for lane in 0..4 {
-                s[lane] = if FUSED { a[4 * c + lane].to_f64().mul_add(xc, s[lane]) } else { s[lane] + a[4 * c + lane].to_f64() * xc };
+                let sum = &mut chains[c][lane];
+                *sum = if FUSED { a[4 * c + lane].to_f64().mul_add(xc, *sum) } else { *sum + a[4 * c + lane].to_f64() * xc };
             }
         }
     }
-    s
+    std::array::from_fn(|lane| ((s[0][0][lane] + s[1][0][lane]) + (s[0][1][lane] + s[1][1][lane])) + (s[0][2][lane] + s[1][2][lane]))
 }
 
 /// [`row_generic`] for single-precision blocks with AVX2 and FMA: each padded column is
-/// one register, widened to f64; the same fused operations in the same order, so the
-/// same bits.
+/// one register, widened to f64; the same six sums, the same fused operations in the
+/// same order, so the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn row_f32_avx(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
     use std::arch::x86_64::*;
-    let mut acc = _mm256_setzero_pd();
-    for k in range {
+    // Block k's product added into one set of three sums (kept in registers: the two
+    // sets are named, not indexed, and the loop takes the blocks two at a time).
+    #[inline(always)]
+    fn add(values: &[[f32; 12]], cols: &[u32], x: &[Vec3], skip: usize, k: usize, sums: &mut [__m256d; 3]) {
         let j = cols[k] as usize;
         if j == skip {
-            continue;
+            return;
         }
         let a = values[k].as_ptr();
         let xj = x[j];
-        // SAFETY: a block holds 12 floats: three loads of four.
-        let (c0, c1, c2) = unsafe { (_mm256_cvtps_pd(_mm_loadu_ps(a)), _mm256_cvtps_pd(_mm_loadu_ps(a.add(4))), _mm256_cvtps_pd(_mm_loadu_ps(a.add(8)))) };
-        acc = _mm256_fmadd_pd(c0, _mm256_set1_pd(xj.x), acc);
-        acc = _mm256_fmadd_pd(c1, _mm256_set1_pd(xj.y), acc);
-        acc = _mm256_fmadd_pd(c2, _mm256_set1_pd(xj.z), acc);
+        // SAFETY: a block holds 12 floats: three loads of four (the caller checked AVX2).
+        unsafe {
+            let (c0, c1, c2) = (_mm256_cvtps_pd(_mm_loadu_ps(a)), _mm256_cvtps_pd(_mm_loadu_ps(a.add(4))), _mm256_cvtps_pd(_mm_loadu_ps(a.add(8))));
+            sums[0] = _mm256_fmadd_pd(c0, _mm256_set1_pd(xj.x), sums[0]);
+            sums[1] = _mm256_fmadd_pd(c1, _mm256_set1_pd(xj.y), sums[1]);
+            sums[2] = _mm256_fmadd_pd(c2, _mm256_set1_pd(xj.z), sums[2]);
+        }
     }
+    let mut even = [_mm256_setzero_pd(); 3];
+    let mut odd = [_mm256_setzero_pd(); 3];
+    let mut k = range.start;
+    while k + 1 < range.end {
+        add(values, cols, x, skip, k, &mut even);
+        add(values, cols, x, skip, k + 1, &mut odd);
+        k += 2;
+    }
+    if k < range.end {
+        add(values, cols, x, skip, k, &mut even);
+    }
+    let sum = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(even[0], odd[0]), _mm256_add_pd(even[1], odd[1])), _mm256_add_pd(even[2], odd[2]));
     let mut out = [0f64; 4];
     // SAFETY: four doubles into four doubles.
-    unsafe { _mm256_storeu_pd(out.as_mut_ptr(), acc) };
+    unsafe { _mm256_storeu_pd(out.as_mut_ptr(), sum) };
     out
 }
 
@@ -228,6 +272,27 @@ pub fn block_multiply<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &
 mod tests {
     use super::*;
     use crate::math::Matrix3;
+
+    #[test]
+    fn a_block_row_sums_to_the_same_bits_with_and_without_avx2() {
+        // Odd and even row lengths, a skipped column, values of mixed sign and size.
+        let values: Vec<[f32; 12]> = (0..23).map(|k| std::array::from_fn(|i| if i % 4 == 3 { 0.0 } else { ((k * 12 + i) as f32 * 0.731).sin() * 10f32.powi((k % 5) as i32 - 2) })).collect();
+        let cols: Vec<u32> = (0..23).map(|k| (k * 7 % 23) as u32).collect();
+        let x: Vec<Vec3> = (0..23).map(|j| Vec3::new((j as f64 * 1.3).cos(), (j as f64 * 0.4).sin() * 1e-3, j as f64 - 11.5)).collect();
+        for (range, skip) in [(0..23, usize::MAX), (3..20, 7), (5..6, usize::MAX), (0..0, usize::MAX)] {
+            let generic = row_generic::<f32, true>(&values, &cols, range.clone(), &x, skip);
+            let dense: [f64; 4] = std::array::from_fn(|lane| range.clone().filter(|&k| cols[k] as usize != skip).map(|k| (0..3).map(|c| f64::from(values[k][4 * c + lane]) * x[cols[k] as usize][c]).sum::<f64>()).sum());
+            for lane in 0..4 {
+                assert!((generic[lane] - dense[lane]).abs() <= 1e-12 * dense.iter().map(|v| v.abs()).fold(1.0, f64::max), "lane {lane}");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if has_avx2() {
+                // SAFETY: the CPU has AVX2 and FMA.
+                let wide = unsafe { row_f32_avx(&values, &cols, range.clone(), &x, skip) };
+                assert_eq!(wide.map(f64::to_bits), generic.map(f64::to_bits), "{range:?} skipping {skip}");
+            }
+        }
+    }
 
     #[test]
     fn the_rotated_stiffness_is_r_k_r_transposed_and_the_force_its_product() {

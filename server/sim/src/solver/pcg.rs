@@ -49,24 +49,28 @@ pub struct Pcg {
     z: Vec<Vec3>,
     p: Vec<Vec3>,
     q: Vec<Vec3>,
+    /// `1/d` per axis of the diagonal (0 where d ≤ 0): the residual's metric as
+    /// multiplications (six divisions per node and iteration were a tenth of a step).
+    metric: Vec<Vec3>,
 }
 
 fn safe_div(a: f64, b: f64) -> f64 {
     if b > 0.0 { a / b } else { 0.0 }
 }
 
-/// `Σ r²/d` per axis.
-fn weighted_norm2(r: &Vec3, d: &Vec3) -> f64 {
-    safe_div(r.x * r.x, d.x) + safe_div(r.y * r.y, d.y) + safe_div(r.z * r.z, d.z)
+/// `Σ r²/d` per axis, with `w = 1/d`.
+fn weighted_norm2(r: &Vec3, w: &Vec3) -> f64 {
+    r.x * r.x * w.x + r.y * r.y * w.y + r.z * r.z * w.z
 }
 
-fn weighted_max(r: &Vec3, d: &Vec3) -> f64 {
-    safe_div(r.x, d.x).abs().max(safe_div(r.y, d.y).abs()).max(safe_div(r.z, d.z).abs())
+/// `max |r|/d` over the axes, with `w = 1/d`.
+fn weighted_max(r: &Vec3, w: &Vec3) -> f64 {
+    (r.x.abs() * w.x).max(r.y.abs() * w.y).max(r.z.abs() * w.z)
 }
 
 impl Pcg {
     pub fn resize(&mut self, n: usize) {
-        for v in [&mut self.r, &mut self.z, &mut self.p, &mut self.q] {
+        for v in [&mut self.r, &mut self.z, &mut self.p, &mut self.q, &mut self.metric] {
             v.resize(n, Vec3::zeros());
         }
     }
@@ -88,11 +92,13 @@ impl Pcg {
         self.resize(n);
         let mut b_norm2 = 0.0;
         for i in 0..n {
+            let d = &diagonal[i];
+            self.metric[i] = Vec3::new(safe_div(1.0, d.x), safe_div(1.0, d.y), safe_div(1.0, d.z));
             if !active[i] || !x[i].iter().all(|c| c.is_finite()) {
                 x[i] = Vec3::zeros();
             }
             if active[i] {
-                b_norm2 += weighted_norm2(&b[i], &diagonal[i]);
+                b_norm2 += weighted_norm2(&b[i], &self.metric[i]);
             }
         }
         if !(b_norm2 > 0.0) {
@@ -104,8 +110,8 @@ impl Pcg {
         let mut largest: f64 = 0.0;
         for i in 0..n {
             self.r[i] = if active[i] { b[i] - self.q[i] } else { Vec3::zeros() };
-            r_norm2 += weighted_norm2(&self.r[i], &diagonal[i]);
-            largest = largest.max(weighted_max(&self.r[i], &diagonal[i]));
+            r_norm2 += weighted_norm2(&self.r[i], &self.metric[i]);
+            largest = largest.max(weighted_max(&self.r[i], &self.metric[i]));
         }
         m.apply(&self.r, &mut self.z);
         self.p.copy_from_slice(&self.z);
@@ -124,8 +130,8 @@ impl Pcg {
             for i in 0..n {
                 x[i] += self.p[i] * alpha;
                 self.r[i] -= self.q[i] * alpha;
-                r_norm2 += weighted_norm2(&self.r[i], &diagonal[i]);
-                largest = largest.max(weighted_max(&self.r[i], &diagonal[i]));
+                r_norm2 += weighted_norm2(&self.r[i], &self.metric[i]);
+                largest = largest.max(weighted_max(&self.r[i], &self.metric[i]));
             }
             iterations += 1;
             if done(r_norm2, largest) {
