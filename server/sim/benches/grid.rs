@@ -1,6 +1,6 @@
 //! The branched grid (issue 3): build time, one physics step and the cut update for the
-//! liver scene (13k… here 38.6k voxels of 3 mm) and the ~100k-voxel smooth liver, at
-//! levels 1, 2 and 3, with the number of coarse elements, fine voxels and surface
+//! liver scene (13k… here 38.6k voxels of 3 mm), the ~100k-voxel smooth liver and the
+//! layered abdomen (157k voxels of seven tissues), at levels 1, 2 and 3, with the number of coarse elements, fine voxels and surface
 //! triangles. Needs the shared data (`$CUTSIM_DATA_DIR` or ../shared/data).
 //!
 //! Run: `cargo bench -p cutsim-sim --bench grid` (add `-- --quick` for a short run, and
@@ -52,7 +52,7 @@ fn main() {
         "{:<22} {:>8} {:>8} {:>7} {:>8} {:>7} | {:>8} {:>8} {:>8} {:>5} | {:>8} {:>8} {:>8} {:>7} {:>8}",
         "scene", "voxels", "elements", "nodes", "tris", "build s", "probe p50", "p99", "max", "CG", "cut p50", "p99", "max", "updates", "vox/upd"
     );
-    for (scene, label) in [("liver.json", "liver 3 mm"), ("liver-smooth.json", "liver-smooth 2.2 mm")] {
+    for (scene, label) in [("liver.json", "liver 3 mm"), ("liver-smooth.json", "liver-smooth 2.2 mm"), ("abdomen-layers.json", "abdomen-layers 3 mm")] {
         for level in [1, 2, 3] {
             let case = format!("{label} L{level}");
             if !filters.is_empty() && !filters.iter().any(|f| case.contains(f.as_str())) {

@@ -150,6 +150,86 @@ dispatch! {
     }
 }
 
+// A slice of 3-vectors is a slice of 3n f64 (nalgebra's `Vector3<f64>` is `[f64; 3]`,
+// `repr(C)`): the solver's vector updates run over it flat, four lanes at a time.
+const _: () = assert!(std::mem::size_of::<Vec3>() == 24 && std::mem::align_of::<Vec3>() == 8);
+
+/// The 3n coordinates of `v`.
+pub fn flat(v: &[Vec3]) -> &[f64] {
+    // SAFETY: Vec3 is three contiguous f64 (checked above), so n of them are 3n f64.
+    unsafe { std::slice::from_raw_parts(v.as_ptr().cast::<f64>(), 3 * v.len()) }
+}
+
+/// The 3n coordinates of `v`, mutable.
+pub fn flat_mut(v: &mut [Vec3]) -> &mut [f64] {
+    // SAFETY: as in `flat`; the borrow is unique.
+    unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<f64>(), 3 * v.len()) }
+}
+
+/// Four partial sums (entry k into lane k mod 4) added in one fixed order.
+#[inline(always)]
+fn lanes_total(s: [f64; 4]) -> f64 {
+    (s[0] + s[1]) + (s[2] + s[3])
+}
+
+dispatch! {
+    /// The conjugate-gradient update `x += α p`, `r −= α q` over every coordinate, with
+    /// the new residual's weighted measures: `(Σ r² w, max |r| w)` (`w` = 1/diagonal).
+    /// The sum runs in four lanes added at the end, so the loop vectorizes and its bits
+    /// do not depend on the vector width.
+    pub fn cg_update(x: &mut [f64], p: &[f64], r: &mut [f64], q: &[f64], w: &[f64], alpha: f64) -> (f64, f64) {
+        let n = x.len().min(p.len()).min(r.len()).min(q.len()).min(w.len());
+        let (mut sum, mut largest) = ([0f64; 4], [0f64; 4]);
+        #[inline(always)]
+        fn lane(x: &mut f64, p: f64, r: &mut f64, q: f64, w: f64, alpha: f64, sum: &mut f64, largest: &mut f64) {
+            *x += p * alpha;
+            *r -= q * alpha;
+            *sum += *r * *r * w;
+            let m = r.abs() * w;
+            *largest = if m > *largest { m } else { *largest };
+        }
+        let whole = n - n % 4;
+        let (x, p, r, q, w) = (&mut x[..n], &p[..n], &mut r[..n], &q[..n], &w[..n]);
+        let (xs, ps, rs, qs, ws) = (x[..whole].chunks_exact_mut(4), p[..whole].chunks_exact(4), r[..whole].chunks_exact_mut(4), q[..whole].chunks_exact(4), w[..whole].chunks_exact(4));
+        for ((((xc, pc), rc), qc), wc) in xs.zip(ps).zip(rs).zip(qs).zip(ws) {
+            for l in 0..4 {
+                lane(&mut xc[l], pc[l], &mut rc[l], qc[l], wc[l], alpha, &mut sum[l], &mut largest[l]);
+            }
+        }
+        for k in whole..n {
+            lane(&mut x[k], p[k], &mut r[k], q[k], w[k], alpha, &mut sum[k % 4], &mut largest[k % 4]);
+        }
+        (lanes_total(sum), largest[0].max(largest[1]).max(largest[2].max(largest[3])))
+    }
+}
+
+dispatch! {
+    /// `Σ a b` over every coordinate, in four lanes (see [`cg_update`]).
+    pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+        let n = a.len().min(b.len());
+        let mut sum = [0f64; 4];
+        let whole = n - n % 4;
+        for (ac, bc) in a[..whole].chunks_exact(4).zip(b[..whole].chunks_exact(4)) {
+            for lane in 0..4 {
+                sum[lane] += ac[lane] * bc[lane];
+            }
+        }
+        for k in whole..n {
+            sum[k % 4] += a[k] * b[k];
+        }
+        lanes_total(sum)
+    }
+}
+
+dispatch! {
+    /// The new search direction `p = z + β p`.
+    pub fn cg_direction(p: &mut [f64], z: &[f64], beta: f64) {
+        for (p, z) in p.iter_mut().zip(z) {
+            *p = z + *p * beta;
+        }
+    }
+}
+
 /// `Σ_k A_k x_{cols[k]}` over blocks `range` of a block row, skipping column `skip`
 /// (`usize::MAX`: none), accumulated in f64: lane `r` of the result is row `r` (lane 3
 /// is zero). Six independent sums — one per block column, for the blocks at even and
@@ -187,6 +267,17 @@ fn row_generic<T: Scalar, const FUSED: bool>(values: &[[T; 12]], cols: &[u32], r
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn row_f32_avx(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
+    let mut out = [0f64; 4];
+    // SAFETY: AVX2 is enabled here; four doubles into four doubles.
+    unsafe { std::arch::x86_64::_mm256_storeu_pd(out.as_mut_ptr(), row_f32_avx_sum(values, cols, range, x, skip)) };
+    out
+}
+
+/// The body of [`row_f32_avx`], the sum left in a register; inlined into callers compiled
+/// for AVX2 (only those may call it).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn row_f32_avx_sum(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> std::arch::x86_64::__m256d {
     use std::arch::x86_64::*;
     // Block k's product added into one set of three sums (kept in registers: the two
     // sets are named, not indexed, and the loop takes the blocks two at a time).
@@ -206,8 +297,8 @@ unsafe fn row_f32_avx(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range
             sums[2] = _mm256_fmadd_pd(c2, _mm256_set1_pd(xj.z), sums[2]);
         }
     }
-    let mut even = [_mm256_setzero_pd(); 3];
-    let mut odd = [_mm256_setzero_pd(); 3];
+    // SAFETY: the caller runs with AVX2 enabled.
+    let (mut even, mut odd) = unsafe { ([_mm256_setzero_pd(); 3], [_mm256_setzero_pd(); 3]) };
     let mut k = range.start;
     while k + 1 < range.end {
         add(values, cols, x, skip, k, &mut even);
@@ -217,23 +308,27 @@ unsafe fn row_f32_avx(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range
     if k < range.end {
         add(values, cols, x, skip, k, &mut even);
     }
-    let sum = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(even[0], odd[0]), _mm256_add_pd(even[1], odd[1])), _mm256_add_pd(even[2], odd[2]));
-    let mut out = [0f64; 4];
-    // SAFETY: four doubles into four doubles.
-    unsafe { _mm256_storeu_pd(out.as_mut_ptr(), sum) };
-    out
+    // SAFETY: the caller runs with AVX2 enabled.
+    unsafe { _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(even[0], odd[0]), _mm256_add_pd(even[1], odd[1])), _mm256_add_pd(even[2], odd[2])) }
 }
 
 /// Block-row products for a matrix value type: vectorized for the f32 system.
 pub trait RowProduct: Scalar {
     /// See [`row_generic`]; `wide`: the CPU has AVX2 and FMA (the caller checked).
     fn row(values: &[[Self; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, wide: bool) -> [f64; 4];
+
+    /// See [`block_multiply`].
+    fn multiply(pattern: &Pattern, values: &[[Self; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64;
 }
 
 impl RowProduct for f64 {
     #[inline(always)]
     fn row(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, _wide: bool) -> [f64; 4] {
         row_generic::<f64, false>(values, cols, range, x, skip)
+    }
+
+    fn multiply(pattern: &Pattern, values: &[[f64; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+        multiply_rows(pattern, values, x, y, active, false)
     }
 }
 
@@ -248,12 +343,45 @@ impl RowProduct for f32 {
         let _ = wide;
         row_generic::<f32, true>(values, cols, range, x, skip)
     }
+
+    fn multiply(pattern: &Pattern, values: &[[f32; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // The whole product compiled for AVX2, so that each row's kernel is inlined
+            // (a call per block row was a third of the product's time).
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide(pattern: &Pattern, values: &[[f32; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+                let mut xy = 0.0;
+                for i in 0..pattern.rows() {
+                    if !active[i] {
+                        y[i] = Vec3::zeros();
+                        continue;
+                    }
+                    let range = pattern.start[i] as usize..pattern.start[i + 1] as usize;
+                    let mut s = [0f64; 4];
+                    // SAFETY: this function runs with AVX2 enabled.
+                    unsafe { std::arch::x86_64::_mm256_storeu_pd(s.as_mut_ptr(), row_f32_avx_sum(values, &pattern.cols, range, x, usize::MAX)) };
+                    let yi = Vec3::new(s[0], s[1], s[2]);
+                    xy += x[i].dot(&yi);
+                    y[i] = yi;
+                }
+                xy
+            }
+            // SAFETY: the CPU was checked to have AVX2 and FMA.
+            return unsafe { wide(pattern, values, x, y, active) };
+        }
+        multiply_rows(pattern, values, x, y, active, false)
+    }
 }
 
 /// `y = A x` over the active rows of a block-sparse matrix (see
 /// `BlockMatrix::multiply`); returns `xᵀ y`.
 pub fn block_multiply<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-    let wide = has_avx2();
+    T::multiply(pattern, values, x, y, active)
+}
+
+#[inline(always)]
+fn multiply_rows<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool], wide: bool) -> f64 {
     let mut xy = 0.0;
     for i in 0..pattern.rows() {
         if !active[i] {
@@ -272,6 +400,30 @@ pub fn block_multiply<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &
 mod tests {
     use super::*;
     use crate::math::Matrix3;
+
+    #[test]
+    fn the_conjugate_gradient_updates_match_their_formulas() {
+        // 3 × 7 coordinates: five whole groups of four and a remainder of one.
+        let n = 21;
+        let f = |k: usize, a: f64| ((k as f64 + a) * 0.917).sin();
+        let (p, q, w): (Vec<f64>, Vec<f64>, Vec<f64>) = ((0..n).map(|k| f(k, 0.1)).collect(), (0..n).map(|k| f(k, 0.7)).collect(), (0..n).map(|k| 1.0 + f(k, 2.0).abs()).collect());
+        let (mut x, mut r): (Vec<f64>, Vec<f64>) = ((0..n).map(|k| f(k, 3.0)).collect(), (0..n).map(|k| f(k, 5.0)).collect());
+        let (x0, r0) = (x.clone(), r.clone());
+        let (norm2, largest) = cg_update(&mut x, &p, &mut r, &q, &w, 0.37);
+        let mut expected = (0.0, 0.0f64);
+        for k in 0..n {
+            assert_eq!(x[k], x0[k] + p[k] * 0.37);
+            assert_eq!(r[k], r0[k] - q[k] * 0.37);
+            expected.0 += r[k] * r[k] * w[k];
+            expected.1 = expected.1.max(r[k].abs() * w[k]);
+        }
+        assert!((norm2 - expected.0).abs() < 1e-14 * expected.0 && largest == expected.1);
+        let plain: f64 = (0..n).map(|k| p[k] * q[k]).sum();
+        assert!((dot(&p, &q) - plain).abs() < 1e-14);
+        let mut direction = p.clone();
+        cg_direction(&mut direction, &q, -1.5);
+        assert!((0..n).all(|k| direction[k] == q[k] + p[k] * -1.5));
+    }
 
     #[test]
     fn a_block_row_sums_to_the_same_bits_with_and_without_avx2() {

@@ -8,6 +8,7 @@
 //! solved as accurately as the others instead of being lost in the sum), and the figure
 //! does not depend on the preconditioner, so solvers are compared on the same scale.
 
+use super::kernels::{self, flat, flat_mut};
 use crate::math::Vec3;
 
 /// `y = A x` on the active rows; returns `xᵀ y`.
@@ -115,7 +116,7 @@ impl Pcg {
         }
         m.apply(&self.r, &mut self.z);
         self.p.copy_from_slice(&self.z);
-        let mut rz: f64 = (0..n).map(|i| self.r[i].dot(&self.z[i])).sum();
+        let mut rz = kernels::dot(flat(&self.r), flat(&self.z));
         let target2 = settings.tolerance * settings.tolerance * b_norm2;
         let mut iterations = 0;
         let done = |r_norm2: f64, largest: f64| r_norm2 <= target2 || largest <= settings.floor;
@@ -125,25 +126,16 @@ impl Pcg {
                 break;
             }
             let alpha = rz / pq;
-            r_norm2 = 0.0;
-            largest = 0.0;
-            for i in 0..n {
-                x[i] += self.p[i] * alpha;
-                self.r[i] -= self.q[i] * alpha;
-                r_norm2 += weighted_norm2(&self.r[i], &self.metric[i]);
-                largest = largest.max(weighted_max(&self.r[i], &self.metric[i]));
-            }
+            (r_norm2, largest) = kernels::cg_update(flat_mut(x), flat(&self.p), flat_mut(&mut self.r), flat(&self.q), flat(&self.metric), alpha);
             iterations += 1;
             if done(r_norm2, largest) {
                 break;
             }
             m.apply(&self.r, &mut self.z);
-            let rz_next: f64 = (0..n).map(|i| self.r[i].dot(&self.z[i])).sum();
+            let rz_next = kernels::dot(flat(&self.r), flat(&self.z));
             let beta = rz_next / rz;
             rz = rz_next;
-            for i in 0..n {
-                self.p[i] = self.z[i] + self.p[i] * beta;
-            }
+            kernels::cg_direction(flat_mut(&mut self.p), flat(&self.z), beta);
         }
         let residual = (r_norm2 / b_norm2).sqrt();
         Convergence { iterations, residual, cap_hit: !done(r_norm2, largest) && iterations >= settings.max_iterations }
