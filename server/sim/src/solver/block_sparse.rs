@@ -23,11 +23,20 @@ impl Pattern {
     /// The pattern of `n` block rows coupling every pair of nodes that share an element.
     /// Every row gets its diagonal block, coupled or not.
     pub fn from_elements<'a>(n: usize, elements: impl Iterator<Item = &'a [u32]> + Clone) -> Pattern {
+        Self::from_elements_coupling(n, elements, |_| true)
+    }
+
+    /// As [`Pattern::from_elements`], coupling only nodes for which `coupled` is true: a
+    /// node left out keeps its diagonal block alone (a held node, whose unknown is zero:
+    /// its blocks would only multiply zeros).
+    pub fn from_elements_coupling<'a>(n: usize, elements: impl Iterator<Item = &'a [u32]> + Clone, coupled: impl Fn(u32) -> bool) -> Pattern {
         // Count neighbours (with repeats), then fill, sort and deduplicate per row.
         let mut count = vec![1u32; n];
         for nodes in elements.clone() {
             for &a in nodes {
-                count[a as usize] += nodes.len() as u32;
+                if coupled(a) {
+                    count[a as usize] += nodes.len() as u32;
+                }
             }
         }
         let mut start = Vec::with_capacity(n + 1);
@@ -42,8 +51,8 @@ impl Pattern {
             *f += 1;
         }
         for nodes in elements {
-            for &a in nodes {
-                for &b in nodes {
+            for &a in nodes.iter().filter(|&&a| coupled(a)) {
+                for &b in nodes.iter().filter(|&&b| coupled(b)) {
                     cols[fill[a as usize] as usize] = b;
                     fill[a as usize] += 1;
                 }
@@ -94,7 +103,11 @@ impl Pattern {
 }
 
 /// Where each element's corner pairs live in the matrix: `blocks[e][8 i + j]` is block
-/// (node of corner i, node of corner j); `u32::MAX` for an element not in the pattern.
+/// (node of corner i, node of corner j); [`NO_BLOCK`] for an element not in the pattern
+/// and for a pair the pattern leaves out.
+/// A corner pair with no block in the pattern.
+pub const NO_BLOCK: u32 = u32::MAX;
+
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Scatter {
     pub blocks: Vec<[u32; 64]>,
@@ -111,7 +124,7 @@ impl Scatter {
                     if !on {
                         return u32::MAX;
                     }
-                    pattern.find(nodes[k / 8] as usize, nodes[k % 8] as usize).expect("an element's pairs are in the pattern") as u32
+                    pattern.find(nodes[k / 8] as usize, nodes[k % 8] as usize).map_or(NO_BLOCK, |b| b as u32)
                 })
             })
             .collect();

@@ -131,14 +131,14 @@ dispatch! {
 
 dispatch! {
     /// `values[blocks[8 i + j]] += scale · (block (i, j) of m)` for the 64 corner pairs of
-    /// an element matrix in planar layout. Plane c of corner i's three rows holds column
+    /// an element matrix in planar layout (pairs with no block, `NO_BLOCK`, skipped). Plane c of corner i's three rows holds column
     /// c of its eight blocks in its lanes; each block's column is gathered into four
     /// lanes (the fourth zero, as every block's padding) and added as one vector.
     pub fn scatter_element(values: &mut [[f32; 12]], blocks: &[u32; 64], m: &Planar24, scale: f32) {
         for i in 0..8 {
             let rows = [&m[3 * i], &m[3 * i + 1], &m[3 * i + 2]];
             for j in 0..8 {
-                let v = &mut values[blocks[8 * i + j] as usize];
+                let Some(v) = values.get_mut(blocks[8 * i + j] as usize) else { continue }; // left out of the pattern
                 for c in 0..3 {
                     let column = [rows[0][c].0[j], rows[1][c].0[j], rows[2][c].0[j], 0.0];
                     for r in 0..4 {
