@@ -228,16 +228,6 @@ impl<T: Scalar> BlockMatrix<T> {
         super::kernels::block_multiply(&self.pattern, &self.values, x, y, active)
     }
 
-    /// `r_i − Σ_{j≠i} A_ij x_j`, row `i` (the Gauss–Seidel update's right-hand side).
-    #[inline]
-    pub fn off_diagonal_residual(&self, i: usize, r: &Vec3, x: &[Vec3], wide: bool) -> Vec3
-    where
-        T: super::kernels::RowProduct,
-    {
-        let s = T::row(&self.values, &self.pattern.cols, self.pattern.start[i] as usize..self.pattern.start[i + 1] as usize, x, i, wide);
-        Vec3::new(r.x - s[0], r.y - s[1], r.z - s[2])
-    }
-
     /// The dense matrix (tests and small coarse problems).
     pub fn to_dense(&self) -> nalgebra::DMatrix<f64> {
         let n = self.rows();

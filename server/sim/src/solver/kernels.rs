@@ -10,7 +10,7 @@
 //! replays to the same state hash on any x86-64 machine, only slower without FMA.
 
 use super::block_sparse::{Pattern, Scalar};
-use crate::math::Vec3;
+use crate::math::{Matrix3, Vec3};
 
 /// 24 × 24 in single precision: an element's stiffness.
 pub type Block24 = [f32; 576];
@@ -319,6 +319,9 @@ pub trait RowProduct: Scalar {
 
     /// See [`block_multiply`].
     fn multiply(pattern: &Pattern, values: &[[Self; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64;
+
+    /// One block Gauss–Seidel sweep (see [`gauss_seidel`]).
+    fn sweep(pattern: &Pattern, values: &[[Self; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool);
 }
 
 impl RowProduct for f64 {
@@ -329,6 +332,10 @@ impl RowProduct for f64 {
 
     fn multiply(pattern: &Pattern, values: &[[f64; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
         multiply_rows(pattern, values, x, y, active, false)
+    }
+
+    fn sweep(pattern: &Pattern, values: &[[f64; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+        sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| row_generic::<f64, false>(values, &pattern.cols, range, z, i));
     }
 }
 
@@ -371,6 +378,44 @@ impl RowProduct for f32 {
             return unsafe { wide(pattern, values, x, y, active) };
         }
         multiply_rows(pattern, values, x, y, active, false)
+    }
+
+    fn sweep(pattern: &Pattern, values: &[[f32; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // Compiled whole for AVX2, each row's kernel inlined (as in `multiply`).
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide(pattern: &Pattern, values: &[[f32; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+                sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| {
+                    let mut s = [0f64; 4];
+                    // SAFETY: this function runs with AVX2 enabled.
+                    unsafe { std::arch::x86_64::_mm256_storeu_pd(s.as_mut_ptr(), row_f32_avx_sum(values, &pattern.cols, range, z, i)) };
+                    s
+                });
+            }
+            // SAFETY: the CPU was checked to have AVX2 and FMA.
+            return unsafe { wide(pattern, values, inverse, active, r, z, forward) };
+        }
+        sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| row_generic::<f32, true>(values, &pattern.cols, range, z, i));
+    }
+}
+
+/// One block Gauss–Seidel sweep over the active rows, in order (`forward`) or in reverse:
+/// `z_i = D_i⁻¹ (r_i − Σ_{j≠i} A_ij z_j)` with the newest `z_j`; `inverse` holds the
+/// `D_i⁻¹`. Inactive rows are left as they are.
+pub fn gauss_seidel<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+    T::sweep(pattern, values, inverse, active, r, z, forward)
+}
+
+#[inline(always)]
+fn sweep_rows(pattern: &Pattern, inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool, row: impl Fn(std::ops::Range<usize>, &[Vec3], usize) -> [f64; 4]) {
+    let n = pattern.rows();
+    for step in 0..n {
+        let i = if forward { step } else { n - 1 - step };
+        if active[i] {
+            let s = row(pattern.start[i] as usize..pattern.start[i + 1] as usize, z, i);
+            z[i] = inverse[i] * Vec3::new(r[i].x - s[0], r[i].y - s[1], r[i].z - s[2]);
+        }
     }
 }
 

@@ -17,7 +17,7 @@
 //! no factorization, so refreshing a level never makes a step wait.
 
 use super::block_sparse::BlockMatrix;
-use super::kernels::{RowProduct, has_avx2};
+use super::kernels::{self, RowProduct};
 #[cfg(test)]
 use super::block_sparse::Pattern;
 use super::pcg::Preconditioner;
@@ -212,22 +212,12 @@ impl Hierarchy {
 /// One block Gauss–Seidel sweep over the rows in order: `z_i = D_i⁻¹ (r_i − Σ_{j≠i}
 /// A_ij z_j)` with the newest `z_j` (inactive rows stay zero).
 fn forward_sweep<T: RowProduct>(a: &BlockMatrix<T>, inverse: &BlockJacobi, active: &[bool], r: &[Vec3], z: &mut [Vec3]) {
-    let wide = has_avx2();
-    for i in 0..a.rows() {
-        if active[i] {
-            z[i] = inverse.inverse[i] * a.off_diagonal_residual(i, &r[i], z, wide);
-        }
-    }
+    kernels::gauss_seidel(&a.pattern, &a.values, &inverse.inverse, active, r, z, true);
 }
 
 /// The same, rows in reverse order.
 fn backward_sweep<T: RowProduct>(a: &BlockMatrix<T>, inverse: &BlockJacobi, active: &[bool], r: &[Vec3], z: &mut [Vec3]) {
-    let wide = has_avx2();
-    for i in (0..a.rows()).rev() {
-        if active[i] {
-            z[i] = inverse.inverse[i] * a.off_diagonal_residual(i, &r[i], z, wide);
-        }
-    }
+    kernels::gauss_seidel(&a.pattern, &a.values, &inverse.inverse, active, r, z, false);
 }
 
 /// A V-cycle below a fine matrix, as a CG preconditioner (it needs scratch space, kept
