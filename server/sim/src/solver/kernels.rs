@@ -312,6 +312,44 @@ unsafe fn row_f32_avx_sum(values: &[[f32; 12]], cols: &[u32], range: std::ops::R
     unsafe { _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(even[0], odd[0]), _mm256_add_pd(even[1], odd[1])), _mm256_add_pd(even[2], odd[2])) }
 }
 
+/// [`row_generic`] for double-precision blocks (the coarse levels) with AVX2: each
+/// padded column is one register; the same six sums with a multiply and an add (no
+/// fused operation, as the generic f64 path), so the same bits. Only callers compiled
+/// for AVX2 may call it.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn row_f64_avx_sum(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> std::arch::x86_64::__m256d {
+    use std::arch::x86_64::*;
+    #[inline(always)]
+    fn add(values: &[[f64; 12]], cols: &[u32], x: &[Vec3], skip: usize, k: usize, sums: &mut [__m256d; 3]) {
+        let j = cols[k] as usize;
+        if j == skip {
+            return;
+        }
+        let a = values[k].as_ptr();
+        let xj = x[j];
+        // SAFETY: a block holds 12 doubles: three loads of four (the caller runs with AVX2).
+        unsafe {
+            sums[0] = _mm256_add_pd(sums[0], _mm256_mul_pd(_mm256_loadu_pd(a), _mm256_set1_pd(xj.x)));
+            sums[1] = _mm256_add_pd(sums[1], _mm256_mul_pd(_mm256_loadu_pd(a.add(4)), _mm256_set1_pd(xj.y)));
+            sums[2] = _mm256_add_pd(sums[2], _mm256_mul_pd(_mm256_loadu_pd(a.add(8)), _mm256_set1_pd(xj.z)));
+        }
+    }
+    // SAFETY: the caller runs with AVX2 enabled.
+    let (mut even, mut odd) = unsafe { ([_mm256_setzero_pd(); 3], [_mm256_setzero_pd(); 3]) };
+    let mut k = range.start;
+    while k + 1 < range.end {
+        add(values, cols, x, skip, k, &mut even);
+        add(values, cols, x, skip, k + 1, &mut odd);
+        k += 2;
+    }
+    if k < range.end {
+        add(values, cols, x, skip, k, &mut even);
+    }
+    // SAFETY: as above.
+    unsafe { _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(even[0], odd[0]), _mm256_add_pd(even[1], odd[1])), _mm256_add_pd(even[2], odd[2])) }
+}
+
 /// Block-row products for a matrix value type: vectorized for the f32 system.
 pub trait RowProduct: Scalar {
     /// See [`row_generic`]; `wide`: the CPU has AVX2 and FMA (the caller checked).
@@ -331,10 +369,30 @@ impl RowProduct for f64 {
     }
 
     fn multiply(pattern: &Pattern, values: &[[f64; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide(pattern: &Pattern, values: &[[f64; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+                // SAFETY: this function runs with AVX2 enabled.
+                rows_with(pattern, x, y, active, |range| store(unsafe { row_f64_avx_sum(values, &pattern.cols, range, x, usize::MAX) }))
+            }
+            // SAFETY: the CPU was checked to have AVX2 and FMA.
+            return unsafe { wide(pattern, values, x, y, active) };
+        }
         multiply_rows(pattern, values, x, y, active, false)
     }
 
     fn sweep(pattern: &Pattern, values: &[[f64; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn wide(pattern: &Pattern, values: &[[f64; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+                // SAFETY: this function runs with AVX2 enabled.
+                sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| store(unsafe { row_f64_avx_sum(values, &pattern.cols, range, z, i) }));
+            }
+            // SAFETY: the CPU was checked to have AVX2 and FMA.
+            return unsafe { wide(pattern, values, inverse, active, r, z, forward) };
+        }
         sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| row_generic::<f64, false>(values, &pattern.cols, range, z, i));
     }
 }
@@ -358,21 +416,8 @@ impl RowProduct for f32 {
             // (a call per block row was a third of the product's time).
             #[target_feature(enable = "avx2,fma")]
             unsafe fn wide(pattern: &Pattern, values: &[[f32; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-                let mut xy = 0.0;
-                for i in 0..pattern.rows() {
-                    if !active[i] {
-                        y[i] = Vec3::zeros();
-                        continue;
-                    }
-                    let range = pattern.start[i] as usize..pattern.start[i + 1] as usize;
-                    let mut s = [0f64; 4];
-                    // SAFETY: this function runs with AVX2 enabled.
-                    unsafe { std::arch::x86_64::_mm256_storeu_pd(s.as_mut_ptr(), row_f32_avx_sum(values, &pattern.cols, range, x, usize::MAX)) };
-                    let yi = Vec3::new(s[0], s[1], s[2]);
-                    xy += x[i].dot(&yi);
-                    y[i] = yi;
-                }
-                xy
+                // SAFETY: this function runs with AVX2 enabled.
+                rows_with(pattern, x, y, active, |range| store(unsafe { row_f32_avx_sum(values, &pattern.cols, range, x, usize::MAX) }))
             }
             // SAFETY: the CPU was checked to have AVX2 and FMA.
             return unsafe { wide(pattern, values, x, y, active) };
@@ -386,12 +431,8 @@ impl RowProduct for f32 {
             // Compiled whole for AVX2, each row's kernel inlined (as in `multiply`).
             #[target_feature(enable = "avx2,fma")]
             unsafe fn wide(pattern: &Pattern, values: &[[f32; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
-                sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| {
-                    let mut s = [0f64; 4];
-                    // SAFETY: this function runs with AVX2 enabled.
-                    unsafe { std::arch::x86_64::_mm256_storeu_pd(s.as_mut_ptr(), row_f32_avx_sum(values, &pattern.cols, range, z, i)) };
-                    s
-                });
+                // SAFETY: this function runs with AVX2 enabled.
+                sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| store(unsafe { row_f32_avx_sum(values, &pattern.cols, range, z, i) }));
             }
             // SAFETY: the CPU was checked to have AVX2 and FMA.
             return unsafe { wide(pattern, values, inverse, active, r, z, forward) };
@@ -427,18 +468,35 @@ pub fn block_multiply<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &
 
 #[inline(always)]
 fn multiply_rows<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool], wide: bool) -> f64 {
+    rows_with(pattern, x, y, active, |range| T::row(values, &pattern.cols, range, x, usize::MAX, wide))
+}
+
+/// `y_i = row(i)` over the active rows (zero on the others); returns `xᵀ y`.
+#[inline(always)]
+fn rows_with(pattern: &Pattern, x: &[Vec3], y: &mut [Vec3], active: &[bool], row: impl Fn(std::ops::Range<usize>) -> [f64; 4]) -> f64 {
     let mut xy = 0.0;
     for i in 0..pattern.rows() {
         if !active[i] {
             y[i] = Vec3::zeros();
             continue;
         }
-        let s = T::row(values, &pattern.cols, pattern.start[i] as usize..pattern.start[i + 1] as usize, x, usize::MAX, wide);
+        let s = row(pattern.start[i] as usize..pattern.start[i + 1] as usize);
         let yi = Vec3::new(s[0], s[1], s[2]);
         xy += x[i].dot(&yi);
         y[i] = yi;
     }
     xy
+}
+
+/// A register's four doubles.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn store(v: std::arch::x86_64::__m256d) -> [f64; 4] {
+    let mut s = [0f64; 4];
+    // SAFETY: four doubles into four doubles; `_mm256_storeu_pd` needs AVX, which every
+    // caller of this (inlined into code compiled for AVX2) has.
+    unsafe { std::arch::x86_64::_mm256_storeu_pd(s.as_mut_ptr(), v) };
+    s
 }
 
 #[cfg(test)]
@@ -487,6 +545,16 @@ mod tests {
                 // SAFETY: the CPU has AVX2 and FMA.
                 let wide = unsafe { row_f32_avx(&values, &cols, range.clone(), &x, skip) };
                 assert_eq!(wide.map(f64::to_bits), generic.map(f64::to_bits), "{range:?} skipping {skip}");
+                // The coarse levels' double blocks, multiply and add without fusing.
+                let doubles: Vec<[f64; 12]> = values.iter().map(|b| b.map(|v| f64::from(v) * (1.0 + 1e-9))).collect();
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn f64_wide(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
+                    // SAFETY: this function runs with AVX2 enabled.
+                    store(unsafe { row_f64_avx_sum(values, cols, range, x, skip) })
+                }
+                let wide = unsafe { f64_wide(&doubles, &cols, range.clone(), &x, skip) };
+                let generic = row_generic::<f64, false>(&doubles, &cols, range.clone(), &x, skip);
+                assert_eq!(wide.map(f64::to_bits), generic.map(f64::to_bits), "f64 {range:?} skipping {skip}");
             }
         }
     }
