@@ -22,15 +22,17 @@ use cutsim_sim::stats::LatencyHistogram;
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
-fn build(scene_file: &str, level: u32) -> (BranchedGrid, f64) {
+/// The scene at `level`, built, and the build time; Err: the level is refused at load
+/// (its message, e.g. a solve that needs more iterations than the scene allows).
+fn build(scene_file: &str, level: u32) -> Result<(BranchedGrid, f64), String> {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene_file);
     let text = std::fs::read_to_string(&path).unwrap();
     let text = text.replace("\"level\": 2", &format!("\"level\": {level}")).replace("\"level\": 3", &format!("\"level\": {level}"));
     let scene = Scene::from_json_str(&text, &path.display().to_string(), path.parent()).unwrap_or_else(|e| panic!("{e}"));
     let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!("a branched-grid scene") };
     let start = Instant::now();
-    let grid = build_from_scene(&scene, spec).unwrap_or_else(|e| panic!("{e}"));
-    (grid, start.elapsed().as_secs_f64())
+    let grid = build_from_scene(&scene, spec).map_err(|e| e.to_string())?;
+    Ok((grid, start.elapsed().as_secs_f64()))
 }
 
 fn command(tool: usize, position: Vec3, cut: bool) -> [ToolCommand; 2] {
@@ -58,7 +60,13 @@ fn main() {
             if !filters.is_empty() && !filters.iter().any(|f| case.contains(f.as_str())) {
                 continue;
             }
-            let (mut grid, build_s) = build(scene, level);
+            let (mut grid, build_s) = match build(scene, level) {
+                Ok(built) => built,
+                Err(message) => {
+                    println!("{case:<22} refused at load: {message}");
+                    continue;
+                }
+            };
             let top = grid.broad_top().expect("a broad top");
             let mut feedback = [ToolFeedback::default(); 2];
             let (elements, nodes) = (grid.topology().elements.alive_count(), grid.topology().nodes.alive_count());
