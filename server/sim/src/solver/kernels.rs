@@ -263,18 +263,10 @@ fn row_generic<T: Scalar, const FUSED: bool>(values: &[[T; 12]], cols: &[u32], r
 
 /// [`row_generic`] for single-precision blocks with AVX2 and FMA: each padded column is
 /// one register, widened to f64; the same six sums, the same fused operations in the
-/// same order, so the same bits.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn row_f32_avx(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
-    let mut out = [0f64; 4];
-    // SAFETY: AVX2 is enabled here; four doubles into four doubles.
-    unsafe { std::arch::x86_64::_mm256_storeu_pd(out.as_mut_ptr(), row_f32_avx_sum(values, cols, range, x, skip)) };
-    out
-}
-
-/// The body of [`row_f32_avx`], the sum left in a register; inlined into callers compiled
-/// for AVX2 (only those may call it).
+/// same order, so the same bits. The sum is left in a register; only callers compiled
+/// for AVX2 may call it (it is inlined there). (Its twin for f64 blocks below differs
+/// in the block's product; a shared driver taking the product as a closure lost the
+/// inlining of the intrinsics, a tenfold slowdown.)
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn row_f32_avx_sum(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> std::arch::x86_64::__m256d {
@@ -289,7 +281,7 @@ unsafe fn row_f32_avx_sum(values: &[[f32; 12]], cols: &[u32], range: std::ops::R
         }
         let a = values[k].as_ptr();
         let xj = x[j];
-        // SAFETY: a block holds 12 floats: three loads of four (the caller checked AVX2).
+        // SAFETY: a block holds 12 floats: three loads of four (the caller runs with AVX2).
         unsafe {
             let (c0, c1, c2) = (_mm256_cvtps_pd(_mm_loadu_ps(a)), _mm256_cvtps_pd(_mm_loadu_ps(a.add(4))), _mm256_cvtps_pd(_mm_loadu_ps(a.add(8))));
             sums[0] = _mm256_fmadd_pd(c0, _mm256_set1_pd(xj.x), sums[0]);
@@ -350,125 +342,65 @@ unsafe fn row_f64_avx_sum(values: &[[f64; 12]], cols: &[u32], range: std::ops::R
     unsafe { _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(even[0], odd[0]), _mm256_add_pd(even[1], odd[1])), _mm256_add_pd(even[2], odd[2])) }
 }
 
-/// Block-row products for a matrix value type: vectorized for the f32 system.
+/// Block-row products for a matrix value type: the portable row sum and, on x86-64,
+/// its AVX2 clone (the same bits).
 pub trait RowProduct: Scalar {
-    /// See [`row_generic`]; `wide`: the CPU has AVX2 and FMA (the caller checked).
-    fn row(values: &[[Self; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, wide: bool) -> [f64; 4];
+    /// See [`row_generic`]: fused multiply-adds for the f32 system, a multiply and an
+    /// add for the f64 coarse levels.
+    fn row(values: &[[Self; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4];
 
-    /// See [`block_multiply`].
-    fn multiply(pattern: &Pattern, values: &[[Self; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64;
-
-    /// One block Gauss–Seidel sweep (see [`gauss_seidel`]).
-    fn sweep(pattern: &Pattern, values: &[[Self; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool);
+    /// The same sum with AVX2, left in a register.
+    ///
+    /// # Safety
+    /// Only code compiled for AVX2 and FMA may call it (it is inlined there).
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn row_avx2(values: &[[Self; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> std::arch::x86_64::__m256d;
 }
 
 impl RowProduct for f64 {
     #[inline(always)]
-    fn row(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, _wide: bool) -> [f64; 4] {
+    fn row(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
         row_generic::<f64, false>(values, cols, range, x, skip)
     }
 
-    fn multiply(pattern: &Pattern, values: &[[f64; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-        #[cfg(target_arch = "x86_64")]
-        if has_avx2() {
-            #[target_feature(enable = "avx2,fma")]
-            unsafe fn wide(pattern: &Pattern, values: &[[f64; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-                // SAFETY: this function runs with AVX2 enabled.
-                rows_with(pattern, x, y, active, |range| store(unsafe { row_f64_avx_sum(values, &pattern.cols, range, x, usize::MAX) }))
-            }
-            // SAFETY: the CPU was checked to have AVX2 and FMA.
-            return unsafe { wide(pattern, values, x, y, active) };
-        }
-        multiply_rows(pattern, values, x, y, active, false)
-    }
-
-    fn sweep(pattern: &Pattern, values: &[[f64; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
-        #[cfg(target_arch = "x86_64")]
-        if has_avx2() {
-            #[target_feature(enable = "avx2,fma")]
-            unsafe fn wide(pattern: &Pattern, values: &[[f64; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
-                // SAFETY: this function runs with AVX2 enabled.
-                sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| store(unsafe { row_f64_avx_sum(values, &pattern.cols, range, z, i) }));
-            }
-            // SAFETY: the CPU was checked to have AVX2 and FMA.
-            return unsafe { wide(pattern, values, inverse, active, r, z, forward) };
-        }
-        sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| row_generic::<f64, false>(values, &pattern.cols, range, z, i));
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn row_avx2(values: &[[f64; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> std::arch::x86_64::__m256d {
+        // SAFETY: the caller runs with AVX2 enabled.
+        unsafe { row_f64_avx_sum(values, cols, range, x, skip) }
     }
 }
 
 impl RowProduct for f32 {
     #[inline(always)]
-    fn row(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize, wide: bool) -> [f64; 4] {
-        #[cfg(target_arch = "x86_64")]
-        if wide {
-            // SAFETY: `wide` says the CPU has AVX2 and FMA.
-            return unsafe { row_f32_avx(values, cols, range, x, skip) };
-        }
-        let _ = wide;
+    fn row(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
         row_generic::<f32, true>(values, cols, range, x, skip)
     }
 
-    fn multiply(pattern: &Pattern, values: &[[f32; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-        #[cfg(target_arch = "x86_64")]
-        if has_avx2() {
-            // The whole product compiled for AVX2, so that each row's kernel is inlined
-            // (a call per block row was a third of the product's time).
-            #[target_feature(enable = "avx2,fma")]
-            unsafe fn wide(pattern: &Pattern, values: &[[f32; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-                // SAFETY: this function runs with AVX2 enabled.
-                rows_with(pattern, x, y, active, |range| store(unsafe { row_f32_avx_sum(values, &pattern.cols, range, x, usize::MAX) }))
-            }
-            // SAFETY: the CPU was checked to have AVX2 and FMA.
-            return unsafe { wide(pattern, values, x, y, active) };
-        }
-        multiply_rows(pattern, values, x, y, active, false)
-    }
-
-    fn sweep(pattern: &Pattern, values: &[[f32; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
-        #[cfg(target_arch = "x86_64")]
-        if has_avx2() {
-            // Compiled whole for AVX2, each row's kernel inlined (as in `multiply`).
-            #[target_feature(enable = "avx2,fma")]
-            unsafe fn wide(pattern: &Pattern, values: &[[f32; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
-                // SAFETY: this function runs with AVX2 enabled.
-                sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| store(unsafe { row_f32_avx_sum(values, &pattern.cols, range, z, i) }));
-            }
-            // SAFETY: the CPU was checked to have AVX2 and FMA.
-            return unsafe { wide(pattern, values, inverse, active, r, z, forward) };
-        }
-        sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| row_generic::<f32, true>(values, &pattern.cols, range, z, i));
-    }
-}
-
-/// One block Gauss–Seidel sweep over the active rows, in order (`forward`) or in reverse:
-/// `z_i = D_i⁻¹ (r_i − Σ_{j≠i} A_ij z_j)` with the newest `z_j`; `inverse` holds the
-/// `D_i⁻¹`. Inactive rows are left as they are.
-pub fn gauss_seidel<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
-    T::sweep(pattern, values, inverse, active, r, z, forward)
-}
-
-#[inline(always)]
-fn sweep_rows(pattern: &Pattern, inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool, row: impl Fn(std::ops::Range<usize>, &[Vec3], usize) -> [f64; 4]) {
-    let n = pattern.rows();
-    for step in 0..n {
-        let i = if forward { step } else { n - 1 - step };
-        if active[i] {
-            let s = row(pattern.start[i] as usize..pattern.start[i + 1] as usize, z, i);
-            z[i] = inverse[i] * Vec3::new(r[i].x - s[0], r[i].y - s[1], r[i].z - s[2]);
-        }
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn row_avx2(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> std::arch::x86_64::__m256d {
+        // SAFETY: the caller runs with AVX2 enabled.
+        unsafe { row_f32_avx_sum(values, cols, range, x, skip) }
     }
 }
 
 /// `y = A x` over the active rows of a block-sparse matrix (see
-/// `BlockMatrix::multiply`); returns `xᵀ y`.
+/// `BlockMatrix::multiply`); returns `xᵀ y`. With AVX2 the whole product is compiled
+/// for it, so that each row's kernel is inlined (a call per block row was a third of
+/// the product's time).
 pub fn block_multiply<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
-    T::multiply(pattern, values, x, y, active)
-}
-
-#[inline(always)]
-fn multiply_rows<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool], wide: bool) -> f64 {
-    rows_with(pattern, x, y, active, |range| T::row(values, &pattern.cols, range, x, usize::MAX, wide))
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        #[target_feature(enable = "avx2,fma")]
+        unsafe fn wide<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], x: &[Vec3], y: &mut [Vec3], active: &[bool]) -> f64 {
+            // SAFETY: this function runs with AVX2 enabled.
+            rows_with(pattern, x, y, active, |range| store(unsafe { T::row_avx2(values, &pattern.cols, range, x, usize::MAX) }))
+        }
+        // SAFETY: the CPU was checked to have AVX2 and FMA.
+        return unsafe { wide(pattern, values, x, y, active) };
+    }
+    rows_with(pattern, x, y, active, |range| T::row(values, &pattern.cols, range, x, usize::MAX))
 }
 
 /// `y_i = row(i)` over the active rows (zero on the others); returns `xᵀ y`.
@@ -497,6 +429,37 @@ fn store(v: std::arch::x86_64::__m256d) -> [f64; 4] {
     // caller of this (inlined into code compiled for AVX2) has.
     unsafe { std::arch::x86_64::_mm256_storeu_pd(s.as_mut_ptr(), v) };
     s
+}
+
+/// One block Gauss–Seidel sweep over the active rows, in order (`forward`) or in reverse:
+/// `z_i = D_i⁻¹ (r_i − Σ_{j≠i} A_ij z_j)` with the newest `z_j`; `inverse` holds the
+/// `D_i⁻¹`. Inactive rows are left as they are.
+/// With AVX2 the whole sweep is compiled for it, each row's kernel inlined (as in
+/// [`block_multiply`]).
+pub fn gauss_seidel<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        #[target_feature(enable = "avx2,fma")]
+        unsafe fn wide<T: RowProduct>(pattern: &Pattern, values: &[[T; 12]], inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool) {
+            // SAFETY: this function runs with AVX2 enabled.
+            sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| store(unsafe { T::row_avx2(values, &pattern.cols, range, z, i) }));
+        }
+        // SAFETY: the CPU was checked to have AVX2 and FMA.
+        return unsafe { wide(pattern, values, inverse, active, r, z, forward) };
+    }
+    sweep_rows(pattern, inverse, active, r, z, forward, |range, z, i| T::row(values, &pattern.cols, range, z, i));
+}
+
+#[inline(always)]
+fn sweep_rows(pattern: &Pattern, inverse: &[Matrix3<f64>], active: &[bool], r: &[Vec3], z: &mut [Vec3], forward: bool, row: impl Fn(std::ops::Range<usize>, &[Vec3], usize) -> [f64; 4]) {
+    let n = pattern.rows();
+    for step in 0..n {
+        let i = if forward { step } else { n - 1 - step };
+        if active[i] {
+            let s = row(pattern.start[i] as usize..pattern.start[i + 1] as usize, z, i);
+            z[i] = inverse[i] * Vec3::new(r[i].x - s[0], r[i].y - s[1], r[i].z - s[2]);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -543,7 +506,12 @@ mod tests {
             #[cfg(target_arch = "x86_64")]
             if has_avx2() {
                 // SAFETY: the CPU has AVX2 and FMA.
-                let wide = unsafe { row_f32_avx(&values, &cols, range.clone(), &x, skip) };
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn f32_wide(values: &[[f32; 12]], cols: &[u32], range: std::ops::Range<usize>, x: &[Vec3], skip: usize) -> [f64; 4] {
+                    // SAFETY: this function runs with AVX2 enabled.
+                    store(unsafe { row_f32_avx_sum(values, cols, range, x, skip) })
+                }
+                let wide = unsafe { f32_wide(&values, &cols, range.clone(), &x, skip) };
                 assert_eq!(wide.map(f64::to_bits), generic.map(f64::to_bits), "{range:?} skipping {skip}");
                 // The coarse levels' double blocks, multiply and add without fusing.
                 let doubles: Vec<[f64; 12]> = values.iter().map(|b| b.map(|v| f64::from(v) * (1.0 + 1e-9))).collect();
