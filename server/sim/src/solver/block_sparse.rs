@@ -115,19 +115,48 @@ pub struct Scatter {
 
 impl Scatter {
     /// For the elements whose `included` flag is set (the others map nowhere).
+    ///
+    /// Row by row: the row's columns are spread into a dense position table, every
+    /// element corner on that row reads its eight blocks from it, and the table is
+    /// cleared again. A binary search per corner pair (64 per element) took a third of
+    /// a millisecond on the liver's level 2 after every cut; this takes a tenth.
     pub fn new(pattern: &Pattern, elements: &[[u32; 8]], included: &[bool]) -> Scatter {
-        let blocks = elements
-            .iter()
-            .zip(included)
-            .map(|(nodes, &on)| {
-                std::array::from_fn(|k| {
-                    if !on {
-                        return u32::MAX;
-                    }
-                    pattern.find(nodes[k / 8] as usize, nodes[k % 8] as usize).map_or(NO_BLOCK, |b| b as u32)
-                })
-            })
-            .collect();
+        let n = pattern.rows();
+        // The (element, corner) pairs on each node, in compressed rows.
+        let mut start = vec![0u32; n + 1];
+        for (nodes, _) in elements.iter().zip(included).filter(|(_, on)| **on) {
+            for &a in nodes {
+                start[a as usize + 1] += 1;
+            }
+        }
+        for a in 0..n {
+            start[a + 1] += start[a];
+        }
+        let mut fill = start.clone();
+        let mut corners = vec![(0u32, 0u8); start[n] as usize];
+        for (e, (nodes, _)) in elements.iter().zip(included).enumerate().filter(|(_, (_, on))| **on) {
+            for (i, &a) in nodes.iter().enumerate() {
+                corners[fill[a as usize] as usize] = (e as u32, i as u8);
+                fill[a as usize] += 1;
+            }
+        }
+        let mut blocks = vec![[NO_BLOCK; 64]; elements.len()];
+        let mut position = vec![NO_BLOCK; n];
+        for a in 0..n {
+            let row = pattern.start[a] as usize..pattern.start[a + 1] as usize;
+            for k in row.clone() {
+                position[pattern.cols[k] as usize] = k as u32;
+            }
+            for &(e, i) in &corners[start[a] as usize..start[a + 1] as usize] {
+                let (e, i) = (e as usize, i as usize);
+                for j in 0..8 {
+                    blocks[e][8 * i + j] = position[elements[e][j] as usize];
+                }
+            }
+            for k in row {
+                position[pattern.cols[k] as usize] = NO_BLOCK;
+            }
+        }
         Scatter { blocks }
     }
 }
@@ -257,6 +286,28 @@ impl BlockMatrix<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_scatter_finds_every_corner_pairs_block_as_a_search_would() {
+        // Overlapping hexahedra on a 4 × 3 × 3 lattice of nodes, one left out, and a
+        // pattern that leaves node 5's couplings out.
+        let node = |x: u32, y: u32, z: u32| x + 4 * (y + 3 * z);
+        let mut elements = Vec::new();
+        for (x, y, z) in [(0, 0, 0), (1, 0, 0), (2, 0, 0), (0, 1, 1), (1, 1, 0), (2, 1, 1)] {
+            elements.push(std::array::from_fn::<u32, 8, _>(|c| node(x + (c as u32 & 1), y + ((c as u32 >> 1) & 1), z + ((c as u32 >> 2) & 1))));
+        }
+        let included = [true, true, false, true, true, true];
+        let live = elements.iter().zip(&included).filter(|(_, on)| **on).map(|(e, _)| &e[..]);
+        let pattern = Pattern::from_elements_coupling(36, live, |n| n != 5);
+        let scatter = Scatter::new(&pattern, &elements, &included);
+        for (e, nodes) in elements.iter().enumerate() {
+            for k in 0..64 {
+                let expected = if included[e] { pattern.find(nodes[k / 8] as usize, nodes[k % 8] as usize).map_or(NO_BLOCK, |b| b as u32) } else { NO_BLOCK };
+                assert_eq!(scatter.blocks[e][k], expected, "element {e}, pair {k}");
+            }
+        }
+        assert!(scatter.blocks[0].contains(&NO_BLOCK), "node 5's couplings are left out");
+    }
 
     #[test]
     fn the_pattern_couples_the_nodes_of_each_element_and_products_match_dense() {
