@@ -58,22 +58,26 @@ impl Pattern {
                 }
             }
         }
-        // Compact each row in place.
+        // Compact each row in place: drop repeats (a table of the row that last took
+        // each column), then sort what is left — a row holds each neighbour once per
+        // shared element, eight times over in a hexahedral mesh, so sorting after the
+        // repeats are gone is several times cheaper than before.
         let mut out_start = Vec::with_capacity(n + 1);
         out_start.push(0u32);
         let mut write = 0usize;
+        let mut taken_by = vec![u32::MAX; n];
         for i in 0..n {
-            cols[start[i] as usize..start[i + 1] as usize].sort_unstable();
+            let row_start = write;
             // Rows only move left (write ≤ start[i] ≤ j), so reading ahead is safe.
-            let mut last = u32::MAX;
             for j in start[i] as usize..start[i + 1] as usize {
                 let c = cols[j];
-                if c != last {
+                if taken_by[c as usize] != i as u32 {
+                    taken_by[c as usize] = i as u32;
                     cols[write] = c;
                     write += 1;
-                    last = c;
                 }
             }
+            cols[row_start..write].sort_unstable();
             out_start.push(write as u32);
         }
         cols.truncate(write);
