@@ -10,7 +10,9 @@
 //! - [`preconditioner`]: none and block Jacobi, the baselines;
 //! - [`multigrid`]: a V-cycle over coarser Galerkin levels, the preconditioner whose
 //!   iteration count does not grow with resolution;
-//! - [`kernels`]: the per-step element kernels, vectorized (same bits at every width);
+//! - [`kernels`]: the per-step kernels — element rotation and scatter, block-row products
+//!   and Gauss–Seidel sweeps, the conjugate gradient's vector updates — vectorized, each
+//!   sum in a fixed order (the same bits at every vector width);
 //! - [`background`]: a worker thread whose results are swapped in at steps fixed in
 //!   advance (deterministic in real time, lockstep and replay).
 //!
