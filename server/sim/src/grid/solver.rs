@@ -23,7 +23,7 @@ use nalgebra::SVector;
 use super::hex::Mat24;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
-use crate::solver::block_sparse::{BlockMatrix, NO_BLOCK, Pattern, Scatter};
+use crate::solver::block_sparse::{BlockMatrix, Pattern, Scatter};
 use crate::solver::kernels::{Planar24, rotate_and_multiply};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
 use crate::solver::multigrid::VCycle;
@@ -231,9 +231,7 @@ impl Dynamics {
                 let m = &topo.elements.mass[e];
                 for i in 0..8 {
                     for j in 0..8 {
-                        if blocks[8 * i + j] != NO_BLOCK {
-                            self.system.add_diagonal(blocks[8 * i + j] as usize, Vec3::repeat(a_mass * m[(i, j)]));
-                        }
+                        self.system.add_diagonal(blocks[8 * i + j] as usize, Vec3::repeat(a_mass * m[(i, j)]));
                     }
                 }
             }
@@ -263,9 +261,7 @@ impl Dynamics {
             for i in 0..8 {
                 self.force[nodes[i] as usize] += (c.force + approach) * c.weights[i];
                 for j in 0..8 {
-                    if blocks[8 * i + j] != NO_BLOCK {
-                        self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
-                    }
+                    self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
                 }
             }
         }
@@ -273,11 +269,7 @@ impl Dynamics {
         // contacts: their stiffness in the element's blocks, −h K_s v in the force.
         topo.supports.add_forces(topo, h, &mut self.force);
         let (system, scatter) = (&mut self.system, &self.scatter);
-        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| {
-            if scatter.blocks[e][8 * i + j] != NO_BLOCK {
-                system.add(scatter.blocks[e][8 * i + j] as usize, &block);
-            }
-        });
+        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
         // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.
         mass_times(topo, settings.mass, &topo.nodes.v, &mut self.q);
         for i in 0..n {

@@ -106,12 +106,13 @@ impl Pattern {
     }
 }
 
+/// A corner pair with no block in the pattern (an element left out, or a held node's
+/// coupling); adding to it adds nothing.
+pub const NO_BLOCK: u32 = u32::MAX;
+
 /// Where each element's corner pairs live in the matrix: `blocks[e][8 i + j]` is block
 /// (node of corner i, node of corner j); [`NO_BLOCK`] for an element not in the pattern
 /// and for a pair the pattern leaves out.
-/// A corner pair with no block in the pattern.
-pub const NO_BLOCK: u32 = u32::MAX;
-
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Scatter {
     pub blocks: Vec<[u32; 64]>,
@@ -234,7 +235,11 @@ impl<T: Scalar> BlockMatrix<T> {
     }
 
     /// Adds `m` to block `k`.
+    /// Adds `m` to block `k` (nothing for [`NO_BLOCK`]).
     pub fn add(&mut self, k: usize, m: &Matrix3<f64>) {
+        if k == NO_BLOCK as usize {
+            return;
+        }
         let v = &mut self.values[k];
         for r in 0..3 {
             for c in 0..3 {
@@ -245,6 +250,9 @@ impl<T: Scalar> BlockMatrix<T> {
 
     /// Adds `s` on block `k`'s diagonal.
     pub fn add_diagonal(&mut self, k: usize, s: Vec3) {
+        if k == NO_BLOCK as usize {
+            return;
+        }
         let v = &mut self.values[k];
         for (a, d) in [at(0, 0), at(1, 1), at(2, 2)].into_iter().zip([s.x, s.y, s.z]) {
             v[a] = T::from_f64(v[a].to_f64() + d);
@@ -311,6 +319,11 @@ mod tests {
             }
         }
         assert!(scatter.blocks[0].contains(&NO_BLOCK), "node 5's couplings are left out");
+        // Adding at a left-out pair adds nothing (and does not index past the values).
+        let mut a = BlockMatrix::<f64>::zeros(pattern);
+        a.add(NO_BLOCK as usize, &Matrix3::identity());
+        a.add_diagonal(NO_BLOCK as usize, Vec3::repeat(1.0));
+        assert!(a.values.iter().all(|v| v.iter().all(|&x| x == 0.0)));
     }
 
     #[test]

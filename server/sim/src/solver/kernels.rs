@@ -9,7 +9,7 @@
 //! clone does in hardware and the baseline in software, to the same bits: a recording
 //! replays to the same state hash on any x86-64 machine, only slower without FMA.
 
-use super::block_sparse::{Pattern, Scalar};
+use super::block_sparse::{NO_BLOCK, Pattern, Scalar};
 use crate::math::{Matrix3, Vec3};
 
 /// 24 × 24 in single precision: an element's stiffness.
@@ -138,7 +138,10 @@ dispatch! {
         for i in 0..8 {
             let rows = [&m[3 * i], &m[3 * i + 1], &m[3 * i + 2]];
             for j in 0..8 {
-                let Some(v) = values.get_mut(blocks[8 * i + j] as usize) else { continue }; // left out of the pattern
+                if blocks[8 * i + j] == NO_BLOCK {
+                    continue;
+                }
+                let v = &mut values[blocks[8 * i + j] as usize];
                 for c in 0..3 {
                     let column = [rows[0][c].0[j], rows[1][c].0[j], rows[2][c].0[j], 0.0];
                     for r in 0..4 {
