@@ -4,7 +4,8 @@
 //! triangles. Needs the shared data (`$CUTSIM_DATA_DIR` or ../shared/data).
 //!
 //! Run: `cargo bench -p cutsim-sim --bench grid` (add `-- --quick` for a short run, and
-//! e.g. `-- "liver 3 mm L3"` for the cases whose name contains that text).
+//! e.g. `-- "liver 3 mm L3"` for the cases whose name contains that text, and
+//! `-- --preconditioner cholesky` to override the scenes' preconditioner).
 //!
 //! Per case: "probe" steps with a broad probe pressed into the top of the organ (where
 //! it is broad: see `BranchedGrid::broad_top`)
@@ -24,10 +25,16 @@ use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
 /// The scene at `level`, built, and the build time; Err: the level is refused at load
 /// (its message, e.g. a solve that needs more iterations than the scene allows).
-fn build(scene_file: &str, level: u32) -> Result<(BranchedGrid, f64), String> {
+fn build(scene_file: &str, level: u32, preconditioner: Option<&str>) -> Result<(BranchedGrid, f64), String> {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene_file);
     let text = std::fs::read_to_string(&path).unwrap();
-    let text = text.replace("\"level\": 2", &format!("\"level\": {level}")).replace("\"level\": 3", &format!("\"level\": {level}"));
+    let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let spec = &mut json["model"]["branched-grid"];
+    spec["level"] = level.into();
+    if let Some(name) = preconditioner {
+        spec["solver"]["preconditioner"] = name.into();
+    }
+    let text = json.to_string();
     let scene = Scene::from_json_str(&text, &path.display().to_string(), path.parent()).unwrap_or_else(|e| panic!("{e}"));
     let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!("a branched-grid scene") };
     let start = Instant::now();
@@ -48,7 +55,10 @@ fn micros(ns: u64) -> f64 {
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     // Any other argument (not cargo's --bench) picks the cases whose name contains it.
-    let filters: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).collect();
+    // `--preconditioner NAME` overrides the scenes' (jacobi, multigrid or cholesky).
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let preconditioner = args.iter().position(|a| a == "--preconditioner").and_then(|i| args.get(i + 1).cloned());
+    let filters: Vec<String> = args.iter().filter(|a| !a.starts_with("--") && Some(*a) != preconditioner.as_ref()).cloned().collect();
     println!("cutsim-sim branched-grid benchmark (release, one core)");
     println!(
         "{:<22} {:>8} {:>8} {:>7} {:>8} {:>7} | {:>8} {:>8} {:>8} {:>5} | {:>8} {:>8} {:>8} {:>7} {:>8}",
@@ -60,7 +70,7 @@ fn main() {
             if !filters.is_empty() && !filters.iter().any(|f| case.contains(f.as_str())) {
                 continue;
             }
-            let (mut grid, build_s) = match build(scene, level) {
+            let (mut grid, build_s) = match build(scene, level, preconditioner.as_deref()) {
                 Ok(built) => built,
                 Err(message) => {
                     println!("{case:<22} refused at load: {message}");

@@ -123,3 +123,19 @@ fn scene_schema_in_docs_is_the_generated_one() {
         "docs/scene.schema.json is out of date; regenerate it with\n  cargo run -p cutsim-server -- scene-schema > docs/scene.schema.json"
     );
 }
+
+/// A Cholesky factor at level 0 of a large box would take gigabytes: refused at load
+/// from its symbolic size, with the size and what to use instead.
+#[test]
+fn a_cholesky_factor_too_large_is_refused_with_its_size() {
+    let e = error_of(
+        r#"{ "name": "big", "model": { "branched-grid": {
+            "volume": { "box": { "size_m": [0.07, 0.07, 0.07], "voxel_size_m": 0.002 } },
+            "materials": [ { "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 } ],
+            "level": 0, "fixed": [ { "side": { "side": "-z" } } ],
+            "solver": { "preconditioner": "cholesky" } } }, "tools": [] }"#,
+    );
+    let text = e.to_string();
+    assert!(text.contains("model.branched-grid.solver.preconditioner"), "{text}");
+    assert!(text.contains("Cholesky factor") && text.contains("MB") && text.contains("multigrid"), "{text}");
+}

@@ -48,7 +48,8 @@ fn a_copy_made_at_the_start_or_midway_steps_as_the_original() {
 }
 
 /// A 40 × 20 × 10 mm block of 1 mm voxels at level 1 on its −z side, solved with the
-/// multigrid (whose copies redo a rebuild the original has out), and a scalpel.
+/// multigrid or the Cholesky factor (whose copies redo work the original has out on its
+/// worker), and a scalpel.
 const BLOCK: &str = r#"{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
     "model": { "branched-grid": {
         "volume": { "box": { "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 } },
@@ -63,7 +64,13 @@ const BLOCK: &str = r#"{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
 
 #[test]
 fn a_copy_of_a_branched_grid_cutting_steps_as_the_original() {
-    let scene = scene(BLOCK);
+    for preconditioner in ["multigrid", "cholesky"] {
+        copy_steps_as_the_original(&BLOCK.replace("multigrid", preconditioner));
+    }
+}
+
+fn copy_steps_as_the_original(text: &str) {
+    let scene = scene(text);
     let mut original = cutsim_sim::build_tissue(&scene).unwrap_or_else(|e| panic!("{e}"));
     let blade = |i: u32| {
         let x = -0.015 + 0.03 * f64::from(i.min(240)) / 240.0;

@@ -158,6 +158,7 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
         preconditioner: match spec.solver.preconditioner {
             PreconditionerSpec::Multigrid => Preconditioning::Multigrid,
             PreconditionerSpec::Jacobi => Preconditioning::Jacobi,
+            PreconditionerSpec::Cholesky => Preconditioning::Cholesky,
         },
     };
     Ok(GridParts { topo, frame, materials, settings, volume })
@@ -191,8 +192,31 @@ pub fn build_fixed(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGri
         tools,
         spec.cutting.as_ref().map(|c| c.max_voxels_per_step.get() as usize),
     );
+    if grid.settings.preconditioner == Preconditioning::Cholesky {
+        check_factor_size(scene, &grid)?;
+    }
     check_solver_converges(scene, &grid)?;
     Ok(grid)
+}
+
+/// A Cholesky factor grows faster than the grid (a 3D grid's fill): at level 0 of a
+/// large volume it would take gigabytes and seconds a factorization. Its size is known
+/// from the symbolic factorization alone, before any is computed.
+fn check_factor_size(scene: &Scene, grid: &BranchedGrid) -> Result<(), SceneError> {
+    let field = "model.branched-grid.solver.preconditioner";
+    let entries = super::factorization::factor_entries(grid.topology()).map_err(|e| SceneError::new(&scene.origin, field, e.to_string()))?;
+    if entries <= super::factorization::MAX_FACTOR_ENTRIES {
+        return Ok(());
+    }
+    Err(SceneError::new(
+        &scene.origin,
+        field,
+        format!(
+            "the Cholesky factor of this scene's system would hold {entries} entries ({} MB), more than the {} allowed; use the multigrid preconditioner or a coarser level",
+            entries * 8 / 1_000_000,
+            super::factorization::MAX_FACTOR_ENTRIES
+        ),
+    ))
 }
 
 /// Steps the load-time check presses a probe in over, then holds it for as many.

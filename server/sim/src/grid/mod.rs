@@ -2,6 +2,7 @@
 
 mod build;
 pub mod condense;
+pub mod factorization;
 pub mod fidelity;
 pub mod friction;
 pub mod hierarchy;

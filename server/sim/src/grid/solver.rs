@@ -28,6 +28,7 @@ use crate::solver::kernels::{Planar24, rotate_and_multiply};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
 use crate::solver::multigrid::VCycle;
 use crate::solver::preconditioner::BlockJacobi;
+use super::factorization::Factorization;
 use super::preconditioning::Multigrid;
 
 type Vec24 = SVector<f64, 24>;
@@ -52,6 +53,8 @@ pub enum Preconditioning {
     Jacobi,
     /// A V-cycle over the grid's coarser levels (see `grid::preconditioning`).
     Multigrid,
+    /// A sparse Cholesky factor of a recent step's system (see `grid::factorization`).
+    Cholesky,
 }
 
 /// Solver settings (scene knobs).
@@ -125,6 +128,9 @@ pub struct Dynamics {
     stale_pattern: bool,
     jacobi: BlockJacobi,
     multigrid: Multigrid,
+    factorization: Factorization,
+    /// Each node's rotation (for the Cholesky preconditioner's warp).
+    node_rotations: Vec<Matrix3<f64>>,
     /// Scratch of the V-cycle.
     vcycle_scratch: Vec<Vec3>,
     pcg: Pcg,
@@ -136,7 +142,7 @@ pub struct Dynamics {
 
 impl Dynamics {
     pub fn new(topo: &Topology) -> Self {
-        let mut d = Dynamics { stale_pattern: true, multigrid: Multigrid::new(), ..Dynamics::default() };
+        let mut d = Dynamics { stale_pattern: true, multigrid: Multigrid::new(), factorization: Factorization::new(), ..Dynamics::default() };
         d.resize(topo);
         d
     }
@@ -152,11 +158,13 @@ impl Dynamics {
         self.rotations.resize(topo.elements.len(), Matrix3::identity());
         self.stale_pattern = true;
         self.multigrid.topology_changed();
+        self.factorization.topology_changed();
     }
 
-    /// Steps that waited for the multigrid's rebuilt hierarchy.
+    /// Steps that waited for background work (the multigrid's rebuilt hierarchy, a
+    /// Cholesky factor).
     pub fn waits(&self) -> u64 {
-        self.multigrid.waits
+        self.multigrid.waits + self.factorization.waits
     }
 
     /// Forgets the warm start (after a contained blow-up).
@@ -178,10 +186,7 @@ impl Dynamics {
     }
 
     fn rebuild_pattern(&mut self, topo: &Topology) {
-        let live = (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]).map(|e| &topo.elements.nodes[e][..]);
-        // Held nodes' unknowns are zero: their couplings would only multiply zeros (on the
-        // layered abdomen a third of the nodes are held).
-        let pattern = Pattern::from_elements_coupling(topo.nodes.len(), live, |n| topo.nodes.alive[n as usize] && !topo.nodes.fixed[n as usize]);
+        let pattern = system_pattern(topo);
         self.scatter = Scatter::new(&pattern, &topo.elements.nodes, &topo.elements.alive);
         self.system = BlockMatrix::zeros(pattern);
         self.stale_pattern = false;
@@ -281,11 +286,19 @@ impl Dynamics {
         let operator = Assembled { matrix: &self.system, active: &self.active };
         let hierarchy = match settings.preconditioner {
             Preconditioning::Multigrid => self.multigrid.prepare(step, topo, &self.active, &self.rotations, a_mass, a_stiff),
-            Preconditioning::Jacobi => None,
+            Preconditioning::Jacobi | Preconditioning::Cholesky => None,
+        };
+        let factor = match settings.preconditioner {
+            Preconditioning::Cholesky => {
+                node_rotations(topo, &self.rotations, &mut self.node_rotations);
+                self.factorization.prepare(step, &self.system, &self.active, &self.node_rotations)
+            }
+            _ => None,
         };
 
-        self.last = match hierarchy {
-            Some(hierarchy) => {
+        self.last = match (hierarchy, factor) {
+            (_, Some(factor)) => self.pcg.solve(&operator, &factor, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
+            (Some(hierarchy), None) => {
                 let vcycle = VCycle {
                     hierarchy: std::cell::RefCell::new(hierarchy),
                     matrix: &self.system,
@@ -295,7 +308,7 @@ impl Dynamics {
                 };
                 self.pcg.solve(&operator, &vcycle, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings)
             }
-            None => self.pcg.solve(&operator, &self.jacobi, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
+            (None, None) => self.pcg.solve(&operator, &self.jacobi, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
         };
         let mut max_dv: f64 = 0.0;
         for i in 0..n {
@@ -313,6 +326,14 @@ impl Dynamics {
         }
         max_dv
     }
+}
+
+/// The pattern of the step's system: every pair of nodes sharing a live element, except
+/// that held nodes' unknowns are zero: their couplings would only multiply zeros (on the
+/// layered abdomen a third of the nodes are held), so they keep their diagonal alone.
+pub fn system_pattern(topo: &Topology) -> Pattern {
+    let live = (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]).map(|e| &topo.elements.nodes[e][..]);
+    Pattern::from_elements_coupling(topo.nodes.len(), live, |n| topo.nodes.alive[n as usize] && !topo.nodes.fixed[n as usize])
 }
 
 /// The assembled system as the solver's operator.
@@ -333,9 +354,7 @@ fn safe_div(a: f64, b: f64) -> f64 {
 
 /// The rotation of an element: the polar rotation of its deformation gradient at the
 /// centre, `F = [Σ x-edges / 4a, Σ y-edges / 4b, Σ z-edges / 4c]` for a cell of sides
-/// (a, b, c); `x(n)` is corner n's position. Newton's iteration `R ← (R + R⁻ᵀ)/2`
-/// converges quadratically; an inverted or collapsed element (det F ≤ 1e-6) takes the
-/// proper rotation nearest F from the SVD instead. None when that is undefined.
+/// (a, b, c); `x(n)` is corner n's position. See [`nearest_rotation`].
 pub fn averaged_edge_rotation(x: &impl Fn(usize) -> Vec3, cell_m: &Vec3) -> Option<Matrix3<f64>> {
     let mut edges = [Vec3::zeros(); 3];
     for (a, edge) in edges.iter_mut().enumerate() {
@@ -346,9 +365,15 @@ pub fn averaged_edge_rotation(x: &impl Fn(usize) -> Vec3, cell_m: &Vec3) -> Opti
         }
         *edge /= 4.0 * cell_m[a];
     }
-    let f = Matrix3::from_columns(&edges);
+    nearest_rotation(&Matrix3::from_columns(&edges))
+}
+
+/// The polar rotation of `f`: Newton's iteration `R ← (R + R⁻ᵀ)/2` converges
+/// quadratically; an inverted or collapsed `f` (det ≤ 1e-6) takes the proper rotation
+/// nearest it from the SVD instead. None when that is undefined.
+pub fn nearest_rotation(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     if f.determinant() > 1e-6 {
-        let mut r = f;
+        let mut r = *f;
         for _ in 0..20 {
             let Some(inverse) = r.try_inverse() else { break };
             let next = (r + inverse.transpose()) * 0.5;
@@ -382,6 +407,24 @@ pub fn averaged_edge_rotation(x: &impl Fn(usize) -> Vec3, cell_m: &Vec3) -> Opti
     }
     let r = u * flip * v_t;
     r.iter().all(|c| c.is_finite()).then_some(r)
+}
+
+/// Each node's rotation: the nearest rotation to the sum of its live elements' (the
+/// identity for a node without any). What the Cholesky preconditioner warps its factor
+/// with.
+pub fn node_rotations(topo: &Topology, element_rotations: &[Matrix3<f64>], out: &mut Vec<Matrix3<f64>>) {
+    out.clear();
+    out.resize(topo.nodes.len(), Matrix3::zeros());
+    for e in 0..topo.elements.len() {
+        if topo.elements.alive[e] {
+            for &n in &topo.elements.nodes[e] {
+                out[n as usize] += element_rotations[e];
+            }
+        }
+    }
+    for r in out.iter_mut() {
+        *r = if *r == Matrix3::zeros() { Matrix3::identity() } else { nearest_rotation(r).unwrap_or_else(Matrix3::identity) };
+    }
 }
 
 /// Element `e`'s displacement in its rotated frame, `Rᵀ(x − x₀) − (X − X₀)` per corner

@@ -723,6 +723,10 @@ pub enum PreconditionerSpec {
     /// A V-cycle over the grid's coarser levels (block Gauss–Seidel smoothing): a few
     /// iterations at any resolution, each costing about four of Jacobi's.
     Multigrid,
+    /// A sparse Cholesky factor of a recent step's system, made on a worker thread every
+    /// 32 steps and after cuts: the fewest iterations, each costing a pair of triangular
+    /// solves; its memory and factoring time grow fastest with resolution.
+    Cholesky,
 }
 
 fn default_grid_cg_iterations() -> CgIterations {

@@ -10,6 +10,8 @@
 //! - [`preconditioner`]: none and block Jacobi, the baselines;
 //! - [`multigrid`]: a V-cycle over coarser Galerkin levels, the preconditioner whose
 //!   iteration count does not grow with resolution;
+//! - [`cholesky`]: a sparse Cholesky factor of a recent system (faer's), the other such
+//!   preconditioner: computed on a worker, reused for many steps;
 //! - [`kernels`]: the per-step kernels — element rotation and scatter, block-row products
 //!   and Gauss–Seidel sweeps, the conjugate gradient's vector updates — vectorized, each
 //!   sum in a fixed order (the same bits at every vector width);
@@ -21,6 +23,7 @@
 
 pub mod background;
 pub mod block_sparse;
+pub mod cholesky;
 pub mod kernels;
 pub mod multigrid;
 pub mod pcg;

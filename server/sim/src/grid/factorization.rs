@@ -1,0 +1,256 @@
+//! The branched grid's Cholesky preconditioner over time (crate::solver::cholesky).
+//!
+//! Schedule, fixed by step index so that a run reaches the same state hash in real
+//! time, in lockstep and as a replay:
+//! - the first step factors its own system, on the step (nothing to reuse yet);
+//! - every [`REFACTOR_EVERY`] steps the step's system is copied and handed to a worker
+//!   thread, whose factor replaces the one in use at the step `delay` later (a step waits
+//!   for a late worker; the waits are counted). `delay` grows with the factor's size
+//!   (see [`delay_for`]) so that on this class of machine the worker is rarely late;
+//! - after a cut the structure (pattern, ordering, symbolic factor) is made again on the
+//!   worker with the first factor, due twice the last delay later; until it arrives the
+//!   solve uses block Jacobi alone.
+//!
+//! The factor is of a system some steps old (other rotations, other contacts). Turned
+//! node by node with the rotation each node made since (`solver::cholesky`'s warp) it
+//! still leaves the conjugate gradient a handful of iterations (4.2 a step on the
+//! sagging level-0 cantilever of docs/fem-comparison.md with a factor from step 0; 41
+//! unwarped), and the solve's tolerance, not the factor, decides the answer.
+
+use std::sync::Arc;
+
+use super::topology::Topology;
+use crate::math::Matrix3;
+use crate::solver::background::Background;
+use crate::solver::block_sparse::{Block, BlockMatrix, Pattern};
+use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorSolve, Structure};
+
+/// A new factor is asked for this often (steps).
+pub const REFACTOR_EVERY: u64 = 32;
+/// The shortest delay between asking for a factor and using it (steps).
+pub const MIN_DELAY: u64 = 32;
+
+/// Steps between asking for a factor with `factor_entries` entries in L over `unknowns`
+/// unknowns and using it: twice the factorization's time at 2·10¹⁰ units of
+/// entries² / unknowns per second, in 1 ms steps; at least [`MIN_DELAY`]. Measured on
+/// this project's 2-core machine (faer, one thread), that rate is 1.5–3.6·10¹⁰: 3.3 ms
+/// for 0.5 M entries over 5,226 unknowns, 44 ms for 3.5 M over 9,720, 2.0 s for 80 M
+/// over 90,033. A function of the structure alone, so the schedule is the same on every
+/// machine; a slower one waits (counted in `solver_waits`).
+pub fn delay_for(factor_entries: usize, unknowns: usize) -> u64 {
+    let work = (factor_entries as f64).powi(2) / unknowns.max(1) as f64;
+    let ms = 2.0 * work / 2e10 * 1e3;
+    MIN_DELAY.max(ms.ceil() as u64)
+}
+
+/// The largest factor a scene may ask for (entries of L; 8 bytes each, about 1.5 s to
+/// compute on this project's machine): at 40 M a factor takes 320 MB, twice that while
+/// the next one is computed.
+pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;
+
+/// The entries of the Cholesky factor of `topo`'s step system (its symbolic
+/// factorization alone, no values): what a scene asking for the Cholesky preconditioner
+/// is checked against at load, before any factor is computed.
+pub fn factor_entries(topo: &Topology) -> Result<usize, FactorError> {
+    let active: Vec<bool> = (0..topo.nodes.len()).map(|n| topo.nodes.alive[n] && !topo.nodes.fixed[n]).collect();
+    Ok(Structure::new(&super::solver::system_pattern(topo), &active)?.factor_entries)
+}
+
+/// What the worker is given: the system's values at the step it was asked for, the
+/// structure to factor them on (None: make it first, from the pattern and active set).
+/// The nodes' rotations at that step stay with it, for the warp.
+struct Job {
+    values: Vec<Block<f32>>,
+    rotations: Vec<Matrix3<f64>>,
+    structure: Result<Arc<Structure>, (Pattern, Vec<bool>)>,
+}
+
+fn run(job: &Job, lower: &mut Vec<f64>) -> Result<Factor, FactorError> {
+    let structure = match &job.structure {
+        Ok(structure) => structure.clone(),
+        Err((pattern, active)) => Arc::new(Structure::new(pattern, active)?),
+    };
+    Factor::new(structure, &job.values, lower)
+}
+
+/// A job out with the worker.
+struct Pending {
+    due: u64,
+    generation: u64,
+    job: Arc<Job>,
+}
+
+/// The Cholesky preconditioner's state (see the module docs).
+#[derive(Default)]
+pub struct Factorization {
+    current: Option<Factor>,
+    /// The nodes' rotations when the current factor's system was assembled.
+    factored_rotations: Vec<Matrix3<f64>>,
+    /// Per node: its rotation now times its rotation then, transposed (scratch).
+    warp: Vec<Matrix3<f64>>,
+    pending: Option<Pending>,
+    /// A clone's copy of its original's pending result, computed when it was cloned.
+    precomputed: Option<Result<Factor, FactorError>>,
+    worker: Option<Background<Arc<Job>, Result<Factor, FactorError>>>,
+    /// One more for every topology change: results for an older one are dropped.
+    generation: u64,
+    /// The first factor has been made (on the first step).
+    started: bool,
+    /// The topology changed since the last factor was asked for.
+    stale: bool,
+    /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
+    delay: u64,
+    /// Buffers back from the worker, reused for the next job.
+    spare: Vec<Block<f32>>,
+    spare_rotations: Vec<Matrix3<f64>>,
+    solve: FactorSolve,
+    /// Steps that waited for the worker; factorizations that failed (the solve then
+    /// goes on with block Jacobi until the next one).
+    pub waits: u64,
+    pub failures: u64,
+}
+
+impl std::fmt::Debug for Factorization {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Factorization")
+            .field("has_factor", &self.current.is_some())
+            .field("due", &self.pending.as_ref().map(|p| p.due))
+            .field("generation", &self.generation)
+            .field("waits", &self.waits)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Clone for Factorization {
+    /// A copy that will do exactly what the original does: a factor the original has out
+    /// is computed here at once, and taken at the same step.
+    fn clone(&self) -> Self {
+        let precomputed = match &self.pending {
+            Some(p) => Some(run(&p.job, &mut Vec::new())),
+            None => None,
+        };
+        Factorization {
+            current: self.current.clone(),
+            factored_rotations: self.factored_rotations.clone(),
+            warp: Vec::new(),
+            pending: self.pending.as_ref().map(|p| Pending { due: p.due, generation: p.generation, job: p.job.clone() }),
+            precomputed,
+            worker: None,
+            generation: self.generation,
+            started: self.started,
+            stale: self.stale,
+            delay: self.delay,
+            spare: Vec::new(),
+            spare_rotations: Vec::new(),
+            solve: FactorSolve::default(),
+            waits: self.waits,
+            failures: self.failures,
+        }
+    }
+}
+
+impl Factorization {
+    pub fn new() -> Self {
+        Factorization { delay: MIN_DELAY, ..Factorization::default() }
+    }
+
+    /// The topology changed (a cut): the structure no longer fits.
+    pub fn topology_changed(&mut self) {
+        self.generation += 1;
+        self.current = None;
+        self.stale = true;
+    }
+
+    /// Before step `step`'s solve of `system` over the `active` unknowns, whose nodes
+    /// are turned by `rotations` now: takes a factor that is due, asks for the next one
+    /// when it is time, and returns the preconditioner to solve with (None: block Jacobi
+    /// alone).
+    pub fn prepare(&mut self, step: u64, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) -> Option<FactorPreconditioner<'_>> {
+        if self.pending.as_ref().is_some_and(|p| p.due == step) {
+            let pending = self.pending.take().expect("a pending factor");
+            let result = match self.precomputed.take() {
+                Some(result) => Some(result),
+                None => {
+                    let worker = self.worker.as_mut().expect("a worker has the job");
+                    let before = worker.waits;
+                    let result = worker.take_if_due(step);
+                    self.waits += worker.waits - before;
+                    result
+                }
+            };
+            let job_rotations = match Arc::try_unwrap(pending.job) {
+                Ok(job) => {
+                    self.spare = job.values;
+                    job.rotations
+                }
+                // A copy of this model shares the job: its rotations are copied.
+                Err(shared) => shared.rotations.clone(),
+            };
+            match result {
+                Some(Ok(factor)) if pending.generation == self.generation => {
+                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
+                    self.current = Some(factor);
+                    self.spare_rotations = std::mem::replace(&mut self.factored_rotations, job_rotations);
+                }
+                Some(Err(_)) | None => self.failures += 1,
+                Some(Ok(_)) => {}
+            }
+        }
+        if !self.started {
+            // The first step: nothing to reuse, factor this system now.
+            match Factor::of(system, active) {
+                Ok(factor) => {
+                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
+                    self.current = Some(factor);
+                    self.factored_rotations.clear();
+                    self.factored_rotations.extend_from_slice(rotations);
+                }
+                Err(_) => self.failures += 1,
+            }
+            self.started = true;
+            self.stale = false;
+        } else if self.pending.is_none() && (self.stale || step % REFACTOR_EVERY == 0) {
+            self.ask(step, system, active, rotations);
+        }
+        let factor = self.current.as_ref()?;
+        if !factor.structure.fits(&system.pattern, active) {
+            // Held nodes changed without a cut (a tool took hold): the next factor will fit.
+            return None;
+        }
+        self.warp.clear();
+        self.warp.extend(rotations.iter().zip(&self.factored_rotations).map(|(now, then)| now * then.transpose()));
+        self.solve.prepare(factor);
+        Some(self.solve.with(factor, Some(&self.warp)))
+    }
+
+    /// Hands a copy of `system` to the worker, due after the factor's delay.
+    fn ask(&mut self, step: u64, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) {
+        let reusable = self.current.as_ref().filter(|f| !self.stale && f.structure.fits(&system.pattern, active)).map(|f| f.structure.clone());
+        // A new structure (after a cut) is not known before it is made: twice the last
+        // factor's delay covers the ordering and symbolic work too (a cut changes the
+        // system's size little).
+        let due = step + if reusable.is_some() { self.delay } else { 2 * self.delay };
+        let mut values = std::mem::take(&mut self.spare);
+        values.clear();
+        values.extend_from_slice(&system.values);
+        let mut job_rotations = std::mem::take(&mut self.spare_rotations);
+        job_rotations.clear();
+        job_rotations.extend_from_slice(rotations);
+        let structure = reusable.ok_or_else(|| (system.pattern.clone(), active.to_vec()));
+        let job = Arc::new(Job { values, rotations: job_rotations, structure });
+        self.stale = false;
+        if self.worker.is_none() {
+            let mut lower = Vec::new();
+            self.worker = Background::new("grid-cholesky", move |job: Arc<Job>| run(&job, &mut lower)).ok();
+        }
+        let refused = match self.worker.as_mut() {
+            Some(worker) => worker.submit(job.clone(), due).is_err(),
+            None => true,
+        };
+        // No worker thread could be started: factor here, due as planned.
+        if refused {
+            self.precomputed = Some(run(&job, &mut Vec::new()));
+        }
+        self.pending = Some(Pending { due, generation: self.generation, job });
+    }
+}

@@ -1,0 +1,377 @@
+//! A sparse Cholesky factorization of an assembled system, kept as the conjugate
+//! gradient's preconditioner for many steps after it was computed.
+//!
+//! The system changes every step (rotations, contacts), but slowly: the factor of a
+//! recent one, `A_old = L Lᵀ`, makes `A_old⁻¹ A` close to the identity, so a solve takes
+//! a few iterations at any resolution. Computing it is the expensive part, so it is split
+//! the way SOFA's asynchronous LDLᵀ solver and Courtecuisse et al. (2014) split it:
+//!
+//! - [`Structure`]: the lower triangle's pattern over the active unknowns (three per
+//!   active node, in node order) and its symbolic factorization (faer's, with an
+//!   approximate-minimum-degree ordering; supernodal or simplicial as the fill decides),
+//!   computed once per topology;
+//! - [`Factor`]: the numeric factor of one system's values on that structure, computed
+//!   on a worker thread (the models schedule it: see `grid::factorization`);
+//! - [`FactorSolve`]: `z = A_old⁻¹ r` with buffers of its own: no allocation per solve.
+//!
+//! Everything runs on one thread per call (faer's `Par::Seq`): the physics thread keeps
+//! its core, the worker its own.
+
+use std::cell::RefCell;
+use std::sync::Arc;
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+use faer::{Conj, MatMut, Par, Side};
+
+use super::block_sparse::{Block, BlockMatrix, Pattern, Scalar, at};
+use super::pcg::Preconditioner;
+use crate::math::{Matrix3, Vec3};
+
+/// A node without unknowns (held or dead).
+const INACTIVE: u32 = u32::MAX;
+
+/// Why no factor could be made.
+#[derive(Debug, thiserror::Error)]
+pub enum FactorError {
+    #[error("the symbolic Cholesky factorization failed: {0:?}")]
+    Symbolic(faer::sparse::FaerError),
+    #[error("the system is not positive definite (Cholesky broke down): {0:?}")]
+    NotPositiveDefinite(faer::linalg::cholesky::llt::factor::LltError),
+}
+
+/// The lower triangle's pattern over the active unknowns, where each of its entries is
+/// read from in the block matrix, and the symbolic factorization.
+#[derive(Debug)]
+pub struct Structure {
+    /// Per node: its first unknown (the next two follow), or [`INACTIVE`].
+    first: Vec<u32>,
+    unknowns: usize,
+    col_ptr: Vec<u32>,
+    row_idx: Vec<u32>,
+    /// Per entry: the block it is read from, and the position in that block.
+    source: Vec<(u32, u8)>,
+    symbolic: SymbolicCholesky<u32>,
+    /// Entries of the factor L.
+    pub factor_entries: usize,
+}
+
+impl Structure {
+    /// The structure of a system with `pattern` whose unknowns are those of the nodes
+    /// with `active` true. The pattern must be symmetric (every assembled system is).
+    pub fn new(pattern: &Pattern, active: &[bool]) -> Result<Structure, FactorError> {
+        let n = pattern.rows();
+        let mut first = vec![INACTIVE; n];
+        let mut unknowns = 0u32;
+        for (i, first) in first.iter_mut().enumerate() {
+            if active[i] {
+                *first = unknowns;
+                unknowns += 3;
+            }
+        }
+        // Column 3j + q of the lower triangle: rows 3i + p ≥ 3j + q over the blocks of
+        // row j (the pattern is symmetric: block (i, j) is block (j, i) transposed). The
+        // columns of a row are sorted, so each column's rows come out sorted.
+        let mut col_ptr = Vec::with_capacity(unknowns as usize + 1);
+        let mut row_idx = Vec::new();
+        let mut source = Vec::new();
+        col_ptr.push(0u32);
+        for j in 0..n {
+            if first[j] == INACTIVE {
+                continue;
+            }
+            for q in 0..3 {
+                let column = first[j] + q as u32;
+                for k in pattern.start[j] as usize..pattern.start[j + 1] as usize {
+                    let i = pattern.cols[k] as usize;
+                    if first[i] == INACTIVE || first[i] < first[j] {
+                        continue;
+                    }
+                    for p in 0..3 {
+                        let row = first[i] + p as u32;
+                        if row >= column {
+                            row_idx.push(row);
+                            source.push((k as u32, at(q, p) as u8));
+                        }
+                    }
+                }
+                col_ptr.push(row_idx.len() as u32);
+            }
+        }
+        let size = unknowns as usize;
+        let lower = SymbolicSparseColMatRef::new_checked(size, size, &col_ptr, None, &row_idx);
+        let symbolic = factorize_symbolic_cholesky(lower, Side::Lower, SymmetricOrdering::Amd, Default::default()).map_err(FactorError::Symbolic)?;
+        let factor_entries = symbolic.len_val();
+        Ok(Structure { first, unknowns: size, col_ptr, row_idx, source, symbolic, factor_entries })
+    }
+
+    /// Unknowns of the factored system.
+    pub fn unknowns(&self) -> usize {
+        self.unknowns
+    }
+
+    /// Whether this structure is the one of a system with `pattern` and `active`
+    /// (same rows and active set; the pattern itself is checked by its size).
+    pub fn fits(&self, pattern: &Pattern, active: &[bool]) -> bool {
+        self.first.len() == pattern.rows()
+            && self.first.iter().zip(active).all(|(&f, &a)| (f != INACTIVE) == a)
+    }
+}
+
+/// The numeric factor of one system on a [`Structure`].
+#[derive(Debug, Clone)]
+pub struct Factor {
+    pub structure: Arc<Structure>,
+    values: Vec<f64>,
+}
+
+impl Factor {
+    /// Factors the system whose block values are `blocks` (laid out on the pattern the
+    /// structure was made from). `lower` is scratch for the lower triangle's values, kept
+    /// by the caller between factorizations.
+    pub fn new<T: Scalar>(structure: Arc<Structure>, blocks: &[Block<T>], lower: &mut Vec<f64>) -> Result<Factor, FactorError> {
+        let s = &*structure;
+        lower.clear();
+        lower.extend(s.source.iter().map(|&(k, at)| blocks[k as usize][at as usize].to_f64()));
+        let symbolic = SymbolicSparseColMatRef::new_checked(s.unknowns, s.unknowns, &s.col_ptr, None, &s.row_idx);
+        let matrix = SparseColMatRef::new(symbolic, lower);
+        let mut values = vec![0.0; s.symbolic.len_val()];
+        let mut scratch = MemBuffer::new(s.symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
+        s.symbolic
+            .factorize_numeric_llt(&mut values, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(&mut scratch), Default::default())
+            .map_err(FactorError::NotPositiveDefinite)?;
+        Ok(Factor { structure, values })
+    }
+
+    /// Factors a block matrix (at once, on this thread).
+    pub fn of<T: Scalar>(a: &BlockMatrix<T>, active: &[bool]) -> Result<Factor, FactorError> {
+        let structure = Arc::new(Structure::new(&a.pattern, active)?);
+        Factor::new(structure, &a.values, &mut Vec::new())
+    }
+}
+
+/// Solves with a [`Factor`]: `z = A_old⁻¹ r` on the active nodes, zero elsewhere.
+#[derive(Default)]
+pub struct FactorSolve {
+    rhs: RefCell<Vec<f64>>,
+    scratch: RefCell<Option<MemBuffer>>,
+    /// The unknowns the scratch was sized for.
+    sized_for: usize,
+}
+
+impl std::fmt::Debug for FactorSolve {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FactorSolve").field("sized_for", &self.sized_for).finish_non_exhaustive()
+    }
+}
+
+/// A copy has buffers of its own, sized at its first `prepare`.
+impl Clone for FactorSolve {
+    fn clone(&self) -> Self {
+        FactorSolve::default()
+    }
+}
+
+impl FactorSolve {
+    /// Sizes the buffers for `factor` (allocates only when its structure grew).
+    pub fn prepare(&mut self, factor: &Factor) {
+        let s = &*factor.structure;
+        if self.sized_for != s.unknowns || self.scratch.get_mut().is_none() {
+            self.rhs.get_mut().resize(s.unknowns, 0.0);
+            *self.scratch.get_mut() = Some(MemBuffer::new(s.symbolic.solve_in_place_scratch::<f64>(1, Par::Seq)));
+            self.sized_for = s.unknowns;
+        }
+    }
+
+    /// The preconditioner of one solve: the factor and these buffers (prepared for it),
+    /// warped by a rotation per node (see [`FactorPreconditioner`]).
+    pub fn with<'a>(&'a self, factor: &'a Factor, warp: Option<&'a [Matrix3<f64>]>) -> FactorPreconditioner<'a> {
+        assert_eq!(self.sized_for, factor.structure.unknowns, "FactorSolve::prepare first");
+        FactorPreconditioner { factor, solve: self, warp }
+    }
+}
+
+/// A factor as the conjugate gradient's preconditioner: `z = W A_old⁻¹ Wᵀ r`, with `W`
+/// block diagonal, a rotation per node (the identity when there is no warp). A
+/// corotational system whose parts turned since it was factored is, to first order, the
+/// old one turned with them (Saupin, Duriez & Cotin 2008 warp their preconditioner so):
+/// turning the factor keeps it useful over more steps. `W` orthogonal keeps `z`
+/// symmetric positive definite in `r`.
+pub struct FactorPreconditioner<'a> {
+    factor: &'a Factor,
+    solve: &'a FactorSolve,
+    warp: Option<&'a [Matrix3<f64>]>,
+}
+
+impl Preconditioner for FactorPreconditioner<'_> {
+    fn apply(&self, r: &[Vec3], z: &mut [Vec3]) {
+        let s = &*self.factor.structure;
+        let mut rhs = self.solve.rhs.borrow_mut();
+        let mut scratch = self.solve.scratch.borrow_mut();
+        let scratch = scratch.as_mut().expect("prepared");
+        for (i, &f) in s.first.iter().enumerate() {
+            if f != INACTIVE {
+                let f = f as usize;
+                let turned = match self.warp {
+                    Some(w) => w[i].tr_mul(&r[i]),
+                    None => r[i],
+                };
+                rhs[f..f + 3].copy_from_slice(turned.as_slice());
+            }
+        }
+        let llt = LltRef::<u32, f64>::new(&s.symbolic, &self.factor.values);
+        llt.solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(scratch));
+        for (i, &f) in s.first.iter().enumerate() {
+            z[i] = if f == INACTIVE {
+                Vec3::zeros()
+            } else {
+                let x = Vec3::from_column_slice(&rhs[f as usize..f as usize + 3]);
+                match self.warp {
+                    Some(w) => w[i] * x,
+                    None => x,
+                }
+            };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A chain of `n` nodes, each coupled to the next: SPD, with a node held.
+    fn chain(n: usize) -> (BlockMatrix<f64>, Vec<bool>) {
+        let elements: Vec<[u32; 2]> = (0..n as u32 - 1).map(|i| [i, i + 1]).collect();
+        let pattern = Pattern::from_elements(n, elements.iter().map(|e| &e[..]));
+        let mut a = BlockMatrix::<f64>::zeros(pattern);
+        for e in &elements {
+            let (i, j) = (e[0] as usize, e[1] as usize);
+            let k = Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.5, 0.2, 0.1, 0.2, 1.0) * (1.0 + i as f64 * 0.1);
+            a.add(a.pattern.find(i, i).unwrap(), &k);
+            a.add(a.pattern.find(j, j).unwrap(), &k);
+            a.add(a.pattern.find(i, j).unwrap(), &-k);
+            a.add(a.pattern.find(j, i).unwrap(), &-k.transpose());
+        }
+        for i in 0..n {
+            a.add_diagonal(a.pattern.diag[i] as usize, Vec3::repeat(0.5));
+        }
+        let mut active = vec![true; n];
+        active[0] = false;
+        (a, active)
+    }
+
+    #[test]
+    fn the_factor_solves_the_system_on_the_active_nodes() {
+        let (a, active) = chain(12);
+        let factor = Factor::of(&a, &active).unwrap();
+        assert_eq!(factor.structure.unknowns(), 33);
+        let mut solve = FactorSolve::default();
+        solve.prepare(&factor);
+        let x: Vec<Vec3> = (0..12).map(|i| if active[i] { Vec3::new(i as f64, 1.0 - i as f64, 0.5) } else { Vec3::zeros() }).collect();
+        let mut b = vec![Vec3::zeros(); 12];
+        a.multiply(&x, &mut b, &active);
+        let mut z = vec![Vec3::repeat(7.0); 12];
+        solve.with(&factor, None).apply(&b, &mut z);
+        for i in 0..12 {
+            assert!((z[i] - x[i]).amax() < 1e-10, "node {i}: {} against {}", z[i], x[i]);
+        }
+        assert_eq!(z[0], Vec3::zeros());
+    }
+
+    /// A 3D lattice of `m`³ nodes coupled to their 26 neighbours by non-symmetric
+    /// blocks (symmetric as a whole): large enough for a supernodal factor.
+    fn lattice(m: usize) -> (BlockMatrix<f64>, Vec<bool>) {
+        let id = |x: usize, y: usize, z: usize| (x + m * (y + m * z)) as u32;
+        let mut pairs = Vec::new();
+        for z in 0..m {
+            for y in 0..m {
+                for x in 0..m {
+                    for (dx, dy, dz) in [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)] {
+                        if x + dx < m && y + dy < m && z + dz < m {
+                            pairs.push([id(x, y, z), id(x + dx, y + dy, z + dz)]);
+                        }
+                    }
+                }
+            }
+        }
+        let n = m * m * m;
+        let mut a = BlockMatrix::<f64>::zeros(Pattern::from_elements(n, pairs.iter().map(|e| &e[..])));
+        for (e, pair) in pairs.iter().enumerate() {
+            let (i, j) = (pair[0] as usize, pair[1] as usize);
+            let c = Matrix3::new(0.3, 0.1, 0.0, -0.05, 0.2, 0.07, 0.02, 0.0, 0.25) * (1.0 + (e % 7) as f64 * 0.1);
+            // A coupling c between i and j: [cᵀc, −cᵀc; −cᵀc, cᵀc] is symmetric PSD, so
+            // use the non-symmetric product c·M·cᵀ-free form: off-diagonal −c, diagonal
+            // a dominant multiple of the identity.
+            a.add(a.pattern.find(i, j).unwrap(), &-c);
+            a.add(a.pattern.find(j, i).unwrap(), &-c.transpose());
+            a.add_diagonal(a.pattern.diag[i] as usize, Vec3::repeat(0.6));
+            a.add_diagonal(a.pattern.diag[j] as usize, Vec3::repeat(0.6));
+        }
+        let mut active = vec![true; n];
+        for i in (0..n).step_by(17) {
+            active[i] = false;
+        }
+        (a, active)
+    }
+
+    #[test]
+    fn a_large_factor_solves_non_symmetric_blocks_exactly() {
+        let (a, active) = lattice(11);
+        let n = a.rows();
+        let factor = Factor::of(&a, &active).unwrap();
+        let mut solve = FactorSolve::default();
+        solve.prepare(&factor);
+        let x: Vec<Vec3> = (0..n).map(|i| if active[i] { Vec3::new((i as f64).sin(), (i as f64 * 0.3).cos(), 0.1 * (i % 5) as f64) } else { Vec3::zeros() }).collect();
+        let mut b = vec![Vec3::zeros(); n];
+        a.multiply(&x, &mut b, &active);
+        let mut z = vec![Vec3::zeros(); n];
+        solve.with(&factor, None).apply(&b, &mut z);
+        let error = (0..n).map(|i| (z[i] - x[i]).amax()).fold(0.0, f64::max);
+        assert!(error < 1e-9, "{error}");
+    }
+
+    /// A system turned node by node, `A' = W A Wᵀ`, is solved exactly by the factor of
+    /// `A` warped with `W`.
+    #[test]
+    fn a_warped_factor_solves_the_turned_system() {
+        let (a, active) = lattice(5);
+        let n = a.rows();
+        let factor = Factor::of(&a, &active).unwrap();
+        let warp: Vec<Matrix3<f64>> = (0..n).map(|i| *nalgebra::Rotation3::from_scaled_axis(Vec3::new(0.1 * i as f64, -0.3, 0.02 * i as f64)).matrix()).collect();
+        let mut turned = a.clone();
+        for i in 0..n {
+            for k in a.pattern.start[i] as usize..a.pattern.start[i + 1] as usize {
+                let j = a.pattern.cols[k] as usize;
+                let block = warp[i] * a.block(k) * warp[j].transpose();
+                turned.values[k] = [0.0; 12];
+                turned.add(k, &block);
+            }
+        }
+        let mut solve = FactorSolve::default();
+        solve.prepare(&factor);
+        let x: Vec<Vec3> = (0..n).map(|i| if active[i] { Vec3::new(1.0, (i as f64).sin(), -0.5) } else { Vec3::zeros() }).collect();
+        let mut b = vec![Vec3::zeros(); n];
+        turned.multiply(&x, &mut b, &active);
+        let mut z = vec![Vec3::zeros(); n];
+        solve.with(&factor, Some(&warp)).apply(&b, &mut z);
+        let error = (0..n).map(|i| (z[i] - x[i]).amax()).fold(0.0, f64::max);
+        assert!(error < 1e-9, "{error}");
+    }
+
+    #[test]
+    fn a_structure_fits_only_its_active_set() {
+        let (a, active) = chain(5);
+        let s = Structure::new(&a.pattern, &active).unwrap();
+        assert!(s.fits(&a.pattern, &active));
+        assert!(!s.fits(&a.pattern, &[true; 5]));
+    }
+
+    #[test]
+    fn an_indefinite_system_is_refused() {
+        let (mut a, active) = chain(4);
+        a.add_diagonal(a.pattern.diag[2] as usize, Vec3::repeat(-100.0));
+        assert!(matches!(Factor::of(&a, &active), Err(FactorError::NotPositiveDefinite(_))));
+    }
+}
