@@ -21,7 +21,7 @@ use std::sync::Arc;
 
 use super::topology::Topology;
 use crate::math::Matrix3;
-use crate::solver::background::Background;
+use crate::solver::background::{Background, take_due};
 use crate::solver::block_sparse::{Block, BlockMatrix, Pattern};
 use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorSolve, Structure};
 
@@ -168,16 +168,7 @@ impl Factorization {
     pub fn prepare(&mut self, step: u64, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) -> Option<FactorPreconditioner<'_>> {
         if self.pending.as_ref().is_some_and(|p| p.due == step) {
             let pending = self.pending.take().expect("a pending factor");
-            let result = match self.precomputed.take() {
-                Some(result) => Some(result),
-                None => {
-                    let worker = self.worker.as_mut().expect("a worker has the job");
-                    let before = worker.waits;
-                    let result = worker.take_if_due(step);
-                    self.waits += worker.waits - before;
-                    result
-                }
-            };
+            let result = take_due(&mut self.precomputed, self.worker.as_mut(), step, &mut self.waits);
             let job_rotations = match Arc::try_unwrap(pending.job) {
                 Ok(job) => {
                     self.spare = job.values;

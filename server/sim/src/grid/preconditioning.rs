@@ -19,7 +19,7 @@ use std::sync::Arc;
 use super::hierarchy::{COARSEST_NODES, Coarsening};
 use super::topology::{NONE, Topology};
 use crate::math::{Matrix3, Vec3};
-use crate::solver::background::Background;
+use crate::solver::background::{Background, take_due};
 use crate::solver::block_sparse::{BlockMatrix, Pattern, Scatter};
 use crate::solver::kernels::{F8, rotate_and_multiply};
 use crate::solver::multigrid::Hierarchy;
@@ -176,16 +176,7 @@ impl Multigrid {
         let mut fresh = false;
         if self.pending.as_ref().is_some_and(|p| p.0 == step) {
             let (_, generation, _, _) = self.pending.take().expect("a pending rebuild");
-            let result = match self.precomputed.take() {
-                Some(result) => Some(result),
-                None => {
-                    let worker = self.worker.as_mut().expect("a worker has the job");
-                    let before = worker.waits;
-                    let result = worker.take_if_due(step);
-                    self.waits += worker.waits - before;
-                    result
-                }
-            };
+            let result = take_due(&mut self.precomputed, self.worker.as_mut(), step, &mut self.waits);
             if generation == self.generation {
                 self.current = result;
                 fresh = true;

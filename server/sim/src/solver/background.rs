@@ -80,6 +80,20 @@ impl<I: Send + 'static, O: Send + 'static> Background<I, O> {
     }
 }
 
+/// The result due at `step` of a model whose pending job is either `precomputed` (a copy
+/// of the model computed it when it was made: see the models' `Clone`) or out with
+/// `worker`; a wait for the worker is added to `waits`.
+pub fn take_due<I: Send + 'static, O: Send + 'static>(precomputed: &mut Option<O>, worker: Option<&mut Background<I, O>>, step: u64, waits: &mut u64) -> Option<O> {
+    if let Some(result) = precomputed.take() {
+        return Some(result);
+    }
+    let worker = worker.expect("a worker has the job");
+    let before = worker.waits;
+    let result = worker.take_if_due(step);
+    *waits += worker.waits - before;
+    result
+}
+
 impl<I: Send + 'static, O: Send + 'static> std::fmt::Debug for Background<I, O> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Background").field("due", &self.due).field("waits", &self.waits).finish_non_exhaustive()
