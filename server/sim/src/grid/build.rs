@@ -212,7 +212,7 @@ fn check_factor_size(scene: &Scene, grid: &BranchedGrid) -> Result<(), SceneErro
         &scene.origin,
         field,
         format!(
-            "the Cholesky factor of this scene's system would hold {entries} entries ({} MB), more than the {} allowed; use the multigrid preconditioner or a coarser level",
+            "the Cholesky factor of this scene's system would hold {entries} entries ({} MB to compute in double precision), more than the {} allowed; use the multigrid preconditioner or a coarser level",
             entries * 8 / 1_000_000,
             super::factorization::MAX_FACTOR_ENTRIES
         ),

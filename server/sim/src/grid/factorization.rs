@@ -3,19 +3,21 @@
 //! Schedule, fixed by step index so that a run reaches the same state hash in real
 //! time, in lockstep and as a replay:
 //! - the first step factors its own system, on the step (nothing to reuse yet);
-//! - every [`REFACTOR_EVERY`] steps the step's system is copied and handed to a worker
-//!   thread, whose factor replaces the one in use at the step `delay` later (a step waits
-//!   for a late worker; the waits are counted). `delay` grows with the factor's size
-//!   (see [`delay_for`]) so that on this class of machine the worker is rarely late;
+//! - every [`REFACTOR_EVERY`] steps the step's system, once solved, is handed to a
+//!   worker thread (its buffer swapped for a spare: nothing is copied), whose factor
+//!   replaces the one in use at the step `delay` later (a step waits for a late worker;
+//!   the waits are counted). `delay` grows with the factor's size (see [`delay_for`]) so
+//!   that on this class of machine the worker is rarely late;
 //! - after a cut the structure (pattern, ordering, symbolic factor) is made again on the
 //!   worker with the first factor, due twice the last delay later; until it arrives the
 //!   solve uses block Jacobi alone.
 //!
 //! The factor is of a system some steps old (other rotations, other contacts). Turned
 //! node by node with the rotation each node made since (`solver::cholesky`'s warp) it
-//! still leaves the conjugate gradient a handful of iterations (4.2 a step on the
-//! sagging level-0 cantilever of docs/fem-comparison.md with a factor from step 0; 41
-//! unwarped), and the solve's tolerance, not the factor, decides the answer.
+//! still leaves the conjugate gradient one to three iterations on the bundled scenes
+//! (on the sagging level-0 cantilever of docs/fem-comparison.md a factor from step 0
+//! leaves about 3 a step warped, 41 unwarped), and the solve's tolerance, not the
+//! factor, decides the answer.
 
 use std::sync::Arc;
 
@@ -23,12 +25,12 @@ use super::topology::Topology;
 use crate::math::Matrix3;
 use crate::solver::background::{Background, take_due};
 use crate::solver::block_sparse::{Block, BlockMatrix, Pattern};
-use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorSolve, Structure};
+use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorScratch, FactorSolve, Structure};
 
 /// A new factor is asked for this often (steps).
-pub const REFACTOR_EVERY: u64 = 32;
+pub const REFACTOR_EVERY: u64 = 16;
 /// The shortest delay between asking for a factor and using it (steps).
-pub const MIN_DELAY: u64 = 32;
+pub const MIN_DELAY: u64 = 16;
 
 /// Steps between asking for a factor with `factor_entries` entries in L over `unknowns`
 /// unknowns and using it: twice the factorization's time at 2·10¹⁰ units of
@@ -43,9 +45,9 @@ pub fn delay_for(factor_entries: usize, unknowns: usize) -> u64 {
     MIN_DELAY.max(ms.ceil() as u64)
 }
 
-/// The largest factor a scene may ask for (entries of L; 8 bytes each, about 1.5 s to
-/// compute on this project's machine): at 40 M a factor takes 320 MB, twice that while
-/// the next one is computed.
+/// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
+/// project's machine): at 40 M the worker computes in 320 MB (double precision) and
+/// the factors in use and in the making take 160 MB each (single).
 pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;
 
 /// The entries of the Cholesky factor of `topo`'s step system (its symbolic
@@ -56,21 +58,25 @@ pub fn factor_entries(topo: &Topology) -> Result<usize, FactorError> {
     Ok(Structure::new(&super::solver::system_pattern(topo), &active)?.factor_entries)
 }
 
-/// What the worker is given: the system's values at the step it was asked for, the
-/// structure to factor them on (None: make it first, from the pattern and active set).
-/// The nodes' rotations at that step stay with it, for the warp.
+/// What the worker is given: the system's blocks at the step it was asked for (the
+/// buffer itself, handed over after that step's solve: nothing is copied on the physics
+/// thread), the structure to factor them on (or, after a cut, the pattern and active
+/// set to make one from), and the nodes' rotations at that step, for the warp.
 struct Job {
-    values: Vec<Block<f32>>,
-    rotations: Vec<Matrix3<f64>>,
+    blocks: Vec<Block<f32>>,
     structure: Result<Arc<Structure>, (Pattern, Vec<bool>)>,
+    rotations: Vec<Matrix3<f64>>,
+    /// A factor no longer in use, whose buffer the new one is written into.
+    recycled: std::sync::Mutex<Vec<f32>>,
 }
 
-fn run(job: &Job, lower: &mut Vec<f64>) -> Result<Factor, FactorError> {
+fn run(job: &Job, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
+    let out = std::mem::take(&mut *job.recycled.lock().unwrap_or_else(|e| e.into_inner()));
     let structure = match &job.structure {
         Ok(structure) => structure.clone(),
         Err((pattern, active)) => Arc::new(Structure::new(pattern, active)?),
     };
-    Factor::new(structure, &job.values, lower)
+    Factor::from_blocks(structure, &job.blocks, out, scratch)
 }
 
 /// A job out with the worker.
@@ -100,8 +106,11 @@ pub struct Factorization {
     stale: bool,
     /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
     delay: u64,
-    /// Buffers back from the worker, reused for the next job.
-    spare: Vec<Block<f32>>,
+    /// Buffers back from the worker, reused for the next job, and the last factor retired.
+    spare_blocks: Vec<Block<f32>>,
+    retired: Option<Vec<f32>>,
+    /// This step's system goes to the worker once it is solved.
+    hand_over: bool,
     spare_rotations: Vec<Matrix3<f64>>,
     solve: FactorSolve,
     /// Steps that waited for the worker; factorizations that failed (the solve then
@@ -126,7 +135,7 @@ impl Clone for Factorization {
     /// is computed here at once, and taken at the same step.
     fn clone(&self) -> Self {
         let precomputed = match &self.pending {
-            Some(p) => Some(run(&p.job, &mut Vec::new())),
+            Some(p) => Some(run(&p.job, &mut FactorScratch::default())),
             None => None,
         };
         Factorization {
@@ -140,7 +149,9 @@ impl Clone for Factorization {
             started: self.started,
             stale: self.stale,
             delay: self.delay,
-            spare: Vec::new(),
+            spare_blocks: Vec::new(),
+            retired: None,
+            hand_over: self.hand_over,
             spare_rotations: Vec::new(),
             solve: FactorSolve::default(),
             waits: self.waits,
@@ -171,7 +182,7 @@ impl Factorization {
             let result = take_due(&mut self.precomputed, self.worker.as_mut(), step, &mut self.waits);
             let job_rotations = match Arc::try_unwrap(pending.job) {
                 Ok(job) => {
-                    self.spare = job.values;
+                    self.spare_blocks = job.blocks;
                     job.rotations
                 }
                 // A copy of this model shares the job: its rotations are copied.
@@ -180,7 +191,9 @@ impl Factorization {
             match result {
                 Some(Ok(factor)) if pending.generation == self.generation => {
                     self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
-                    self.current = Some(factor);
+                    // The old factor's buffer goes to the next job, not to the allocator:
+                    // freeing megabytes here would cost this step an unmap.
+                    self.retired = self.current.replace(factor).map(Factor::into_values);
                     self.spare_rotations = std::mem::replace(&mut self.factored_rotations, job_rotations);
                 }
                 Some(Err(_)) | None => self.failures += 1,
@@ -201,7 +214,7 @@ impl Factorization {
             self.started = true;
             self.stale = false;
         } else if self.pending.is_none() && (self.stale || step % REFACTOR_EVERY == 0) {
-            self.ask(step, system, active, rotations);
+            self.hand_over = true;
         }
         let factor = self.current.as_ref()?;
         if !factor.structure.fits(&system.pattern, active) {
@@ -214,25 +227,32 @@ impl Factorization {
         Some(self.solve.with(factor, Some(&self.warp)))
     }
 
-    /// Hands a copy of `system` to the worker, due after the factor's delay.
-    fn ask(&mut self, step: u64, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) {
+    /// After step `step`'s solve: when `prepare` chose this step, hands `system`'s values
+    /// to the worker (swapped for a spare buffer, which the next step's assembly
+    /// overwrites), due after the factor's delay.
+    pub fn after_solve(&mut self, step: u64, system: &mut BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) {
+        if !std::mem::take(&mut self.hand_over) {
+            return;
+        }
         let reusable = self.current.as_ref().filter(|f| !self.stale && f.structure.fits(&system.pattern, active)).map(|f| f.structure.clone());
         // A new structure (after a cut) is not known before it is made: twice the last
         // factor's delay covers the ordering and symbolic work too (a cut changes the
         // system's size little).
         let due = step + if reusable.is_some() { self.delay } else { 2 * self.delay };
-        let mut values = std::mem::take(&mut self.spare);
-        values.clear();
-        values.extend_from_slice(&system.values);
         let mut job_rotations = std::mem::take(&mut self.spare_rotations);
         job_rotations.clear();
         job_rotations.extend_from_slice(rotations);
+        let mut blocks = std::mem::take(&mut self.spare_blocks);
+        // Sized to the system (allocates only when a cut changed its pattern).
+        blocks.resize(system.values.len(), [0.0; 12]);
+        std::mem::swap(&mut blocks, &mut system.values);
         let structure = reusable.ok_or_else(|| (system.pattern.clone(), active.to_vec()));
-        let job = Arc::new(Job { values, rotations: job_rotations, structure });
+        let recycled = std::sync::Mutex::new(self.retired.take().unwrap_or_default());
+        let job = Arc::new(Job { blocks, structure, rotations: job_rotations, recycled });
         self.stale = false;
         if self.worker.is_none() {
-            let mut lower = Vec::new();
-            self.worker = Background::new("grid-cholesky", move |job: Arc<Job>| run(&job, &mut lower)).ok();
+            let mut scratch = FactorScratch::default();
+            self.worker = Background::new("grid-cholesky", move |job: Arc<Job>| run(&job, &mut scratch)).ok();
         }
         let refused = match self.worker.as_mut() {
             Some(worker) => worker.submit(job.clone(), due).is_err(),
@@ -240,7 +260,7 @@ impl Factorization {
         };
         // No worker thread could be started: factor here, due as planned.
         if refused {
-            self.precomputed = Some(run(&job, &mut Vec::new()));
+            self.precomputed = Some(run(&job, &mut FactorScratch::default()));
         }
         self.pending = Some(Pending { due, generation: self.generation, job });
     }

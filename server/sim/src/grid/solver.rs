@@ -310,6 +310,9 @@ impl Dynamics {
             }
             (None, None) => self.pcg.solve(&operator, &self.jacobi, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
         };
+        if settings.preconditioner == Preconditioning::Cholesky {
+            self.factorization.after_solve(step, &mut self.system, &self.active, &self.node_rotations);
+        }
         let mut max_dv: f64 = 0.0;
         for i in 0..n {
             if !self.active[i] {
@@ -409,24 +412,25 @@ pub fn nearest_rotation(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     r.iter().all(|c| c.is_finite()).then_some(r)
 }
 
-/// Each node's rotation: the nearest rotation to the sum of its live elements' (the
-/// identity for a node without any, or where the sum is degenerate). What the Cholesky preconditioner warps its factor
-/// with.
+/// Each node's rotation: that of the first live element holding it (the identity for a
+/// node without any). What the Cholesky preconditioner warps its factor with: one
+/// element's rotation is as good for that as the mean of all of them (the same
+/// iteration counts), and costs no polar decomposition per node.
 pub fn node_rotations(topo: &Topology, element_rotations: &[Matrix3<f64>], out: &mut Vec<Matrix3<f64>>) {
     out.clear();
     out.resize(topo.nodes.len(), Matrix3::zeros());
     for e in 0..topo.elements.len() {
         if topo.elements.alive[e] {
             for &n in &topo.elements.nodes[e] {
-                out[n as usize] += element_rotations[e];
+                // A rotation is never the zero matrix: zero marks a node not yet given one.
+                if out[n as usize] == Matrix3::zeros() {
+                    out[n as usize] = element_rotations[e];
+                }
             }
         }
     }
-    for r in out.iter_mut() {
-        // The mean of up to eight nearby rotations is nearly one already: scaled so, the
-        // polar iteration stops after two or three rounds (from the plain sum, after many).
-        let scale = r.column(0).norm();
-        *r = if scale == 0.0 { Matrix3::identity() } else { nearest_rotation(&(*r / scale)).unwrap_or_else(Matrix3::identity) };
+    for r in out.iter_mut().filter(|r| **r == Matrix3::zeros()) {
+        *r = Matrix3::identity();
     }
 }
 

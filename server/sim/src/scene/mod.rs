@@ -724,7 +724,7 @@ pub enum PreconditionerSpec {
     /// iterations at any resolution, each costing about four of Jacobi's.
     Multigrid,
     /// A sparse Cholesky factor of a recent step's system, made on a worker thread every
-    /// 32 steps and after cuts: the fewest iterations, each costing a pair of triangular
+    /// 16 steps and after cuts: the fewest iterations, each costing a pair of triangular
     /// solves; its memory and factoring time grow fastest with resolution.
     Cholesky,
 }

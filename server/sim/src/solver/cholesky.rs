@@ -20,7 +20,7 @@
 use std::cell::RefCell;
 use std::sync::Arc;
 
-use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -124,38 +124,81 @@ impl Structure {
 #[derive(Debug, Clone)]
 pub struct Factor {
     pub structure: Arc<Structure>,
+    values: Vec<f32>,
+}
+
+impl Structure {
+    /// The lower triangle's values of a system with block values `blocks` (laid out on
+    /// the pattern this structure was made from), in the structure's order, into `out`:
+    /// what a factorization reads (a seventh of the blocks' floats: one triangle, no
+    /// padding).
+    pub fn gather<T: Scalar>(&self, blocks: &[Block<T>], out: &mut Vec<f64>) {
+        out.clear();
+        out.extend(self.source.iter().map(|&(k, at)| blocks[k as usize][at as usize].to_f64()));
+    }
+}
+
+/// What a factorization works in, kept between factorizations by whoever makes them (a
+/// worker thread): its double-precision factor and faer's scratch, grown, never shrunk.
+#[derive(Default)]
+pub struct FactorScratch {
+    lower: Vec<f64>,
     values: Vec<f64>,
+    buffer: Option<(StackReq, MemBuffer)>,
 }
 
 impl Factor {
-    /// Factors the system whose block values are `blocks` (laid out on the pattern the
-    /// structure was made from). `lower` is scratch for the lower triangle's values, kept
-    /// by the caller between factorizations.
-    pub fn new<T: Scalar>(structure: Arc<Structure>, blocks: &[Block<T>], lower: &mut Vec<f64>) -> Result<Factor, FactorError> {
+    /// Factors the system whose lower triangle is `lower` (from [`Structure::gather`]),
+    /// in double precision; the factor is kept in single precision, in `out` (a factor
+    /// no longer used, recycled: no allocation where it has the size). The triangular
+    /// solves stream the factor from memory every iteration: single precision halves
+    /// their time, and as a preconditioner its rounding costs no iterations (the same
+    /// counts on every bundled scene).
+    pub fn new(structure: Arc<Structure>, lower: &[f64], mut out: Vec<f32>, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
         let s = &*structure;
-        lower.clear();
-        lower.extend(s.source.iter().map(|&(k, at)| blocks[k as usize][at as usize].to_f64()));
         let symbolic = SymbolicSparseColMatRef::new_checked(s.unknowns, s.unknowns, &s.col_ptr, None, &s.row_idx);
         let matrix = SparseColMatRef::new(symbolic, lower);
-        let mut values = vec![0.0; s.symbolic.len_val()];
-        let mut scratch = MemBuffer::new(s.symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
+        scratch.values.resize(s.symbolic.len_val(), 0.0);
+        let req = s.symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default());
+        let fits = scratch.buffer.as_ref().is_some_and(|(had, _)| had.size_bytes() >= req.size_bytes() && had.align_bytes() >= req.align_bytes());
+        if !fits {
+            scratch.buffer = Some((req, MemBuffer::new(req)));
+        }
+        let buffer = &mut scratch.buffer.as_mut().expect("sized above").1;
         s.symbolic
-            .factorize_numeric_llt(&mut values, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(&mut scratch), Default::default())
+            .factorize_numeric_llt(&mut scratch.values, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(buffer), Default::default())
             .map_err(FactorError::NotPositiveDefinite)?;
-        Ok(Factor { structure, values })
+        out.clear();
+        out.extend(scratch.values.iter().map(|&v| v as f32));
+        Ok(Factor { structure, values: out })
+    }
+
+    /// Factors the system whose block values are `blocks` (on the pattern the structure
+    /// was made from).
+    pub fn from_blocks<T: Scalar>(structure: Arc<Structure>, blocks: &[Block<T>], out: Vec<f32>, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
+        let mut lower = std::mem::take(&mut scratch.lower);
+        structure.gather(blocks, &mut lower);
+        let factor = Factor::new(structure, &lower, out, scratch);
+        scratch.lower = lower;
+        factor
     }
 
     /// Factors a block matrix (at once, on this thread).
     pub fn of<T: Scalar>(a: &BlockMatrix<T>, active: &[bool]) -> Result<Factor, FactorError> {
         let structure = Arc::new(Structure::new(&a.pattern, active)?);
-        Factor::new(structure, &a.values, &mut Vec::new())
+        Factor::from_blocks(structure, &a.values, Vec::new(), &mut FactorScratch::default())
+    }
+
+    /// The factor's values, to recycle into the next factorization.
+    pub fn into_values(self) -> Vec<f32> {
+        self.values
     }
 }
 
 /// Solves with a [`Factor`]: `z = A_old⁻¹ r` on the active nodes, zero elsewhere.
 #[derive(Default)]
 pub struct FactorSolve {
-    rhs: RefCell<Vec<f64>>,
+    rhs: RefCell<Vec<f32>>,
     scratch: RefCell<Option<MemBuffer>>,
     /// The unknowns the scratch was sized for.
     sized_for: usize,
@@ -180,7 +223,7 @@ impl FactorSolve {
         let s = &*factor.structure;
         if self.sized_for != s.unknowns || self.scratch.get_mut().is_none() {
             self.rhs.get_mut().resize(s.unknowns, 0.0);
-            *self.scratch.get_mut() = Some(MemBuffer::new(s.symbolic.solve_in_place_scratch::<f64>(1, Par::Seq)));
+            *self.scratch.get_mut() = Some(MemBuffer::new(s.symbolic.solve_in_place_scratch::<f32>(1, Par::Seq)));
             self.sized_for = s.unknowns;
         }
     }
@@ -218,16 +261,19 @@ impl Preconditioner for FactorPreconditioner<'_> {
                     Some(w) => w[i].tr_mul(&r[i]),
                     None => r[i],
                 };
-                rhs[f..f + 3].copy_from_slice(turned.as_slice());
+                rhs[f] = turned.x as f32;
+                rhs[f + 1] = turned.y as f32;
+                rhs[f + 2] = turned.z as f32;
             }
         }
-        let llt = LltRef::<u32, f64>::new(&s.symbolic, &self.factor.values);
+        let llt = LltRef::<u32, f32>::new(&s.symbolic, &self.factor.values);
         llt.solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(scratch));
         for (i, &f) in s.first.iter().enumerate() {
             z[i] = if f == INACTIVE {
                 Vec3::zeros()
             } else {
-                let x = Vec3::from_column_slice(&rhs[f as usize..f as usize + 3]);
+                let f = f as usize;
+                let x = Vec3::new(f64::from(rhs[f]), f64::from(rhs[f + 1]), f64::from(rhs[f + 2]));
                 match self.warp {
                     Some(w) => w[i] * x,
                     None => x,
@@ -275,7 +321,7 @@ mod tests {
         let mut z = vec![Vec3::repeat(7.0); 12];
         solve.with(&factor, None).apply(&b, &mut z);
         for i in 0..12 {
-            assert!((z[i] - x[i]).amax() < 1e-10, "node {i}: {} against {}", z[i], x[i]);
+            assert!((z[i] - x[i]).amax() < 1e-5 * x[i].amax().max(1.0), "node {i}: {} against {}", z[i], x[i]);
         }
         assert_eq!(z[0], Vec3::zeros());
     }
@@ -317,7 +363,7 @@ mod tests {
     }
 
     #[test]
-    fn a_large_factor_solves_non_symmetric_blocks_exactly() {
+    fn a_large_factor_solves_non_symmetric_blocks_to_single_precision() {
         let (a, active) = lattice(11);
         let n = a.rows();
         let factor = Factor::of(&a, &active).unwrap();
@@ -329,11 +375,11 @@ mod tests {
         let mut z = vec![Vec3::zeros(); n];
         solve.with(&factor, None).apply(&b, &mut z);
         let error = (0..n).map(|i| (z[i] - x[i]).amax()).fold(0.0, f64::max);
-        assert!(error < 1e-9, "{error}");
+        assert!(error < 1e-5, "{error}");
     }
 
-    /// A system turned node by node, `A' = W A Wᵀ`, is solved exactly by the factor of
-    /// `A` warped with `W`.
+    /// A system turned node by node, `A' = W A Wᵀ`, is solved (to the factor's single
+    /// precision) by the factor of `A` warped with `W`.
     #[test]
     fn a_warped_factor_solves_the_turned_system() {
         let (a, active) = lattice(5);
@@ -357,7 +403,7 @@ mod tests {
         let mut z = vec![Vec3::zeros(); n];
         solve.with(&factor, Some(&warp)).apply(&b, &mut z);
         let error = (0..n).map(|i| (z[i] - x[i]).amax()).fold(0.0, f64::max);
-        assert!(error < 1e-9, "{error}");
+        assert!(error < 1e-5, "{error}");
     }
 
     #[test]
