@@ -218,7 +218,8 @@ impl Factorization {
         }
         let factor = self.current.as_ref()?;
         if !factor.structure.fits(&system.pattern, active) {
-            // Held nodes changed without a cut (a tool took hold): the next factor will fit.
+            // The active set changed without a cut: the next factor (made on a new
+            // structure) will fit.
             return None;
         }
         self.warp.clear();
