@@ -134,10 +134,7 @@ impl Clone for Factorization {
     /// A copy that will do exactly what the original does: a factor the original has out
     /// is computed here at once, and taken at the same step.
     fn clone(&self) -> Self {
-        let precomputed = match &self.pending {
-            Some(p) => Some(run(&p.job, &mut FactorScratch::default())),
-            None => None,
-        };
+        let precomputed = self.pending.as_ref().map(|p| run(&p.job, &mut FactorScratch::default()));
         Factorization {
             current: self.current.clone(),
             factored_rotations: self.factored_rotations.clone(),
@@ -213,7 +210,7 @@ impl Factorization {
             }
             self.started = true;
             self.stale = false;
-        } else if self.pending.is_none() && (self.stale || step % REFACTOR_EVERY == 0) {
+        } else if self.pending.is_none() && (self.stale || step.is_multiple_of(REFACTOR_EVERY)) {
             self.hand_over = true;
         }
         let factor = self.current.as_ref()?;
