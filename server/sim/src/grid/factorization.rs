@@ -62,9 +62,12 @@ pub fn factor_entries(topo: &Topology) -> Result<usize, FactorError> {
 /// buffer itself, handed over after that step's solve: nothing is copied on the physics
 /// thread), the structure to factor them on (or, after a cut, the pattern and active
 /// set to make one from), and the nodes' rotations at that step, for the warp.
+#[derive(Default)]
 struct Job {
     blocks: Vec<Block<f32>>,
-    structure: Result<Arc<Structure>, (Pattern, Vec<bool>)>,
+    structure: Option<Arc<Structure>>,
+    /// After a cut: the pattern and active set to make the structure from.
+    new_structure: (Pattern, Vec<bool>),
     rotations: Vec<Matrix3<f64>>,
     /// A factor no longer in use, whose buffer the new one is written into.
     recycled: std::sync::Mutex<Vec<f32>>,
@@ -73,8 +76,8 @@ struct Job {
 fn run(job: &Job, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
     let out = std::mem::take(&mut *job.recycled.lock().unwrap_or_else(|e| e.into_inner()));
     let structure = match &job.structure {
-        Ok(structure) => structure.clone(),
-        Err((pattern, active)) => Arc::new(Structure::new(pattern, active)?),
+        Some(structure) => structure.clone(),
+        None => Arc::new(Structure::new(&job.new_structure.0, &job.new_structure.1)?),
     };
     Factor::from_blocks(structure, &job.blocks, out, scratch)
 }
@@ -106,12 +109,13 @@ pub struct Factorization {
     stale: bool,
     /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
     delay: u64,
-    /// Buffers back from the worker, reused for the next job, and the last factor retired.
-    spare_blocks: Vec<Block<f32>>,
+    /// The last job back from the worker, its allocation and buffers reused for the next
+    /// (nothing is allocated on the physics thread once the first job is back), and the
+    /// last factor retired, whose buffer the next one is written into.
+    spare_job: Option<Arc<Job>>,
     retired: Option<Vec<f32>>,
     /// This step's system goes to the worker once it is solved.
     hand_over: bool,
-    spare_rotations: Vec<Matrix3<f64>>,
     solve: FactorSolve,
     /// Steps that waited for the worker; factorizations that failed (the solve then
     /// goes on with block Jacobi until the next one).
@@ -146,10 +150,9 @@ impl Clone for Factorization {
             started: self.started,
             stale: self.stale,
             delay: self.delay,
-            spare_blocks: Vec::new(),
+            spare_job: None,
             retired: None,
             hand_over: self.hand_over,
-            spare_rotations: Vec::new(),
             solve: FactorSolve::default(),
             waits: self.waits,
             failures: self.failures,
@@ -177,24 +180,24 @@ impl Factorization {
         if self.pending.as_ref().is_some_and(|p| p.due == step) {
             let pending = self.pending.take().expect("a pending factor");
             let result = take_due(&mut self.precomputed, self.worker.as_mut(), step, &mut self.waits);
-            let job_rotations = match Arc::try_unwrap(pending.job) {
-                Ok(job) => {
-                    self.spare_blocks = job.blocks;
-                    job.rotations
-                }
-                // A copy of this model shares the job: its rotations are copied.
-                Err(shared) => shared.rotations.clone(),
-            };
+            let mut job = pending.job;
             match result {
                 Some(Ok(factor)) if pending.generation == self.generation => {
                     self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
                     // The old factor's buffer goes to the next job, not to the allocator:
                     // freeing megabytes here would cost this step an unmap.
                     self.retired = self.current.replace(factor).map(Factor::into_values);
-                    self.spare_rotations = std::mem::replace(&mut self.factored_rotations, job_rotations);
+                    match Arc::get_mut(&mut job) {
+                        Some(back) => std::mem::swap(&mut self.factored_rotations, &mut back.rotations),
+                        // A copy of this model shares the job: its rotations are copied.
+                        None => self.factored_rotations.clone_from(&job.rotations),
+                    }
                 }
                 Some(Err(_)) | None => self.failures += 1,
                 Some(Ok(_)) => {}
+            }
+            if Arc::get_mut(&mut job).is_some() {
+                self.spare_job = Some(job);
             }
         }
         if !self.started {
@@ -237,16 +240,19 @@ impl Factorization {
         // factor's delay covers the ordering and symbolic work too (a cut changes the
         // system's size little).
         let due = step + if reusable.is_some() { self.delay } else { 2 * self.delay };
-        let mut job_rotations = std::mem::take(&mut self.spare_rotations);
-        job_rotations.clear();
-        job_rotations.extend_from_slice(rotations);
-        let mut blocks = std::mem::take(&mut self.spare_blocks);
-        // Sized to the system (allocates only when a cut changed its pattern).
-        blocks.resize(system.values.len(), [0.0; 12]);
-        std::mem::swap(&mut blocks, &mut system.values);
-        let structure = reusable.ok_or_else(|| (system.pattern.clone(), active.to_vec()));
-        let recycled = std::sync::Mutex::new(self.retired.take().unwrap_or_default());
-        let job = Arc::new(Job { blocks, structure, rotations: job_rotations, recycled });
+        let mut job = self.spare_job.take().unwrap_or_default();
+        let next = Arc::get_mut(&mut job).expect("a spare job is shared with no one");
+        next.rotations.clear();
+        next.rotations.extend_from_slice(rotations);
+        // Sized to the system (allocates only when a cut changed its pattern, or the
+        // first time).
+        next.blocks.resize(system.values.len(), [0.0; 12]);
+        std::mem::swap(&mut next.blocks, &mut system.values);
+        if reusable.is_none() {
+            next.new_structure = (system.pattern.clone(), active.to_vec());
+        }
+        next.structure = reusable;
+        *next.recycled.get_mut().unwrap_or_else(|e| e.into_inner()) = self.retired.take().unwrap_or_default();
         self.stale = false;
         if self.worker.is_none() {
             let mut scratch = FactorScratch::default();
