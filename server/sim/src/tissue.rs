@@ -51,6 +51,9 @@ pub struct TissueCounters {
     /// Steps that waited for the solver's background work (a preconditioner rebuilt
     /// after a cut) to arrive at its appointed step.
     pub solver_waits: u64,
+    /// Cholesky factorizations that failed (a system not positive definite): the solve
+    /// went on with block Jacobi until the next factor.
+    pub solver_factor_failures: u64,
 }
 
 impl TissueCounters {

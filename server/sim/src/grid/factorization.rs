@@ -105,8 +105,6 @@ pub struct Factorization {
     generation: u64,
     /// The first factor has been made (on the first step).
     started: bool,
-    /// The topology changed since the last factor was asked for.
-    stale: bool,
     /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
     delay: u64,
     /// The last job back from the worker, its allocation and buffers reused for the next
@@ -148,7 +146,6 @@ impl Clone for Factorization {
             worker: None,
             generation: self.generation,
             started: self.started,
-            stale: self.stale,
             delay: self.delay,
             spare_job: None,
             retired: None,
@@ -165,11 +162,13 @@ impl Factorization {
         Factorization { delay: MIN_DELAY, ..Factorization::default() }
     }
 
-    /// The topology changed (a cut): the structure no longer fits.
+    /// The topology changed (a cut): the structure no longer fits. Every change of the
+    /// pattern or of the active set comes through here (held nodes are set at load,
+    /// nodes and elements change only by cuts), so a factor in use always fits the
+    /// system it preconditions.
     pub fn topology_changed(&mut self) {
         self.generation += 1;
         self.current = None;
-        self.stale = true;
     }
 
     /// Before step `step`'s solve of `system` over the `active` unknowns, whose nodes
@@ -212,16 +211,12 @@ impl Factorization {
                 Err(_) => self.failures += 1,
             }
             self.started = true;
-            self.stale = false;
-        } else if self.pending.is_none() && (self.stale || step.is_multiple_of(REFACTOR_EVERY)) {
+        } else if self.pending.is_none() && (self.current.is_none() || step.is_multiple_of(REFACTOR_EVERY)) {
+            // No factor (after a cut, or one that failed): ask at once; else on schedule.
             self.hand_over = true;
         }
         let factor = self.current.as_ref()?;
-        if !factor.structure.fits(&system.pattern, active) {
-            // The active set changed without a cut: the next factor (made on a new
-            // structure) will fit.
-            return None;
-        }
+        debug_assert!(factor.structure.fits(&system.pattern, active), "a factor in use fits its system");
         self.warp.clear();
         self.warp.extend(rotations.iter().zip(&self.factored_rotations).map(|(now, then)| now * then.transpose()));
         self.solve.prepare(factor);
@@ -235,7 +230,9 @@ impl Factorization {
         if !std::mem::take(&mut self.hand_over) {
             return;
         }
-        let reusable = self.current.as_ref().filter(|f| !self.stale && f.structure.fits(&system.pattern, active)).map(|f| f.structure.clone());
+        // The factor in use fits this system (see `topology_changed`); without one (after
+        // a cut) the worker makes the structure first.
+        let reusable = self.current.as_ref().map(|f| f.structure.clone());
         // A new structure (after a cut) is not known before it is made: twice the last
         // factor's delay covers the ordering and symbolic work too (a cut changes the
         // system's size little).
@@ -253,7 +250,6 @@ impl Factorization {
         }
         next.structure = reusable;
         *next.recycled.get_mut().unwrap_or_else(|e| e.into_inner()) = self.retired.take().unwrap_or_default();
-        self.stale = false;
         if self.worker.is_none() {
             let mut scratch = FactorScratch::default();
             self.worker = Background::new("grid-cholesky", move |job: Arc<Job>| run(&job, &mut scratch)).ok();

@@ -196,6 +196,7 @@ impl BranchedGrid {
         let max_dv = self.dynamics.step(&mut self.topo, &self.settings, &self.contacts, self.step_index);
         self.counters.count_solve(&self.dynamics.last);
         self.counters.solver_waits = self.dynamics.waits();
+        self.counters.solver_factor_failures = self.dynamics.factor_failures();
         if !max_dv.is_finite() {
             // Contain: back to the last good state, at rest, and say so.
             self.topo.nodes.x.copy_from_slice(&self.backup_x);

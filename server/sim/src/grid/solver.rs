@@ -129,8 +129,10 @@ pub struct Dynamics {
     jacobi: BlockJacobi,
     multigrid: Multigrid,
     factorization: Factorization,
-    /// Each node's rotation (for the Cholesky preconditioner's warp).
+    /// Each node's rotation (for the Cholesky preconditioner's warp), and the element
+    /// it is taken from.
     node_rotations: Vec<Matrix3<f64>>,
+    first_element: Vec<u32>,
     /// Scratch of the V-cycle.
     vcycle_scratch: Vec<Vec3>,
     pcg: Pcg,
@@ -167,6 +169,11 @@ impl Dynamics {
         self.multigrid.waits + self.factorization.waits
     }
 
+    /// Cholesky factorizations that failed (see `grid::factorization`).
+    pub fn factor_failures(&self) -> u64 {
+        self.factorization.failures
+    }
+
     /// Forgets the warm start (after a contained blow-up).
     pub fn reset_warm_start(&mut self) {
         self.dv.iter_mut().for_each(|v| *v = Vec3::zeros());
@@ -188,6 +195,7 @@ impl Dynamics {
     fn rebuild_pattern(&mut self, topo: &Topology) {
         let pattern = system_pattern(topo);
         self.scatter = Scatter::new(&pattern, &topo.elements.nodes, &topo.elements.alive);
+        self.first_element = first_elements(topo);
         self.system = BlockMatrix::zeros(pattern);
         self.stale_pattern = false;
     }
@@ -290,7 +298,7 @@ impl Dynamics {
         };
         let factor = match settings.preconditioner {
             Preconditioning::Cholesky => {
-                node_rotations(topo, &self.rotations, &mut self.node_rotations);
+                node_rotations(&self.first_element, &self.rotations, &mut self.node_rotations);
                 self.factorization.prepare(step, &self.system, &self.active, &self.node_rotations)
             }
             _ => None,
@@ -374,7 +382,7 @@ pub fn averaged_edge_rotation(x: &impl Fn(usize) -> Vec3, cell_m: &Vec3) -> Opti
 /// The polar rotation of `f`: Newton's iteration `R ← (R + R⁻ᵀ)/2` converges
 /// quadratically; an inverted or collapsed `f` (det ≤ 1e-6) takes the proper rotation
 /// nearest it from the SVD instead. None when that is undefined.
-pub fn nearest_rotation(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+fn nearest_rotation(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     if f.determinant() > 1e-6 {
         let mut r = *f;
         for _ in 0..20 {
@@ -412,26 +420,26 @@ pub fn nearest_rotation(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     r.iter().all(|c| c.is_finite()).then_some(r)
 }
 
-/// Each node's rotation: that of the first live element holding it (the identity for a
-/// node without any). What the Cholesky preconditioner warps its factor with: one
-/// element's rotation is as good for that as the mean of all of them (the same
-/// iteration counts), and costs no polar decomposition per node.
-pub fn node_rotations(topo: &Topology, element_rotations: &[Matrix3<f64>], out: &mut Vec<Matrix3<f64>>) {
-    out.clear();
-    out.resize(topo.nodes.len(), Matrix3::zeros());
-    for e in 0..topo.elements.len() {
-        if topo.elements.alive[e] {
-            for &n in &topo.elements.nodes[e] {
-                // A rotation is never the zero matrix: zero marks a node not yet given one.
-                if out[n as usize] == Matrix3::zeros() {
-                    out[n as usize] = element_rotations[e];
-                }
-            }
+/// Per node, the first live element holding it ([`super::topology::NONE`] for a node
+/// without any): whose rotation the node takes for the Cholesky preconditioner's warp.
+/// One element's rotation is as good for that as the mean of all of them (the same
+/// iteration counts) and needs no polar decomposition per node. Made once per
+/// topology, with the pattern.
+fn first_elements(topo: &Topology) -> Vec<u32> {
+    let mut first = vec![super::topology::NONE; topo.nodes.len()];
+    for e in (0..topo.elements.len()).rev().filter(|&e| topo.elements.alive[e]) {
+        for &n in &topo.elements.nodes[e] {
+            first[n as usize] = e as u32;
         }
     }
-    for r in out.iter_mut().filter(|r| **r == Matrix3::zeros()) {
-        *r = Matrix3::identity();
-    }
+    first
+}
+
+/// Each node's rotation, from the element [`first_elements`] gave it (the identity for
+/// a node without one).
+fn node_rotations(first_element: &[u32], element_rotations: &[Matrix3<f64>], out: &mut Vec<Matrix3<f64>>) {
+    out.clear();
+    out.extend(first_element.iter().map(|&e| if e == super::topology::NONE { Matrix3::identity() } else { element_rotations[e as usize] }));
 }
 
 /// Element `e`'s displacement in its rotated frame, `Rᵀ(x − x₀) − (X − X₀)` per corner

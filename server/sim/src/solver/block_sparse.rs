@@ -234,7 +234,6 @@ impl<T: Scalar> BlockMatrix<T> {
         Vec3::new(v[at(0, 0)].to_f64(), v[at(1, 1)].to_f64(), v[at(2, 2)].to_f64())
     }
 
-    /// Adds `m` to block `k`.
     /// Adds `m` to block `k` (nothing for [`NO_BLOCK`]).
     pub fn add(&mut self, k: usize, m: &Matrix3<f64>) {
         if k == NO_BLOCK as usize {

@@ -154,7 +154,7 @@ impl Factor {
     /// solves stream the factor from memory every iteration: single precision halves
     /// their time, and as a preconditioner its rounding costs no iterations (the same
     /// counts on every bundled scene).
-    pub fn new(structure: Arc<Structure>, lower: &[f64], mut out: Vec<f32>, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
+    fn new(structure: Arc<Structure>, lower: &[f64], mut out: Vec<f32>, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
         let s = &*structure;
         let symbolic = SymbolicSparseColMatRef::new_checked(s.unknowns, s.unknowns, &s.col_ptr, None, &s.row_idx);
         let matrix = SparseColMatRef::new(symbolic, lower);
