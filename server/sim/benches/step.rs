@@ -56,6 +56,8 @@ struct Row {
     substeps: String,
     histogram: LatencyHistogram,
     stages: cutsim_sim::msm::StageTimes,
+    /// Mean CG iterations per step (implicit only).
+    iterations: Option<f64>,
 }
 
 /// Steps until `steps` are done, or (for `budget_s`) until the time budget is spent
@@ -65,6 +67,7 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
     let mut histogram = LatencyHistogram::new();
     model.set_profiling(true);
     let start = Instant::now();
+    let (mut iterations, mut solves) = (0u64, 0u64);
     for step in 0..steps {
         if budget_s.is_some_and(|b| step >= 50 && start.elapsed().as_secs_f64() > b) {
             break;
@@ -73,18 +76,23 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
         let t = Instant::now();
         model.step(&c, &mut feedback);
         histogram.record(t.elapsed());
+        if let Some((its, _)) = model.last_solve() {
+            iterations += u64::from(its);
+            solves += 1;
+        }
     }
     let stages = model.stage_times().unwrap();
-    let substeps = model.substeps().map_or_else(|| "CG≤20".to_owned(), |s| s.to_string());
-    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages }
+    let substeps = model.substeps().map_or_else(|| "CG".to_owned(), |s| s.to_string());
+    let iterations = (solves > 0).then(|| iterations as f64 / solves as f64);
+    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages, iterations }
 }
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     println!("cutsim-sim step benchmark (release, one core): skin-patch 10 × 8 cm at three resolutions");
     println!(
-        "{:<34} {:>7} {:>6} {:>10} {:>9} {:>9} {:>9}   stages per step (forces / contacts / integrate / cut)",
-        "case", "nodes", "subst", "steps/s", "p50 µs", "p99 µs", "max µs"
+        "{:<34} {:>7} {:>6} {:>6} {:>10} {:>9} {:>9} {:>9}   stages per step (forces / contacts / integrate / cut)",
+        "case", "nodes", "subst", "CG it", "steps/s", "p50 µs", "p99 µs", "max µs"
     );
     for (label, cx, cy) in SIZES {
         for explicit in [true, false] {
@@ -104,10 +112,11 @@ fn main() {
             for r in rows {
                 let per = |ns: u64| ns as f64 / r.stages.steps.max(1) as f64 / 1e3;
                 println!(
-                    "{:<34} {:>7} {:>6} {:>10.0} {:>9.1} {:>9.1} {:>9.1}   {:.1} / {:.1} / {:.1} / {:.1} µs",
+                    "{:<34} {:>7} {:>6} {:>6} {:>10.0} {:>9.1} {:>9.1} {:>9.1}   {:.1} / {:.1} / {:.1} / {:.1} µs",
                     r.case,
                     r.nodes,
                     r.substeps,
+                    r.iterations.map_or_else(|| "-".to_owned(), |i| format!("{i:.1}")),
                     1e9 / r.histogram.mean_ns(),
                     r.histogram.quantile_ns(0.5) as f64 / 1e3,
                     r.histogram.quantile_ns(0.99) as f64 / 1e3,

@@ -157,7 +157,7 @@ impl MassSpring {
             // discretisation imbalance of irregular meshes and the membrane pressure of
             // curved ones. The border is held by the scene's fixed nodes, or not at all:
             // an unheld border pulls in, as excised skin shrinks.
-            super::forces::accumulate(&mut nodes, &springs.list, None, 0.0, &mut Default::default());
+            super::forces::accumulate(&mut nodes, &springs.list, None, 0.0, &mut Default::default(), None);
             for i in 0..n {
                 if supported[i] {
                     nodes.support[i] = -nodes.f[i];

@@ -6,17 +6,22 @@
 //! carries the prestress, and when a cut removes springs the remaining ones are no
 //! longer balanced on the wound edge — exactly the σr force the paper adds.
 
+use super::implicit::ImplicitSolver;
 use super::state::{Nodes, Spring};
 use crate::math::Vec3;
 
 /// Resets the accumulators to the external forces (support and gravity), then adds the
 /// springs. `spring_damping_s` > 0 adds β·k·(relative speed along the spring).
+///
+/// With `tangents`, the implicit integrator's tangent stiffness of every spring is
+/// recorded in the same pass, while the spring's vector is at hand.
 pub(crate) fn accumulate(
     nodes: &mut Nodes,
     springs: &[Spring],
     gravity: Option<Vec3>,
     spring_damping_s: f64,
     scratch: &mut SpringScratch,
+    tangents: Option<&mut ImplicitSolver>,
 ) {
     let Nodes { x, v, f, mass, support, .. } = nodes;
     match gravity {
@@ -27,7 +32,11 @@ pub(crate) fn accumulate(
         }
         None => f.copy_from_slice(support),
     }
-    if spring_damping_s > 0.0 {
+    if let Some(solver) = tangents {
+        debug_assert_eq!(spring_damping_s, 0.0, "the implicit integrator damps the springs in its system");
+        solver.begin_tangents(x.len(), springs.len());
+        spring_forces(x, f, springs, scratch, |k, s, d, inv_len| solver.record_tangent(k, s, d, inv_len));
+    } else if spring_damping_s > 0.0 {
         for s in springs {
             let (a, b) = (s.a as usize, s.b as usize);
             let d = x[b] - x[a];
@@ -40,7 +49,7 @@ pub(crate) fn accumulate(
             }
         }
     } else {
-        spring_forces(x, f, springs, scratch);
+        spring_forces(x, f, springs, scratch, |_, _, _, _| {});
     }
 }
 
@@ -49,9 +58,10 @@ pub(crate) fn accumulate(
 /// divisions, off any dependency chain), then the forces. Springs are stored sorted by
 /// their first node (they come from sorted edges; cuts disturb the order only locally),
 /// so the force on that node is summed in a register over each run of springs sharing
-/// it, which avoids a store → load chain on `f[a]`.
+/// it, which avoids a store → load chain on `f[a]`. `each` sees every spring (its
+/// index, the spring, its vector and its inverse length) in the force pass.
 #[inline]
-fn spring_forces(x: &[Vec3], f: &mut [Vec3], springs: &[Spring], scratch: &mut SpringScratch) {
+fn spring_forces(x: &[Vec3], f: &mut [Vec3], springs: &[Spring], scratch: &mut SpringScratch, mut each: impl FnMut(usize, &Spring, Vec3, f64)) {
     let n = springs.len();
     scratch.d.resize(n, Vec3::zeros());
     scratch.inv_len.resize(n, 0.0);
@@ -59,13 +69,11 @@ fn spring_forces(x: &[Vec3], f: &mut [Vec3], springs: &[Spring], scratch: &mut S
         *d = x[s.b as usize] - x[s.a as usize];
         *l2 = d.norm_squared();
     }
-    for l in scratch.inv_len.iter_mut() {
-        // max() keeps a zero-length spring at zero force instead of NaN, without a branch.
-        *l = 1.0 / l.sqrt().max(1e-300);
-    }
+    inverse_lengths(&mut scratch.inv_len);
     let mut current = u32::MAX;
     let mut on_current = Vec3::zeros();
-    for ((s, d), inv_len) in springs.iter().zip(&scratch.d).zip(&scratch.inv_len) {
+    for (k, ((s, d), &inv_len)) in springs.iter().zip(&scratch.d).zip(&scratch.inv_len).enumerate() {
+        each(k, s, *d, inv_len);
         let pull = d * (s.k * (1.0 - s.l0 * inv_len));
         if s.a != current {
             if current != u32::MAX {
@@ -83,12 +91,25 @@ fn spring_forces(x: &[Vec3], f: &mut [Vec3], springs: &[Spring], scratch: &mut S
     }
 }
 
+crate::solver::kernels::dispatch! {
+    /// Squared lengths to inverse lengths, in place: a loop the compiler vectorizes, four
+    /// lanes wide in the AVX2 clone (square roots and divisions are correctly rounded:
+    /// the same bits at any width).
+    pub fn inverse_lengths(l2: &mut [f64]) {
+        for l in l2.iter_mut() {
+            // max() keeps a zero-length spring at zero force instead of NaN, without a branch.
+            *l = 1.0 / l.sqrt().max(1e-300);
+        }
+    }
+}
+
 /// Per-spring scratch of the force pass (sized to the springs; grows only after cuts).
 #[derive(Debug, Clone, Default)]
 pub(crate) struct SpringScratch {
     d: Vec<Vec3>,
     inv_len: Vec<f64>,
 }
+
 
 /// Kinetic energy, J.
 pub(crate) fn kinetic_energy(nodes: &Nodes) -> f64 {

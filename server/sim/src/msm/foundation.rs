@@ -120,39 +120,16 @@ impl Foundation {
             + across / (mass_coef + h * a * self.params.shear_damping_pa_s_per_m * inv_mass)
     }
 
-    /// out += K_f p (the springs).
-    pub fn add_stiffness_product(&self, p: &[Vec3], out: &mut [Vec3]) {
-        for i in 0..p.len() {
-            let a = self.area[i];
-            if a > 0.0 {
-                out[i] += self.spring(i, p[i]) * a;
-            }
-        }
-    }
-
-    /// out += scale · C_f p (the drag).
-    pub fn add_damping_product(&self, p: &[Vec3], out: &mut [Vec3], scale: f64) {
-        let (cn, ct) = (self.params.normal_damping_pa_s_per_m, self.params.shear_damping_pa_s_per_m);
-        for i in 0..p.len() {
-            let a = self.area[i];
-            if a > 0.0 {
-                let n = self.normal[i];
-                let along = n * n.dot(&p[i]);
-                out[i] += (along * cn + (p[i] - along) * ct) * (a * scale);
-            }
-        }
-    }
-
-    /// The diagonal of `stiff_coef · K_f + damp_coef · C_f` at node `i`, per axis (the
-    /// Jacobi preconditioner's share).
-    pub fn diagonal(&self, i: usize, stiff_coef: f64, damp_coef: f64) -> Vec3 {
+    /// Node `i`'s share of `stiff_coef · K_f + damp_coef · C_f` as `iso·I + along·n nᵀ`:
+    /// (iso, along, n). Zero where the node has no foundation.
+    pub fn node_term(&self, i: usize, stiff_coef: f64, damp_coef: f64) -> (f64, f64, Vec3) {
         let a = self.area[i];
         if a <= 0.0 {
-            return Vec3::zeros();
+            return (0.0, 0.0, Vec3::zeros());
         }
-        let nn = self.normal[i].component_mul(&self.normal[i]);
         let p = &self.params;
-        nn * (a * (stiff_coef * p.stiffness_pa_per_m + damp_coef * p.normal_damping_pa_s_per_m))
-            + (Vec3::repeat(1.0) - nn) * (a * (stiff_coef * p.shear_stiffness_pa_per_m + damp_coef * p.shear_damping_pa_s_per_m))
+        let across = a * (stiff_coef * p.shear_stiffness_pa_per_m + damp_coef * p.shear_damping_pa_s_per_m);
+        let normal = a * (stiff_coef * p.stiffness_pa_per_m + damp_coef * p.normal_damping_pa_s_per_m);
+        (across, normal - across, self.normal[i])
     }
 }

@@ -6,17 +6,59 @@
 //! k[n nᵀ + max(0, 1 − L0/L)(I − n nᵀ)]: the geometric part is clamped at zero in
 //! compression so that K stays positive semi-definite and CG applies. Fixed axes are
 //! filtered out of the system. Matrix-free: nothing is assembled, nothing allocated.
+//!
+//! A product with the system is one pass over the springs and one over the nodes,
+//! reading little: a spring's tangent (`lateral·I + excess·n nᵀ`, with its node ids) is
+//! recorded by the force pass while it has the spring's vector at hand, and each node's
+//! own terms (mass, foundation stiffness and drag) are folded into one isotropic
+//! coefficient and one along its normal, once per step. The step's first pass over the
+//! springs makes K·v (for the right-hand side) and K·Δv₀ (for the first residual) at
+//! once; everything else the first residual needs is one pass over the nodes. The
+//! spring passes are compiled for the baseline and for AVX2, with the same bits.
 
 use super::contact::Contact;
 use super::foundation::Foundation;
 use super::state::{Nodes, Spring};
 use crate::math::Vec3;
 
+/// A spring's tangent stiffness `lateral·I + excess·n nᵀ` (excess = axial − lateral),
+/// with its nodes: what a product with the system reads of a spring.
 #[derive(Debug, Clone, Copy, Default)]
-struct SpringTangent {
+pub(crate) struct SpringTangent {
+    a: u32,
+    b: u32,
     n: Vec3,
-    axial: f64,
+    excess: f64,
     lateral: f64,
+}
+
+impl SpringTangent {
+    /// K_s·d for the difference d of the spring's nodes' vectors.
+    #[inline(always)]
+    fn times(&self, d: Vec3) -> Vec3 {
+        d * self.lateral + self.n * (self.excess * self.n.dot(&d))
+    }
+
+    /// The diagonal of K_s.
+    fn diagonal(&self) -> Vec3 {
+        (self.n.component_mul(&self.n) * self.excess).add_scalar(self.lateral)
+    }
+}
+
+/// A node's own part of the system (its mass, the foundation's stiffness and drag):
+/// `iso·I + along·n nᵀ`.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct NodeTerm {
+    iso: f64,
+    along: f64,
+    n: Vec3,
+}
+
+impl NodeTerm {
+    #[inline(always)]
+    fn times(&self, p: Vec3) -> Vec3 {
+        p * self.iso + self.n * (self.along * self.n.dot(&p))
+    }
 }
 
 /// Scratch space and settings of the implicit integrator.
@@ -26,12 +68,13 @@ pub(crate) struct ImplicitSolver {
     pub tolerance: f64,
     dv: Vec<Vec3>,
     r: Vec<Vec3>,
-    z: Vec<Vec3>,
     p: Vec<Vec3>,
     q: Vec<Vec3>,
-    b: Vec<Vec3>,
     inv_diag: Vec<Vec3>,
+    node_terms: Vec<NodeTerm>,
     tangents: Vec<SpringTangent>,
+    /// Tangents recorded since the last `begin_tangents`.
+    tangents_recorded: usize,
     /// Iterations used by the last solve.
     pub last_iterations: u32,
     /// Relative residual reached by the last solve.
@@ -45,14 +88,43 @@ impl ImplicitSolver {
 
     /// Sizes the scratch for `nodes` nodes and `springs` springs (allocates only when they grew).
     pub fn reserve(&mut self, nodes: usize, springs: usize) {
-        for buf in [&mut self.dv, &mut self.r, &mut self.z, &mut self.p, &mut self.q, &mut self.b, &mut self.inv_diag] {
+        for buf in [&mut self.dv, &mut self.r, &mut self.p, &mut self.q, &mut self.inv_diag] {
             buf.resize(nodes, Vec3::zeros());
         }
+        self.node_terms.resize(nodes, NodeTerm::default());
         self.tangents.resize(springs, SpringTangent::default());
     }
 
+    /// Starts a step's tangents: sizes the scratch, clears the diagonal.
+    pub fn begin_tangents(&mut self, nodes: usize, springs: usize) {
+        self.reserve(nodes, springs);
+        self.inv_diag.iter_mut().for_each(|x| *x = Vec3::zeros());
+        self.tangents_recorded = 0;
+    }
+
+    /// Records spring `k`'s tangent from its vector `d` (b − a) and inverse length, and
+    /// adds it to the diagonal (still unscaled: `step` finishes it). The force pass calls
+    /// it for every spring, in order, after [`Self::begin_tangents`].
+    #[inline(always)]
+    pub fn record_tangent(&mut self, k: usize, s: &Spring, d: Vec3, inv_len: f64) {
+        let (n, lateral) = if inv_len < 1e299 {
+            (d * inv_len, s.k * (1.0 - s.l0 * inv_len).max(0.0))
+        } else {
+            // A spring of zero length resists in every direction alike.
+            (Vec3::zeros(), s.k)
+        };
+        let t = SpringTangent { a: s.a, b: s.b, n, excess: s.k - lateral, lateral };
+        self.tangents[k] = t;
+        let diagonal = t.diagonal();
+        self.inv_diag[s.a as usize] += diagonal;
+        self.inv_diag[s.b as usize] += diagonal;
+        self.tangents_recorded += 1;
+    }
+
     /// One implicit step. `nodes.f` must hold the forces at the current state (springs,
-    /// support, gravity, contacts). Returns the finite-check sum (see `explicit::substep`).
+    /// support, gravity, contacts), and the springs' tangents must have been recorded
+    /// by the force pass at the current positions. Returns the finite-check sum (see
+    /// `explicit::substep`).
     #[allow(clippy::too_many_arguments)]
     pub fn step(
         &mut self,
@@ -65,84 +137,57 @@ impl ImplicitSolver {
         spring_damping_s: f64,
     ) -> f64 {
         let n = nodes.len();
-        self.reserve(n, springs.len());
+        assert_eq!(self.tangents_recorded, springs.len(), "the force pass records every spring's tangent before the implicit step");
+        assert_eq!(self.dv.len(), n, "the force pass sized the scratch for these nodes");
         let mass_coef = 1.0 + h * mass_damping_per_s;
         let stiff_coef = h * h + h * spring_damping_s;
 
-        for (t, s) in self.tangents.iter_mut().zip(springs) {
-            let d = nodes.x[s.b as usize] - nodes.x[s.a as usize];
-            let len = d.norm();
-            *t = if len > 0.0 {
-                SpringTangent { n: d / len, axial: s.k, lateral: s.k * (1.0 - s.l0 / len).max(0.0) }
-            } else {
-                SpringTangent { n: Vec3::zeros(), axial: 0.0, lateral: s.k }
-            };
-        }
-
-        // Right-hand side: h(F − αMv − Cv) − h(h + β)Kv, using q as scratch for Kv (and
-        // z for Cv).
-        apply_stiffness(&self.tangents, springs, contacts, foundation, &nodes.v, &mut self.q);
-        if let Some(foundation) = foundation {
-            self.z.iter_mut().for_each(|x| *x = Vec3::zeros());
-            foundation.add_damping_product(&nodes.v, &mut self.z, 1.0);
-            for i in 0..n {
-                nodes.f[i] -= self.z[i];
-            }
-        }
-        for i in 0..n {
-            let rhs = (nodes.f[i] - nodes.v[i] * (mass_damping_per_s * nodes.mass[i])) * h
-                - self.q[i] * (h * (h + spring_damping_s));
-            self.b[i] = rhs.component_mul(&nodes.free[i]);
-        }
-
-        // Jacobi preconditioner.
-        for i in 0..n {
-            self.inv_diag[i] = Vec3::repeat(nodes.mass[i] * mass_coef);
-        }
-        for (t, s) in self.tangents.iter().zip(springs) {
-            let d = (t.n.component_mul(&t.n) * (t.axial - t.lateral)).add_scalar(t.lateral) * stiff_coef;
-            self.inv_diag[s.a as usize] += d;
-            self.inv_diag[s.b as usize] += d;
-        }
         for c in contacts {
-            self.inv_diag[c.node as usize] += c.normal.component_mul(&c.normal) * (c.stiffness * stiff_coef);
-        }
-        if let Some(foundation) = foundation {
-            for i in 0..n {
-                self.inv_diag[i] += foundation.diagonal(i, stiff_coef, h);
-            }
-        }
-        for i in 0..n {
-            let d = self.inv_diag[i];
-            self.inv_diag[i] = Vec3::new(inv_or_zero(d.x), inv_or_zero(d.y), inv_or_zero(d.z)).component_mul(&nodes.free[i]);
+            self.inv_diag[c.node as usize] += c.normal.component_mul(&c.normal) * c.stiffness;
         }
 
-        // PCG on A·dv = b, starting from the previous solution. Node passes are fused so
-        // that an iteration is one pass over the springs and two over the nodes.
-        for i in 0..n {
-            self.dv[i] = self.dv[i].component_mul(&nodes.free[i]);
+        // The warm start (the previous solution) on this step's free axes, and the
+        // springs' and contacts' K·v (into q) and K·dv (into p) in one pass.
+        for (dv, free) in self.dv.iter_mut().zip(&nodes.free) {
+            *dv = dv.component_mul(free);
         }
-        let coefficients = Coefficients { mass: mass_coef, stiffness: stiff_coef, drag: h };
-        apply_a(&self.tangents, springs, contacts, foundation, nodes, coefficients, &self.dv, &mut self.q);
-        let b_norm = dot(&self.b, &self.b).sqrt();
-        let mut rz = 0.0;
-        let mut rr = 0.0;
+        spring_product_pair(&self.tangents, contacts, &nodes.v, &self.dv, &mut self.q, &mut self.p);
+
+        // One pass over the nodes: each node's own terms; the right-hand side
+        // b = h(F − αMv − Cv) − h(h + β)Kv; the Jacobi preconditioner; the first residual
+        // r = b − A·dv and its preconditioned p.
+        let (mut b_norm2, mut rz, mut rr) = (0.0, 0.0, 0.0);
         for i in 0..n {
-            let r = self.b[i] - self.q[i];
-            let z = r.component_mul(&self.inv_diag[i]);
+            let (iso, along, normal) = foundation.map_or((0.0, 0.0, Vec3::zeros()), |f| f.node_term(i, stiff_coef, h));
+            let free = nodes.free[i];
+            let v = nodes.v[i];
+            let own = NodeTerm { iso, along, n: normal };
+            let b = (nodes.f[i] * h - v * (h * mass_damping_per_s * nodes.mass[i]) - own.times(v) - self.q[i] * stiff_coef).component_mul(&free);
+            b_norm2 += b.norm_squared();
+            let term = NodeTerm { iso: iso + nodes.mass[i] * mass_coef, along, n: normal };
+            self.node_terms[i] = term;
+            let d = (self.inv_diag[i] * stiff_coef + normal.component_mul(&normal) * along).add_scalar(term.iso);
+            let inv_diag = Vec3::new(inv_or_zero(d.x), inv_or_zero(d.y), inv_or_zero(d.z)).component_mul(&free);
+            self.inv_diag[i] = inv_diag;
+            let a_dv = (self.p[i] * stiff_coef + term.times(self.dv[i])).component_mul(&free);
+            let r = b - a_dv;
+            let z = r.component_mul(&inv_diag);
             self.r[i] = r;
-            self.z[i] = z;
             self.p[i] = z;
             rz += r.dot(&z);
             rr += r.norm_squared();
         }
+
+        // PCG on A·dv = b. An iteration is one pass over the springs and three over the
+        // nodes (the preconditioned residual is not stored: it is remade where needed).
+        let b_norm = b_norm2.sqrt();
         let mut iterations = 0;
         let mut residual = if b_norm > 0.0 { rr.sqrt() / b_norm } else { 0.0 };
         if b_norm == 0.0 {
             self.dv.iter_mut().for_each(|x| *x = Vec3::zeros());
         }
         while b_norm > 0.0 && residual > self.tolerance && iterations < self.max_iterations {
-            let pq = apply_a(&self.tangents, springs, contacts, foundation, nodes, coefficients, &self.p, &mut self.q);
+            let pq = apply_a(&self.tangents, contacts, &self.node_terms, &nodes.free, stiff_coef, &self.p, &mut self.q);
             if pq <= 0.0 || !pq.is_finite() {
                 break;
             }
@@ -151,16 +196,15 @@ impl ImplicitSolver {
             for i in 0..n {
                 self.dv[i] += self.p[i] * alpha;
                 let r = self.r[i] - self.q[i] * alpha;
-                let z = r.component_mul(&self.inv_diag[i]);
                 self.r[i] = r;
-                self.z[i] = z;
+                let z = r.component_mul(&self.inv_diag[i]);
                 rz_next += r.dot(&z);
                 rr_next += r.norm_squared();
             }
             let beta = rz_next / rz;
             rz = rz_next;
             for i in 0..n {
-                self.p[i] = self.z[i] + self.p[i] * beta;
+                self.p[i] = self.r[i].component_mul(&self.inv_diag[i]) + self.p[i] * beta;
             }
             iterations += 1;
             residual = rr_next.sqrt() / b_norm;
@@ -188,65 +232,87 @@ fn inv_or_zero(d: f64) -> f64 {
     if d > 0.0 { 1.0 / d } else { 0.0 }
 }
 
-fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x.dot(y)).sum()
+/// out = A·p = ((h² + hβ)K_springs+contacts + node terms)·p on free axes; returns p·out.
+fn apply_a(tangents: &[SpringTangent], contacts: &[Contact], node_terms: &[NodeTerm], free: &[Vec3], stiff_coef: f64, p: &[Vec3], out: &mut [Vec3]) -> f64 {
+    spring_product(tangents, contacts, p, out);
+    add_node_terms(node_terms, free, stiff_coef, p, out)
 }
 
-#[derive(Debug, Clone, Copy)]
-struct Coefficients {
-    /// 1 + hα: multiplies the mass.
-    mass: f64,
-    /// h² + hβ: multiplies the stiffness.
-    stiffness: f64,
-    /// h: multiplies the foundation's drag.
-    drag: f64,
-}
+// The node passes, each compiled for the baseline and for AVX2 (plain multiplications
+// and additions, no fused ones: the same bits either way).
 
-/// out = A·p = (M(1 + hα) + hC + (h² + hβ)K)·p on free axes; returns p·out.
-#[allow(clippy::too_many_arguments)]
-fn apply_a(
-    tangents: &[SpringTangent],
-    springs: &[Spring],
-    contacts: &[Contact],
-    foundation: Option<&Foundation>,
-    nodes: &Nodes,
-    c: Coefficients,
-    p: &[Vec3],
-    out: &mut [Vec3],
-) -> f64 {
-    apply_stiffness(tangents, springs, contacts, foundation, p, out);
-    if let Some(foundation) = foundation {
-        // (h² + hβ)K p + hC p = (h² + hβ)(K p + h/(h² + hβ) C p).
-        foundation.add_damping_product(p, out, c.drag / c.stiffness);
+crate::solver::kernels::dispatch! {
+    /// out = (stiff_coef · out + node terms · p) on free axes; returns p·out.
+    pub fn add_node_terms(node_terms: &[NodeTerm], free: &[Vec3], stiff_coef: f64, p: &[Vec3], out: &mut [Vec3]) -> f64 {
+        let mut p_dot_out = 0.0;
+        for (((o, p), term), free) in out.iter_mut().zip(p).zip(node_terms).zip(free) {
+            let a = (*o * stiff_coef + term.times(*p)).component_mul(free);
+            *o = a;
+            p_dot_out += p.dot(&a);
+        }
+        p_dot_out
     }
-    let mut p_dot_out = 0.0;
-    for i in 0..p.len() {
-        let a = (out[i] * c.stiffness + p[i] * (nodes.mass[i] * c.mass)).component_mul(&nodes.free[i]);
-        out[i] = a;
-        p_dot_out += p[i].dot(&a);
-    }
-    p_dot_out
 }
 
-/// out = K·p for the springs, contacts and foundation. As in the force pass, the product
-/// on each spring's first node is summed in a register over runs of springs sharing it.
-fn apply_stiffness(tangents: &[SpringTangent], springs: &[Spring], contacts: &[Contact], foundation: Option<&Foundation>, p: &[Vec3], out: &mut [Vec3]) {
+crate::solver::kernels::dispatch! {
+    /// `kv = K·v` and `kw = K·w` for the springs and contacts in one pass (the tangents
+    /// are read once), as [`spring_product`] does each.
+    pub fn spring_product_pair(tangents: &[SpringTangent], contacts: &[Contact], v: &[Vec3], w: &[Vec3], kv: &mut [Vec3], kw: &mut [Vec3]) {
+        kv.iter_mut().for_each(|x| *x = Vec3::zeros());
+        kw.iter_mut().for_each(|x| *x = Vec3::zeros());
+        let mut current = u32::MAX;
+        let (mut v_current, mut w_current) = (Vec3::zeros(), Vec3::zeros());
+        for t in tangents {
+            let (a, b) = (t.a as usize, t.b as usize);
+            let kdv = t.times(v[b] - v[a]);
+            let kdw = t.times(w[b] - w[a]);
+            if t.a != current {
+                if current != u32::MAX {
+                    kv[current as usize] -= v_current;
+                    kw[current as usize] -= w_current;
+                }
+                current = t.a;
+                (v_current, w_current) = (kdv, kdw);
+            } else {
+                v_current += kdv;
+                w_current += kdw;
+            }
+            kv[b] += kdv;
+            kw[b] += kdw;
+        }
+        if current != u32::MAX {
+            kv[current as usize] -= v_current;
+            kw[current as usize] -= w_current;
+        }
+        for c in contacts {
+            let i = c.node as usize;
+            kv[i] += c.normal * (c.stiffness * c.normal.dot(&v[i]));
+            kw[i] += c.normal * (c.stiffness * c.normal.dot(&w[i]));
+        }
+    }
+}
+
+crate::solver::kernels::dispatch! {
+    /// out = K·p for the springs and contacts. As in the force pass, the product on each
+    /// spring's first node is summed in a register over runs of springs sharing it.
+    /// Plain multiplications and additions (no fused ones): the AVX2 clone gives the
+    /// same bits as the baseline.
+    pub fn spring_product(tangents: &[SpringTangent], contacts: &[Contact], p: &[Vec3], out: &mut [Vec3]) {
     out.iter_mut().for_each(|x| *x = Vec3::zeros());
     let mut current = u32::MAX;
     let mut on_current = Vec3::zeros();
-    for (t, s) in tangents.iter().zip(springs) {
-        let d = p[s.b as usize] - p[s.a as usize];
-        let kd = d * t.lateral + t.n * ((t.axial - t.lateral) * t.n.dot(&d));
-        if s.a != current {
+    for t in tangents {
+        let kd = t.times(p[t.b as usize] - p[t.a as usize]);
+        if t.a != current {
             if current != u32::MAX {
                 out[current as usize] -= on_current;
             }
-            current = s.a;
+            current = t.a;
             on_current = kd;
         } else {
             on_current += kd;
         }
-        out[s.b as usize] += kd;
+        out[t.b as usize] += kd;
     }
     if current != u32::MAX {
         out[current as usize] -= on_current;
@@ -255,7 +321,5 @@ fn apply_stiffness(tangents: &[SpringTangent], springs: &[Spring], contacts: &[C
         let i = c.node as usize;
         out[i] += c.normal * (c.stiffness * c.normal.dot(&p[i]));
     }
-    if let Some(foundation) = foundation {
-        foundation.add_stiffness_product(p, out);
-    }
+}
 }

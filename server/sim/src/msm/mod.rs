@@ -361,8 +361,13 @@ impl MassSpring {
     }
 
     fn accumulate_forces(&mut self) {
-        let beta = if matches!(self.integrator, Integrator::ImplicitEuler(_)) { 0.0 } else { self.spring_damping_s };
-        forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta, &mut self.spring_scratch);
+        let (beta, tangents) = match &mut self.integrator {
+            // The implicit integrator damps the springs in its system, from the tangents
+            // the force pass records.
+            Integrator::ImplicitEuler(solver) => (0.0, Some(solver)),
+            Integrator::SymplecticEuler { .. } => (self.spring_damping_s, None),
+        };
+        forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta, &mut self.spring_scratch, tangents);
         if let Some(foundation) = &self.foundation {
             foundation.add_forces(&mut self.nodes);
         }

@@ -44,7 +44,7 @@ macro_rules! dispatch {
                 body($($arg),*)
             }
             #[cfg(target_arch = "x86_64")]
-            if has_avx2() {
+            if $crate::solver::kernels::has_avx2() {
                 // SAFETY: the CPU was checked to have AVX2.
                 return unsafe { wide($($arg),*) };
             }
@@ -52,6 +52,8 @@ macro_rules! dispatch {
         }
     };
 }
+/// The skin's implicit solve uses it too (`msm::implicit`).
+pub(crate) use dispatch;
 
 /// Eight f32 lanes: one AVX register (two SSE ones). Its operations are lane by lane.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
