@@ -235,10 +235,12 @@ impl Holder {
         let friction = self.friction;
         let mut reaction = Reaction::default();
 
-        // 1. Nodes under the tip face.
+        // 1. Nodes under the tip face, as far above it as the tip can have come since the
+        // last substep (a tool thrust fast has swept the skin it passed).
         let reach = tool.radius_m + margin_m;
+        let along = tool.radius_m.max(reach_m.min(0.5 * tool.length_m));
         let (min, max) = (tool.tip - Vec3::repeat(reach), tool.tip + Vec3::repeat(reach));
-        let (lo, hi) = (min.inf(&(min + tool.axis * tool.radius_m)), max.sup(&(max + tool.axis * tool.radius_m)));
+        let (lo, hi) = (min.inf(&(min + tool.axis * along)), max.sup(&(max + tool.axis * along)));
         grid.query_box(&lo, &hi, |id| {
             let i = id as usize;
             if nodes.inv_mass[i] == 0.0 {
@@ -249,10 +251,12 @@ impl Holder {
             hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
         });
 
-        // 2. The triangle the axis crosses nearest the tip. The search starts an edge
-        // below the tip: a held triangle that the skin's own motion carried just under
-        // it stays held (a contact resting, not pressed), instead of being lost.
-        let top = tool.tip + tool.axis * (tool.radius_m + 2.0 * max_edge_m).min(tool.length_m);
+        // 2. The triangle the axis crosses nearest the tip, up to where the tip was a
+        // substep ago (the sweep of the tip along its axis: skin it passed is held, not
+        // left behind). The search starts an edge below the tip: a held triangle that the
+        // skin's own motion carried just under it stays held (a contact resting, not
+        // pressed), instead of being lost.
+        let top = tool.tip + tool.axis * (tool.radius_m + 2.0 * max_edge_m + reach_m).min(tool.length_m);
         let bottom = tool.tip - tool.axis * max_edge_m;
         let near_tip = PlacedTool { tip: bottom, top, length_m: (top - bottom).norm(), ..*tool };
         let (min, max) = near_tip.bounds(max_edge_m);
