@@ -56,6 +56,10 @@ async fn create_list_get_close() {
     assert!(json.contains(&a.id) && json.contains(&b_info.id), "{json}");
     let metrics = reqwest_like_get(&server.http, "/metrics").await;
     assert!(metrics.contains(&format!("cutsim_steps_total{{session=\"{}\"}}", a.id)), "{metrics}");
+    // The solver's background work is accounted per session (zero on the skin).
+    for family in ["cutsim_solver_waits_total", "cutsim_solver_factor_failures_total"] {
+        assert!(metrics.contains(&format!("{family}{{session=\"{}\"}} 0", a.id)), "{family}: {metrics}");
+    }
 
     // Observers cannot close; controllers can.
     let denied = client.close_session(authed(pb::CloseSessionRequest { session_id: a.id.clone() }, &a.observe)).await.unwrap_err();

@@ -88,6 +88,7 @@ pub fn counters(c: &TissueCounters, pieces: u64) -> pb::TissueCounters {
         solver_max_residual: c.solver_max_residual,
         solver_last_residual: c.solver_last_residual,
         solver_waits: c.solver_waits,
+        solver_factor_failures: c.solver_factor_failures,
     }
 }
 

@@ -125,6 +125,9 @@ fn print_report(r: &RunReport) {
             c.solver_last_residual
         );
     }
+    if c.solver_waits > 0 || c.solver_factor_failures > 0 {
+        println!("solver work      {} steps waited for background work, {} factorizations failed", c.solver_waits, c.solver_factor_failures);
+    }
     println!("cuts             {} ({} updates, {} fallbacks)", r.cuts, r.cut_updates, r.reconstruction_fallbacks);
     println!("removed elements {}", r.removed_elements);
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);

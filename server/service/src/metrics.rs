@@ -38,10 +38,12 @@ pub fn render(registry: &Registry, metrics: &Metrics) -> String {
         let _ = writeln!(out, "cutsim_step_time_microseconds{{session=\"{}\",quantile=\"0.99\"}} {}", s.id, f.stats.p99_us);
         let _ = writeln!(out, "cutsim_step_time_microseconds_count{{session=\"{}\"}} {}", s.id, f.stats.steps);
     }
-    let per_session: [(&str, &str, &str, fn(&crate::session::Session) -> f64); 12] = [
+    let per_session: [(&str, &str, &str, fn(&crate::session::Session) -> f64); 14] = [
         ("cutsim_solver_iterations_total", "counter", "Conjugate-gradient iterations of the implicit solves.", |s| s.frame.load().counters.solver_iterations as f64),
         ("cutsim_solver_cap_hits_total", "counter", "Solves that stopped at their iteration cap above the scene's tolerance.", |s| s.frame.load().counters.solver_cap_hits as f64),
         ("cutsim_solver_max_residual", "gauge", "The largest relative residual a solve ended with.", |s| s.frame.load().counters.solver_max_residual),
+        ("cutsim_solver_waits_total", "counter", "Steps that waited for the solver's background work at its appointed step.", |s| s.frame.load().counters.solver_waits as f64),
+        ("cutsim_solver_factor_failures_total", "counter", "Background factorizations that failed (the solve went on with block Jacobi).", |s| s.frame.load().counters.solver_factor_failures as f64),
         ("cutsim_session_failed", "gauge", "1 when the session's physics failed.", |s| f64::from(u8::from(s.failure().is_some()))),
         ("cutsim_stale_tool_lifts_total", "counter", "Tools lifted because their haptic client went quiet.", |s| s.stale_lifts.load(Ordering::Relaxed) as f64),
         ("cutsim_steps_total", "counter", "Physics steps taken.", |s| s.frame.load().total_steps as f64),
