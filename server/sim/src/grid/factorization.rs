@@ -2,7 +2,9 @@
 //!
 //! Schedule, fixed by step index so that a run reaches the same state hash in real
 //! time, in lockstep and as a replay:
-//! - the first step factors its own system, on the step (nothing to reuse yet);
+//! - the first factor is made at load, from the model at rest (`Dynamics::prime`), so
+//!   that no step makes one on the physics thread (a model never primed makes it on
+//!   its first step);
 //! - every [`REFACTOR_EVERY`] steps the step's system, once solved, is handed to a
 //!   worker thread (its buffer swapped for a spare: nothing is copied), whose factor
 //!   replaces the one in use at the step `delay` later (a step waits for a late worker;
@@ -103,7 +105,7 @@ pub struct Factorization {
     worker: Option<Background<Arc<Job>, Result<Factor, FactorError>>>,
     /// One more for every topology change: results for an older one are dropped.
     generation: u64,
-    /// The first factor has been made (on the first step).
+    /// The first factor has been made (at load, or on the first step).
     started: bool,
     /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
     delay: u64,
@@ -200,17 +202,8 @@ impl Factorization {
             }
         }
         if !self.started {
-            // The first step: nothing to reuse, factor this system now.
-            match Factor::of(system, active) {
-                Ok(factor) => {
-                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
-                    self.current = Some(factor);
-                    self.factored_rotations.clear();
-                    self.factored_rotations.extend_from_slice(rotations);
-                }
-                Err(_) => self.failures += 1,
-            }
-            self.started = true;
+            // Not primed at load: nothing to reuse, factor this system now.
+            self.prime(system, active, rotations);
         } else if self.pending.is_none() && (self.current.is_none() || step.is_multiple_of(REFACTOR_EVERY)) {
             // No factor (after a cut, or one that failed): ask at once; else on schedule.
             self.hand_over = true;
@@ -221,6 +214,21 @@ impl Factorization {
         self.warp.extend(rotations.iter().zip(&self.factored_rotations).map(|(now, then)| now * then.transpose()));
         self.solve.prepare(factor);
         Some(self.solve.with(factor, Some(&self.warp)))
+    }
+
+    /// Makes the first factor, of `system` (whose nodes are turned by `rotations`), at
+    /// once: at load, from the model at rest, so that the first step does not make it.
+    pub fn prime(&mut self, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) {
+        match Factor::of(system, active) {
+            Ok(factor) => {
+                self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
+                self.current = Some(factor);
+                self.factored_rotations.clear();
+                self.factored_rotations.extend_from_slice(rotations);
+            }
+            Err(_) => self.failures += 1,
+        }
+        self.started = true;
     }
 
     /// After step `step`'s solve: when `prepare` chose this step, hands `system`'s values

@@ -105,6 +105,12 @@ pub struct LastUpdate {
 }
 
 impl BranchedGrid {
+    /// Does the solver's work that can be done before the first step (the Cholesky
+    /// preconditioner's first factor) now: at load, not on the physics thread.
+    pub fn prime_solver(&mut self) {
+        self.dynamics.prime(&mut self.topo, &self.settings);
+    }
+
     /// The top of the body where it is broad: the highest voxel whose 5 × 5 neighbourhood
     /// in x and y is all material (so a tool meets a flat top, not a ridge) and whose
     /// element holds no fixed node or support point; world, m, at the voxel's upper face. Benchmarks and

@@ -200,8 +200,10 @@ impl Dynamics {
         self.stale_pattern = false;
     }
 
-    /// Step `step`, with the given contacts. Returns the max |Δv| (not finite on a blow-up).
-    pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) -> f64 {
+    /// The step's system (rotations, element blocks, mass, contacts, supports) into
+    /// `system`, and the forces f_el − (β + h) K_R v, gravity, contacts and supports into
+    /// `force`; which nodes are active.
+    fn assemble(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact]) {
         if self.stale_pattern {
             self.rebuild_pattern(topo);
         }
@@ -283,6 +285,27 @@ impl Dynamics {
         topo.supports.add_forces(topo, h, &mut self.force);
         let (system, scatter) = (&mut self.system, &self.scatter);
         topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
+    }
+
+    /// Makes the Cholesky preconditioner's first factor now, from the system of the
+    /// model as it stands (at load: at rest, no contacts), so that no step has to make
+    /// one on the physics thread. Does nothing for the other preconditioners.
+    pub fn prime(&mut self, topo: &mut Topology, settings: &SolverSettings) {
+        if settings.preconditioner != Preconditioning::Cholesky {
+            return;
+        }
+        self.assemble(topo, settings, &[]);
+        node_rotations(&self.first_element, &self.rotations, &mut self.node_rotations);
+        self.factorization.prime(&self.system, &self.active, &self.node_rotations);
+    }
+
+    /// Step `step`, with the given contacts. Returns the max |Δv| (not finite on a blow-up).
+    pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) -> f64 {
+        self.assemble(topo, settings, contacts);
+        let h = settings.dt_s;
+        let a_mass = 1.0 + h * settings.alpha_per_s;
+        let a_stiff = h * settings.beta_s + h * h;
+        let n = topo.nodes.len();
         // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.
         mass_times(topo, settings.mass, &topo.nodes.v, &mut self.q);
         for i in 0..n {
