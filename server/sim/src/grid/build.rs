@@ -195,8 +195,9 @@ pub fn build_fixed(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGri
     if grid.settings.preconditioner == Preconditioning::Cholesky {
         check_factor_size(scene, &grid)?;
     }
-    // The Cholesky factor is made here, at load, not on the first step (the check below
-    // runs a copy, which takes it along).
+    // The preconditioner's first heavy work (a Cholesky factor, the multigrid's coarse
+    // grids) is done here, at load, not on the first step (the check below runs a copy,
+    // which takes it along).
     grid.prime_solver();
     check_solver_converges(scene, &grid)?;
     Ok(grid)

@@ -106,7 +106,8 @@ pub struct LastUpdate {
 
 impl BranchedGrid {
     /// Does the solver's work that can be done before the first step (the Cholesky
-    /// preconditioner's first factor) now: at load, not on the physics thread.
+    /// preconditioner's first factor, the multigrid's coarse grids) now: at load, not on
+    /// the physics thread.
     pub fn prime_solver(&mut self) {
         self.dynamics.prime(&mut self.topo, &self.settings);
     }

@@ -158,6 +158,15 @@ impl Multigrid {
         Multigrid { rebuild: Some(Rebuild::Now), ..Multigrid::default() }
     }
 
+    /// Builds the coarse grids now if the first step would (at load: so that no step
+    /// builds them on the physics thread). The first step assembles their operators.
+    pub fn prime(&mut self, topo: &Topology, active: &[bool]) {
+        if self.rebuild == Some(Rebuild::Now) {
+            self.current = Some(Box::new(build(&Coarsening::of(topo), active)));
+            self.rebuild = None;
+        }
+    }
+
     /// The topology changed (a cut): the coarse grids no longer fit; new ones are built
     /// on the worker.
     pub fn topology_changed(&mut self) {

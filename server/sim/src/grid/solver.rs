@@ -287,16 +287,23 @@ impl Dynamics {
         topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
     }
 
-    /// Makes the Cholesky preconditioner's first factor now, from the system of the
-    /// model as it stands (at load: at rest, no contacts), so that no step has to make
-    /// one on the physics thread. Does nothing for the other preconditioners.
+    /// Does the preconditioner's first heavy work now, from the model as it stands (at
+    /// load: at rest, no contacts), so that no step does it on the physics thread: the
+    /// Cholesky preconditioner's first factor, the multigrid's coarse grids. Block
+    /// Jacobi has none.
     pub fn prime(&mut self, topo: &mut Topology, settings: &SolverSettings) {
-        if settings.preconditioner != Preconditioning::Cholesky {
-            return;
+        match settings.preconditioner {
+            Preconditioning::Jacobi => {}
+            Preconditioning::Cholesky => {
+                self.assemble(topo, settings, &[]);
+                node_rotations(&self.first_element, &self.rotations, &mut self.node_rotations);
+                self.factorization.prime(&self.system, &self.active, &self.node_rotations);
+            }
+            Preconditioning::Multigrid => {
+                self.assemble(topo, settings, &[]);
+                self.multigrid.prime(topo, &self.active);
+            }
         }
-        self.assemble(topo, settings, &[]);
-        node_rotations(&self.first_element, &self.rotations, &mut self.node_rotations);
-        self.factorization.prime(&self.system, &self.active, &self.node_rotations);
     }
 
     /// Step `step`, with the given contacts. Returns the max |Δv| (not finite on a blow-up).
