@@ -153,6 +153,11 @@ impl Mirror {
             self.positions[i] = Some(v.position_m);
         }
         self.version = d.version;
+        // A delta can arrive after the frame that already holds its vertices where they
+        // have moved to since they were made (the physics thread publishes frames, the
+        // hub encodes deltas apart): look at the newest frame again, or a session that
+        // stops stepping would leave this viewer with their first positions.
+        self.last_frame = u64::MAX;
     }
 
     /// The vertices whose position in `frame` differs from what was sent, as a
@@ -354,4 +359,34 @@ where
 async fn close<Tx: Sink<Message> + Unpin>(sink: &mut Tx, code: u16, reason: &str) -> ViewerEnd {
     let _ = sink.send(Message::Close(Some(CloseFrame { code, reason: reason.to_owned().into() }))).await;
     ViewerEnd::Protocol(reason.to_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cutsim_sim::surface::{SurfaceVertex, TopologyDelta};
+
+    fn vertex(id: u32, x: f32) -> SurfaceVertex {
+        SurfaceVertex { id, position_m: [x, 0.0, 0.0], material: 0 }
+    }
+
+    /// The frame of the step that made a vertex, looked at before the delta that adds it
+    /// arrives, still sends the vertex's position once the delta is in (the session may
+    /// publish no other frame).
+    #[test]
+    fn a_vertex_added_after_its_frame_was_looked_at_gets_that_frames_position() {
+        let snapshot = SurfaceSnapshot { version: 3, vertices: vec![vertex(0, 0.0), vertex(1, 1.0)], triangles: vec![] };
+        let mut mirror = Mirror::from_snapshot(&snapshot, 0);
+        let frame = Frame { sequence: 7, positions: vec![[0.5, 0.0, 0.0], [1.0, 0.0, 0.0], [2.5, 0.0, 0.0]], ..Frame::default() };
+        // The tick sees the frame first: vertex 0 moved; vertex 2 is not the viewer's yet.
+        mirror.last_frame = frame.sequence;
+        let moved = mirror.moved(&frame).expect("vertex 0 moved");
+        assert_eq!((moved.id_deltas, moved.positions_m), (vec![0], vec![0.5, 0.0, 0.0]));
+        // Then the delta that made vertex 2 (at 2.0; the frame has it at 2.5).
+        mirror.apply(&TopologyDelta { version: 4, added_vertices: vec![vertex(2, 2.0)], ..TopologyDelta::default() });
+        assert_ne!(mirror.last_frame, frame.sequence, "the frame is looked at again");
+        let moved = mirror.moved(&frame).expect("vertex 2 is behind the frame");
+        assert_eq!((moved.id_deltas, moved.positions_m), (vec![2], vec![2.5, 0.0, 0.0]));
+        assert!(mirror.moved(&frame).is_none(), "then nothing is behind");
+    }
 }
