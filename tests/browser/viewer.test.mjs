@@ -16,8 +16,26 @@ const FOLLOW_MS = 5000;
 const pageState = (page, id) =>
   page.evaluate((id) => {
     const panel = window.cutsimViewer.panels.get(id);
-    return panel ? { state: panel.state, triangles: panel.surface.triangles.size, hash: panel.surface.version >= 0 ? panel.surface.hash() : null, errors: panel.errors } : null;
+    return panel ? { state: panel.state, version: panel.surface.version, triangles: panel.surface.triangles.size, hash: panel.surface.version >= 0 ? panel.surface.hash() : null, errors: panel.errors } : null;
   }, id);
+
+/** Waits until the page holds exactly the server's surface `after` (a snapshot);
+ * on timeout, says what the page held instead. */
+async function follow(page, id, after, what) {
+  let seen = null;
+  try {
+    return await waitFor(
+      what,
+      async () => {
+        seen = await pageState(page, id);
+        return seen && seen.triangles === after.triangle_ids.length && seen.hash === after.surface_hash && seen;
+      },
+      FOLLOW_MS,
+    );
+  } catch (e) {
+    throw new Error(`${e.message}; the page held ${JSON.stringify(seen)}, the server ${after.triangle_ids.length} triangles, hash ${after.surface_hash}`);
+  }
+}
 
 test('the viewer shows sessions, follows a cut and recovers after a restart', async () => {
   const grpcPort = await freePort();
@@ -55,14 +73,7 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     const after = await api.snapshot(id, created.observe_token);
     assert.notEqual(after.triangle_ids.length, before.triangle_ids.length, 'the cut changed the surface');
     const started = Date.now();
-    const followed = await waitFor(
-      'the page to show the cut surface',
-      async () => {
-        const s = await pageState(page, id);
-        return s && s.triangles === after.triangle_ids.length && s.hash === after.surface_hash && s;
-      },
-      FOLLOW_MS,
-    );
+    const followed = await follow(page, id, after, 'the page to show the cut surface');
     console.log(`page followed the cut in ${Date.now() - started} ms: ${followed.triangles} triangles, hash ${followed.hash}`);
     assert.deepEqual(consoleErrors, [], 'no console errors during the cut');
 
@@ -194,14 +205,9 @@ test('the viewer draws a branched-grid session and follows its voxel-removal cut
     assert.equal(report.passed, true);
     const after = await api.snapshot(id, created.observe_token);
     assert.notEqual(after.surface_hash, before.surface_hash, 'the cut changed the surface');
-    await waitFor(
-      'the page to show the cut volume',
-      async () => {
-        const s = await pageState(page, id);
-        return s && s.triangles === after.triangle_ids.length && s.hash === after.surface_hash && s;
-      },
-      FOLLOW_MS,
-    );
+    const started = Date.now();
+    const followed = await follow(page, id, after, 'the page to show the cut volume');
+    console.log(`page followed the cut in ${Date.now() - started} ms: ${followed.triangles} triangles, hash ${followed.hash}`);
     fs.mkdirSync(artifacts, { recursive: true });
     await page.locator(`.panel[data-session="${id}"] .view > canvas`).screenshot({ path: path.join(artifacts, 'viewer-u-tube-slit.png') });
     assert.deepEqual(consoleErrors, [], 'no console errors');
