@@ -182,7 +182,7 @@ pub fn build_fixed(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGri
     if spec.cutting.is_some() {
         check_cutting_radii(scene, &tools, &volume)?;
     }
-    let mut grid = BranchedGrid::assemble(
+    let grid = BranchedGrid::assemble(
         scene.time_step_s.get(),
         frame,
         topo,
@@ -195,10 +195,6 @@ pub fn build_fixed(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGri
     if grid.settings.preconditioner == Preconditioning::Cholesky {
         check_factor_size(scene, &grid)?;
     }
-    // The preconditioner's first heavy work (a Cholesky factor, the multigrid's coarse
-    // grids) is done here, at load, not on the first step (the check below runs a copy,
-    // which takes it along).
-    grid.prime_solver();
     check_solver_converges(scene, &grid)?;
     Ok(grid)
 }

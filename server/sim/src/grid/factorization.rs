@@ -2,9 +2,8 @@
 //!
 //! Schedule, fixed by step index so that a run reaches the same state hash in real
 //! time, in lockstep and as a replay:
-//! - the first factor is made at load, from the model at rest (`Dynamics::prime`), so
-//!   that no step makes one on the physics thread (a model never primed makes it on
-//!   its first step);
+//! - the first factor is made with the model, from it at rest (`Dynamics::prime`), so
+//!   that no step makes one on the physics thread;
 //! - every [`REFACTOR_EVERY`] steps the step's system, once solved, is handed to a
 //!   worker thread (its buffer swapped for a spare: nothing is copied), whose factor
 //!   replaces the one in use at the step `delay` later (a step waits for a late worker;
@@ -105,8 +104,6 @@ pub struct Factorization {
     worker: Option<Background<Arc<Job>, Result<Factor, FactorError>>>,
     /// One more for every topology change: results for an older one are dropped.
     generation: u64,
-    /// The first factor has been made (at load, or on the first step).
-    started: bool,
     /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
     delay: u64,
     /// The last job back from the worker, its allocation and buffers reused for the next
@@ -147,7 +144,6 @@ impl Clone for Factorization {
             precomputed,
             worker: None,
             generation: self.generation,
-            started: self.started,
             delay: self.delay,
             spare_job: None,
             retired: None,
@@ -201,10 +197,7 @@ impl Factorization {
                 self.spare_job = Some(job);
             }
         }
-        if !self.started {
-            // Not primed at load: nothing to reuse, factor this system now.
-            self.prime(system, active, rotations);
-        } else if self.pending.is_none() && (self.current.is_none() || step.is_multiple_of(REFACTOR_EVERY)) {
+        if self.pending.is_none() && (self.current.is_none() || step.is_multiple_of(REFACTOR_EVERY)) {
             // No factor (after a cut, or one that failed): ask at once; else on schedule.
             self.hand_over = true;
         }
@@ -228,7 +221,6 @@ impl Factorization {
             }
             Err(_) => self.failures += 1,
         }
-        self.started = true;
     }
 
     /// After step `step`'s solve: when `prepare` chose this step, hands `system`'s values

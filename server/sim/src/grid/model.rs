@@ -105,13 +105,6 @@ pub struct LastUpdate {
 }
 
 impl BranchedGrid {
-    /// Does the solver's work that can be done before the first step (the Cholesky
-    /// preconditioner's first factor, the multigrid's coarse grids) now: at load, not on
-    /// the physics thread.
-    pub fn prime_solver(&mut self) {
-        self.dynamics.prime(&mut self.topo, &self.settings);
-    }
-
     /// The top of the body where it is broad: the highest voxel whose 5 × 5 neighbourhood
     /// in x and y is all material (so a tool meets a flat top, not a ridge) and whose
     /// element holds no fixed node or support point; world, m, at the voxel's upper face. Benchmarks and
@@ -151,7 +144,7 @@ impl BranchedGrid {
         let dynamics = Dynamics::new(&topo);
         let n = topo.nodes.len();
         let tool_count = tools.len();
-        BranchedGrid {
+        let mut grid = BranchedGrid {
             dt_s,
             frame,
             dynamics,
@@ -177,7 +170,11 @@ impl BranchedGrid {
             tools,
             topo,
             surface,
-        }
+        };
+        // The preconditioner's first heavy work (a Cholesky factor, the multigrid's
+        // coarse grids) is done here, as the model is made, never on a step.
+        grid.dynamics.prime(&mut grid.topo, &grid.settings);
+        grid
     }
 
     /// Advances one step; see the module documentation.

@@ -118,18 +118,12 @@ pub struct Multigrid {
     worker: Option<Background<(Arc<Coarsening>, Arc<Vec<bool>>), Box<Levels>>>,
     /// One more for every topology change: results for an older one are dropped.
     generation: u64,
-    /// The hierarchy must be built: at once (the first step), or on the worker (a cut).
-    rebuild: Option<Rebuild>,
+    /// A cut made the hierarchy stale: a new one is asked of the worker.
+    rebuild: bool,
     /// Scratch for the element kernel.
     rotated: Box<[[F8; 3]; 24]>,
     /// Steps that waited for the worker.
     pub waits: u64,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Rebuild {
-    Now,
-    Later,
 }
 
 impl Clone for Multigrid {
@@ -154,17 +148,11 @@ impl Clone for Multigrid {
 }
 
 impl Multigrid {
-    pub fn new() -> Self {
-        Multigrid { rebuild: Some(Rebuild::Now), ..Multigrid::default() }
-    }
-
-    /// Builds the coarse grids now if the first step would (at load: so that no step
-    /// builds them on the physics thread). The first step assembles their operators.
+    /// Builds the first coarse grids, with the model (so that no step builds them on
+    /// the physics thread). The first step assembles their operators.
     pub fn prime(&mut self, topo: &Topology, active: &[bool]) {
-        if self.rebuild == Some(Rebuild::Now) {
-            self.current = Some(Box::new(build(&Coarsening::of(topo), active)));
-            self.rebuild = None;
-        }
+        self.current = Some(Box::new(build(&Coarsening::of(topo), active)));
+        self.rebuild = false;
     }
 
     /// The topology changed (a cut): the coarse grids no longer fit; new ones are built
@@ -172,9 +160,7 @@ impl Multigrid {
     pub fn topology_changed(&mut self) {
         self.generation += 1;
         self.current = None;
-        if self.rebuild != Some(Rebuild::Now) {
-            self.rebuild = Some(Rebuild::Later);
-        }
+        self.rebuild = true;
     }
 
     /// Before step `step`'s solve: takes a rebuilt hierarchy that is due, asks for one
@@ -191,31 +177,23 @@ impl Multigrid {
                 fresh = true;
             }
         }
-        match self.rebuild {
-            Some(Rebuild::Now) => {
-                self.current = Some(Box::new(build(&Coarsening::of(topo), active)));
-                self.rebuild = None;
-                fresh = true;
+        if self.rebuild && self.pending.is_none() {
+            let coarsening = Arc::new(Coarsening::of(topo));
+            let fine_active = Arc::new(active.to_vec());
+            let due = step + REBUILD_DELAY;
+            self.pending = Some((due, self.generation, coarsening.clone(), fine_active.clone()));
+            if self.worker.is_none() {
+                self.worker = Background::new("grid-multigrid", |(c, a): (Arc<Coarsening>, Arc<Vec<bool>>)| Box::new(build(&c, &a))).ok();
             }
-            Some(Rebuild::Later) if self.pending.is_none() => {
-                let coarsening = Arc::new(Coarsening::of(topo));
-                let fine_active = Arc::new(active.to_vec());
-                let due = step + REBUILD_DELAY;
-                self.pending = Some((due, self.generation, coarsening.clone(), fine_active.clone()));
-                if self.worker.is_none() {
-                    self.worker = Background::new("grid-multigrid", |(c, a): (Arc<Coarsening>, Arc<Vec<bool>>)| Box::new(build(&c, &a))).ok();
-                }
-                let refused = match self.worker.as_mut() {
-                    Some(worker) => worker.submit((coarsening, fine_active), due).err(),
-                    None => Some((coarsening, fine_active)),
-                };
-                // No worker thread could be started: build here, due as planned.
-                if let Some((c, a)) = refused {
-                    self.precomputed = Some(Box::new(build(&c, &a)));
-                }
-                self.rebuild = None;
+            let refused = match self.worker.as_mut() {
+                Some(worker) => worker.submit((coarsening, fine_active), due).err(),
+                None => Some((coarsening, fine_active)),
+            };
+            // No worker thread could be started: build here, due as planned.
+            if let Some((c, a)) = refused {
+                self.precomputed = Some(Box::new(build(&c, &a)));
             }
-            _ => {}
+            self.rebuild = false;
         }
         let levels = self.current.as_deref_mut()?;
         if fresh || step % REFRESH_EVERY == 0 {

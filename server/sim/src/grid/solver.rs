@@ -144,7 +144,7 @@ pub struct Dynamics {
 
 impl Dynamics {
     pub fn new(topo: &Topology) -> Self {
-        let mut d = Dynamics { stale_pattern: true, multigrid: Multigrid::new(), factorization: Factorization::new(), ..Dynamics::default() };
+        let mut d = Dynamics { stale_pattern: true, multigrid: Multigrid::default(), factorization: Factorization::new(), ..Dynamics::default() };
         d.resize(topo);
         d
     }

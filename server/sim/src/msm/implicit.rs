@@ -73,8 +73,8 @@ pub(crate) struct ImplicitSolver {
     inv_diag: Vec<Vec3>,
     node_terms: Vec<NodeTerm>,
     tangents: Vec<SpringTangent>,
-    /// Tangents recorded since the last `begin_tangents`.
-    tangents_recorded: usize,
+    /// The force pass has recorded the tangents since the last step used them.
+    tangents_fresh: bool,
     /// Iterations used by the last solve.
     pub last_iterations: u32,
     /// Relative residual reached by the last solve.
@@ -99,7 +99,7 @@ impl ImplicitSolver {
     pub fn begin_tangents(&mut self, nodes: usize, springs: usize) {
         self.reserve(nodes, springs);
         self.inv_diag.iter_mut().for_each(|x| *x = Vec3::zeros());
-        self.tangents_recorded = 0;
+        self.tangents_fresh = true;
     }
 
     /// Records spring `k`'s tangent from its vector `d` (b − a) and inverse length, and
@@ -118,7 +118,6 @@ impl ImplicitSolver {
         let diagonal = t.diagonal();
         self.inv_diag[s.a as usize] += diagonal;
         self.inv_diag[s.b as usize] += diagonal;
-        self.tangents_recorded += 1;
     }
 
     /// One implicit step. `nodes.f` must hold the forces at the current state (springs,
@@ -137,7 +136,7 @@ impl ImplicitSolver {
         spring_damping_s: f64,
     ) -> f64 {
         let n = nodes.len();
-        assert_eq!(self.tangents_recorded, springs.len(), "the force pass records every spring's tangent before the implicit step");
+        assert!(std::mem::take(&mut self.tangents_fresh) && self.tangents.len() == springs.len(), "the force pass records every spring's tangent before the implicit step");
         assert_eq!(self.dv.len(), n, "the force pass sized the scratch for these nodes");
         let mass_coef = 1.0 + h * mass_damping_per_s;
         let stiff_coef = h * h + h * spring_damping_s;
