@@ -146,3 +146,32 @@ fn grid_steps_with_a_probe_allocate_nothing_with_every_preconditioner() {
         assert_eq!(allocations, 0, "{preconditioner}: steps with the probe pressed in allocated");
     }
 }
+
+/// A step that must wait for a background result (a slow worker, a loaded machine)
+/// allocates nothing either, even the first time its thread waits: a blocking channel
+/// receive registers the thread with the channel and allocated there, which a loaded
+/// machine turned into an intermittent failure of the grid test above.
+#[test]
+fn waiting_for_a_background_result_allocates_nothing() {
+    use cutsim_sim::solver::background::Background;
+    // A fresh thread: its first wait ever.
+    std::thread::spawn(|| {
+        let mut worker = Background::new("slow-worker", |x: u64| {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            x + 1
+        })
+        .unwrap();
+        let mut results = Vec::with_capacity(3);
+        let count = allocations_during(|| {
+            for round in 0..3 {
+                worker.submit(round, round).unwrap();
+                results.push(worker.take_if_due(round));
+            }
+        });
+        assert_eq!(results, [Some(1), Some(2), Some(3)]);
+        assert_eq!(worker.waits, 3, "each take waited for the 20 ms job");
+        assert_eq!(count, 0, "waiting allocated {count} times");
+    })
+    .join()
+    .unwrap();
+}
