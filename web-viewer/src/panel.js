@@ -364,6 +364,11 @@ export class SessionPanel {
         // A blade's plate: its width along its edge's direction (the tool frame's x or y).
         const alongX = Math.abs(t.edge?.x ?? 1) > 0.5;
         geometry = new THREE.BoxGeometry(alongX ? t.width_m : t.thickness_m, alongX ? t.thickness_m : t.width_m, t.length_m);
+      } else if (t.round_tip) {
+        // A ball end: a capsule whose lower cap's apex is the tip (three.js capsules
+        // stand on y, their length between the caps' centres).
+        geometry = new THREE.CapsuleGeometry(t.radius_m, Math.max(t.length_m - 2 * t.radius_m, 0), 8, 24);
+        geometry.rotateX(Math.PI / 2);
       } else {
         geometry = new THREE.CylinderGeometry(t.radius_m, t.radius_m, t.length_m, 24);
         geometry.rotateX(Math.PI / 2); // three.js cylinders stand on y; our tools point along +z

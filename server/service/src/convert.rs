@@ -183,6 +183,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
                     width_m,
                     thickness_m,
                     edge: Some(vec3(&t.edge_local)),
+                    round_tip: t.tip_shape == cutsim_sim::tool::TipShape::Round,
                 }
             })
             .collect(),

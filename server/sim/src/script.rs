@@ -435,7 +435,7 @@ mod tests {
     use super::*;
 
     fn blade() -> Vec<ToolShape> {
-        vec![ToolShape { name: "scalpel".into(), radius_m: 5e-4, length_m: 0.03, section: crate::tool::Section::Round, contact_stiffness_n_per_m: 100.0, can_cut: true, max_force_n: 10.0, cutting_shape: None, edge_local: crate::math::Vec3::x() }]
+        vec![ToolShape { name: "scalpel".into(), radius_m: 5e-4, length_m: 0.03, section: crate::tool::Section::Round, contact_stiffness_n_per_m: 100.0, can_cut: true, max_force_n: 10.0, cutting_shape: None, edge_local: crate::math::Vec3::x(), tip_shape: crate::tool::TipShape::Flat }]
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! the feedback (force, torque, contacts) the tissue returns for the haptic device.
 
 use crate::math::{Pose, Vec3, any_perpendicular};
-use crate::scene::ToolShapeSpec;
+use crate::scene::{ModelSpec, TipSpec, ToolShapeSpec};
 
 /// A tool: the segment from its tip along its local +z axis, with a cross-section (a
 /// disc: a probe or a blade idealised as a cylinder; a rectangle: a scalpel blade's
@@ -26,6 +26,19 @@ pub struct ToolShape {
     pub cutting_shape: Option<(f64, f64)>,
     /// The direction a blade's edge faces, in the tool's frame (unit, across its +z axis).
     pub edge_local: Vec3,
+    /// Its end at the tip.
+    pub tip_shape: TipShape,
+}
+
+/// A tool's end at its tip.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum TipShape {
+    /// Cut off square to the axis (a rod's end, a blade's plate).
+    #[default]
+    Flat,
+    /// A hemisphere of the tool's radius (a blunt probe; a round tool only), its apex at
+    /// the tip.
+    Round,
 }
 
 /// A tool's cross-section across its axis.
@@ -114,6 +127,7 @@ pub struct PlacedTool {
     /// Unit direction its edge faces, across the axis.
     pub edge: Vec3,
     pub section: Section,
+    pub tip_shape: TipShape,
 }
 
 impl PlacedTool {
@@ -121,12 +135,12 @@ impl PlacedTool {
         let axis = pose.axis();
         let tip = pose.position_m;
         let edge = across(&axis, &(pose.orientation * shape.edge_local));
-        Self { tip, top: tip + axis * shape.length_m, axis, radius_m: shape.radius_m, length_m: shape.length_m, edge, section: shape.section }
+        Self { tip, top: tip + axis * shape.length_m, axis, radius_m: shape.radius_m, length_m: shape.length_m, edge, section: shape.section, tip_shape: shape.tip_shape }
     }
 
-    /// A round tool of `radius_m` (its edge facing any way across the axis).
+    /// A round tool of `radius_m` with a flat tip (its edge facing any way across the axis).
     pub fn round(tip: Vec3, axis: Vec3, radius_m: f64, length_m: f64) -> Self {
-        Self { tip, top: tip + axis * length_m, axis, radius_m, length_m, edge: any_perpendicular(&axis), section: Section::Round }
+        Self { tip, top: tip + axis * length_m, axis, radius_m, length_m, edge: any_perpendicular(&axis), section: Section::Round, tip_shape: TipShape::Flat }
     }
 
     /// The same tool with its tip at `tip` and its axis along `axis` (unit), its edge
@@ -173,6 +187,24 @@ impl PlacedTool {
         }
     }
 
+    /// A round tip's hemisphere, for a point `x` nearer the tip than the hemisphere's
+    /// centre (one radius up the axis): how deep it lies inside and the way out
+    /// (radially from the centre, the sphere's normal); None outside the sphere, above
+    /// its centre (the side's), or for a flat tip.
+    pub fn round_tip_exit(&self, x: &Vec3) -> Option<(f64, Vec3)> {
+        if self.tip_shape != TipShape::Round {
+            return None;
+        }
+        let from_centre = x - (self.tip + self.axis * self.radius_m);
+        let d = from_centre.norm();
+        if d >= self.radius_m || from_centre.dot(&self.axis) > 0.0 {
+            return None;
+        }
+        // At the centre itself the way out is undefined: out through the apex.
+        let direction = if d > 1e-12 * self.radius_m { from_centre / d } else { -self.axis };
+        Some((self.radius_m - d, direction))
+    }
+
     /// Axis-aligned box around the tool grown by `margin` m: (min, max).
     pub fn bounds(&self, margin: f64) -> (Vec3, Vec3) {
         let grow = Vec3::repeat(self.radius_m + margin);
@@ -199,6 +231,12 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                     (half_width_m.hypot(half_thickness_m), Section::Plate { half_width_m, half_thickness_m })
                 }
             };
+            // The branched grid's tools are capsules (its scenes refuse a flat tip).
+            let tip_shape = match (&t.shape, &scene.model) {
+                (ToolShapeSpec::Cylinder { tip: Some(TipSpec::Round), .. }, _) => TipShape::Round,
+                (ToolShapeSpec::Cylinder { .. }, ModelSpec::BranchedGrid(_)) => TipShape::Round,
+                _ => TipShape::Flat,
+            };
             ToolShape {
                 name: t.name.clone(),
                 radius_m,
@@ -209,10 +247,11 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                 max_force_n: t.max_force_n.get(),
                 // Validated at load: a cutting shape is a cylinder.
                 cutting_shape: t.cutting_shape.as_ref().and_then(|inner| match inner {
-                    ToolShapeSpec::Cylinder { radius_m, length_m } => Some((radius_m.get(), length_m.get())),
+                    ToolShapeSpec::Cylinder { radius_m, length_m, .. } => Some((radius_m.get(), length_m.get())),
                     ToolShapeSpec::Blade { .. } => None,
                 }),
                 edge_local: t.edge.local(),
+                tip_shape,
             }
         })
         .collect()
@@ -250,6 +289,7 @@ mod tests {
             max_force_n: 10.0,
             cutting_shape: None,
             edge_local: Vec3::x(),
+            tip_shape: TipShape::Flat,
         };
         PlacedTool::new(&shape, &Pose::new(Vec3::zeros(), Quat::from_axis_angle(&Vec3::z_axis(), turn)))
     }

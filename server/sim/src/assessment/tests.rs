@@ -255,6 +255,7 @@ fn tools() -> Vec<ToolShape> {
         max_force_n: 10.0,
         cutting_shape: None,
         edge_local: Vec3::x(),
+        tip_shape: crate::tool::TipShape::Flat,
     };
     vec![shape("probe", false), shape("scalpel", true)]
 }

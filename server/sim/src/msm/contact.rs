@@ -13,14 +13,18 @@
 //! rectangular cross-section: a node inside it goes out through the nearer of its
 //! flats or its sides ([`PlacedTool::section_exit`]).
 //!
+//! A round tip ([`crate::tool::TipShape::Round`]) is a hemisphere of the tool's radius:
+//! a node inside it goes out along the sphere's normal (radially, across the axis to
+//! the sphere at its height, for the paper's rule).
+//!
 //! The response is a penalty force k_c·depth on the node; the tool receives the
 //! opposite force, and the sum over nodes is the haptic force. Only nodes the broad
 //! phase returns near the tool are tested.
 
 use super::state::Nodes;
 use crate::broad_phase::PointGrid;
-use crate::math::Vec3;
-use crate::tool::{PlacedTool, ToolFeedback};
+use crate::math::{Vec3, any_perpendicular};
+use crate::tool::{PlacedTool, TipShape, ToolFeedback};
 
 /// How a node sits inside the tool, and the way out.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -39,6 +43,9 @@ pub fn tool_penetration(tool: &PlacedTool, x: &Vec3, radial_only: bool) -> Optio
     if !(0.0..=tool.length_m).contains(&along) {
         return None;
     }
+    if tool.tip_shape == TipShape::Round && along < tool.radius_m {
+        return round_tip_penetration(tool, x, along, radial_only);
+    }
     let (radial_depth, direction) = tool.section_exit(&(x - tool.tip - tool.axis * along))?;
     if !radial_only {
         let (cap_depth, cap_dir) =
@@ -48,6 +55,24 @@ pub fn tool_penetration(tool: &PlacedTool, x: &Vec3, radial_only: bool) -> Optio
         }
     }
     Some(Penetration { direction, depth_m: radial_depth })
+}
+
+/// A point `along` the axis within a round tip's hemisphere: out along the sphere's
+/// normal, or (`radial_only`) across the axis to the sphere at the point's height.
+fn round_tip_penetration(tool: &PlacedTool, x: &Vec3, along: f64, radial_only: bool) -> Option<Penetration> {
+    if !radial_only {
+        let (depth_m, direction) = tool.round_tip_exit(x)?;
+        return Some(Penetration { direction, depth_m });
+    }
+    let below_centre = tool.radius_m - along;
+    let section_radius = (tool.radius_m * tool.radius_m - below_centre * below_centre).sqrt();
+    let offset = x - tool.tip - tool.axis * along;
+    let d = offset.norm();
+    if d >= section_radius {
+        return None;
+    }
+    let direction = if d > 1e-12 * tool.radius_m { offset / d } else { any_perpendicular(&tool.axis) };
+    Some(Penetration { direction, depth_m: section_radius - d })
 }
 
 /// Which nodes inside the tool its penalty pushes, and which way.
@@ -92,7 +117,7 @@ pub(crate) fn apply_tool_contacts(
     grid.query_box(&min, &max, |id| {
         let i = id as usize;
         if let ContactMode::SideOnly { face_reach_m } = mode
-            && super::hold::face_depth(tool, &nodes.x[i], face_reach_m).is_some()
+            && super::hold::face_exit(tool, &nodes.x[i], face_reach_m).is_some()
         {
             return;
         }
@@ -151,6 +176,25 @@ pub(crate) mod tests {
         // Deeper than the radial way out: radial again.
         let p = tool_penetration(&t, &Vec3::new(0.0, 5e-4, 0.01), false).unwrap();
         assert!((p.direction - Vec3::y()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn a_round_tip_is_a_hemisphere_left_along_its_normal_or_across_the_axis() {
+        let t = PlacedTool { tip_shape: TipShape::Round, ..tool() };
+        // Off the axis near the apex, where a flat tip is solid: outside the hemisphere.
+        assert!(tool_penetration(&t, &Vec3::new(8e-4, 0.0, 1e-4), false).is_none());
+        assert!(tool_penetration(&tool(), &Vec3::new(8e-4, 0.0, 1e-4), false).is_some());
+        // Inside it: out along the sphere's normal (from its centre, 1 mm up the axis).
+        let x = Vec3::new(3e-4, 4e-4, 5e-4);
+        let from_centre = x - Vec3::new(0.0, 0.0, 1e-3);
+        let p = tool_penetration(&t, &x, false).unwrap();
+        assert!((p.direction - from_centre.normalize()).norm() < 1e-12 && (p.depth_m - (1e-3 - from_centre.norm())).abs() < 1e-15);
+        // The paper's rule: across the axis, to the sphere at the point's height
+        // (radius √(r² − (r − z)²) = 0.866 mm at z = 0.5 mm).
+        let p = tool_penetration(&t, &x, true).unwrap();
+        assert!((p.direction - Vec3::new(0.6, 0.8, 0.0)).norm() < 1e-12 && (p.depth_m - (0.75e-6_f64.sqrt() - 5e-4)).abs() < 1e-12, "{p:?}");
+        // Above the centre the rod's side, as for a flat tip.
+        assert_eq!(tool_penetration(&t, &Vec3::new(0.0, 5e-4, 0.01), false), tool_penetration(&tool(), &Vec3::new(0.0, 5e-4, 0.01), false));
     }
 
     #[test]

@@ -36,7 +36,7 @@ use super::cut::{Crossing, nearest_crossing, triangles_near};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
 use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle};
-use crate::tool::{PlacedTool, ToolFeedback};
+use crate::tool::{PlacedTool, TipShape, ToolFeedback};
 
 /// The smallest |cos| between the tool's axis and a held triangle's normal.
 const MIN_HOLD_COSINE: f64 = 0.5;
@@ -246,7 +246,7 @@ impl Holder {
             if nodes.inv_mass[i] == 0.0 {
                 return;
             }
-            let Some(depth) = face_depth(tool, &nodes.x[i], reach_m) else { return };
+            let Some((depth, push)) = face_exit(tool, &nodes.x[i], reach_m) else { return };
             let at = HeldPoint { ids: [id; 3], w: [1.0, 0.0, 0.0], push, depth };
             hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
         });
@@ -284,18 +284,32 @@ impl Holder {
             let [a, b, c] = ids.map(|v| nodes.x[v as usize]);
             let normal = (b - a).cross(&(c - a));
             let facing = normal.norm() > 0.0 && normal.normalize().dot(&tool.axis).abs() >= MIN_HOLD_COSINE;
-            let w = barycentric_closest(&hit.point, &a, &b, &c);
+            let depth = (hit.point - tool.tip).dot(&tool.axis);
+            let (point, face_depth, nodes_hold) = (hit.point, depth, false);
+            let w = barycentric_closest(&point, &a, &b, &c);
             // The point's inverse mass, as its nodes share it by their weights.
             let point_inv_mass: f64 = (0..3).map(|k| w[k] * w[k] * nodes.inv_mass[ids[k] as usize]).sum();
-            let depth = (hit.point - tool.tip).dot(&tool.axis);
             let goes_on = self.held_triangle[index].is_some();
             through = !goes_on && depth > reach_m;
             if depth < 0.0 && goes_on {
                 held = Some(hit.triangle);
+                // Just off the face, the point can close the gap within the substep: the
+                // explicit integrator stops its approach beyond the gap (a speculative
+                // contact). Without it, a point carrying the whole load (a round tip
+                // rests on one triangle) that was a micrometre off the face at one
+                // substep was thrown millimetres into the tool by the skin's tension
+                // before the next caught it. The implicit solve has its contacts in its
+                // system, and none off the face.
+                if implicit.is_none() && point_inv_mass > 0.0 && -depth <= reach_m && tool.tip_shape == TipShape::Round {
+                    let at = HeldPoint { ids, w: [w[0], w[1], w[2]], push, depth };
+                    hold_point(nodes, &drag, h, None, &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
+                }
             } else if depth >= 0.0 && (goes_on || (facing && !through)) && point_inv_mass > 0.0 {
                 held = Some(hit.triangle);
-                let at = HeldPoint { ids, w: [w[0], w[1], w[2]], push, depth };
-                hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
+                if face_depth >= 0.0 && !nodes_hold {
+                    let at = HeldPoint { ids, w: [w[0], w[1], w[2]], push, depth: face_depth };
+                    hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
+                }
             }
         }
         self.finish(index, held, reaction, feedback, weight, through)
@@ -347,22 +361,36 @@ fn hold_point(
         return;
     }
     let share = |k: usize| w[k] * nodes.inv_mass[ids[k] as usize] / point_inv_mass;
+    // A point off the face (depth < 0: a gap) is not moved; its approach may close the gap.
+    let gap = (-depth).max(0.0);
     for k in 0..3 {
         let i = ids[k] as usize;
-        nodes.x[i] += (push * (depth * share(k))).component_mul(&nodes.free[i]);
+        nodes.x[i] += (push * (depth.max(0.0) * share(k))).component_mul(&nodes.free[i]);
     }
     // Where the point now lies on the face (for a node: the node; for the triangle the
     // axis crosses: the tip).
     let point: Vec3 = (0..3).map(|k| nodes.x[ids[k] as usize] * w[k]).sum();
     if let Some(implicit) = implicit {
         let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
-        let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push);
+        let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push, 0.0);
         for k in (0..3).filter(|&k| w[k] != 0.0) {
             let i = ids[k] as usize;
             nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
             implicit.contacts.push(Contact { node: ids[k], normal: push, stiffness: implicit.stiffness_n_per_m * w[k] });
         }
-        let normal_n = (-(0..3).map(|k| nodes.f[ids[k] as usize] * w[k]).sum::<Vec3>().dot(&push)).max(0.0);
+        // The force the point's nodes press it against the face with, as a constraint
+        // on the point takes it (the force F that stops the point, each node taking
+        // w_k·F: F = Σ w_k f_k / m_k ÷ Σ w_k² / m_k), less what nodes held this substep
+        // already gave to the tools (as the explicit integrator's constraint forces,
+        // added to the nodes' forces, do): a triangle whose corners are held carries
+        // only what they leave.
+        let taken = |i: u32| rubs.iter().filter(|r| r.w[0] == 1.0 && r.ids[0] == i).map(|r| r.push * r.normal_n).sum::<Vec3>();
+        let pressing: Vec3 = (0..3)
+            .filter(|&k| w[k] != 0.0)
+            .map(|k| (nodes.f[ids[k] as usize] + taken(ids[k])) * (w[k] * nodes.inv_mass[ids[k] as usize]))
+            .sum::<Vec3>()
+            / point_inv_mass;
+        let normal_n = (-pressing.dot(&push)).max(0.0);
         reaction.add(tool, point, -push * normal_n, normal_n);
         rubs.push(Rub { tool: index, ids, w, push, lever: point - tool.tip, tool_velocity, normal_n, weight });
         return;
@@ -370,7 +398,7 @@ fn hold_point(
     // The point's velocity at the end of the substep were it free, before the drag (its
     // approach is stopped against its mass alone: the position constraint does the rest).
     let undamped: Vec3 = (0..3).map(|k| (nodes.v[ids[k] as usize] + nodes.f[ids[k] as usize] * (h * nodes.inv_mass[ids[k] as usize])) * w[k]).sum();
-    let (stop, normal_n) = contact_force(undamped, tool_velocity, push, 1.0 / point_inv_mass, h);
+    let (stop, normal_n) = contact_force(undamped, tool_velocity, push, gap / h, 1.0 / point_inv_mass, h);
     let Some((resists, coming)) = point_dynamics(nodes, drag, h, ids, w, stop) else { return };
     let on_point = stop + friction_force(coming - tool_velocity, push, &resists, h, normal_n, friction);
     // A force F at the point is w_k·F on its nodes; the tool feels what they take.
@@ -385,14 +413,15 @@ fn hold_point(
 }
 
 /// The velocity change that removes a held point's approach along `push` faster than
-/// the tool (an inelastic contact), and the approach speed it removes.
-fn contact_velocity_change(velocity: Vec3, tool_velocity: Vec3, push: Vec3) -> (Vec3, f64) {
-    let approach = (velocity - tool_velocity).dot(&push);
-    if approach >= 0.0 {
-        // Leaving the face (or resting on it): untouched.
+/// the tool (an inelastic contact), beyond `allowed_approach` (a gap's closing speed
+/// over the substep), and the approach speed it removes.
+fn contact_velocity_change(velocity: Vec3, tool_velocity: Vec3, push: Vec3, allowed_approach: f64) -> (Vec3, f64) {
+    let approach = -(velocity - tool_velocity).dot(&push) - allowed_approach;
+    if approach <= 0.0 {
+        // Leaving the face, resting on it, or closing no more than its gap: untouched.
         return (Vec3::zeros(), 0.0);
     }
-    (push * -approach, -approach)
+    (push * approach, approach)
 }
 
 /// A held point of nodes `ids` with weights `w`: its resistance R to a force over the
@@ -417,8 +446,8 @@ fn point_dynamics(nodes: &Nodes, drag: &Drag, h: f64, ids: [u32; 3], w: [f64; 3]
 /// The force on a held point of `mass` over the substep h that stops its approach to
 /// the tool face (an inelastic contact), and its size, the normal force, N. `coming`
 /// is the velocity the point would have at the substep's end were it free.
-fn contact_force(coming: Vec3, tool_velocity: Vec3, push: Vec3, mass: f64, h: f64) -> (Vec3, f64) {
-    let (dv, approach) = contact_velocity_change(coming, tool_velocity, push);
+fn contact_force(coming: Vec3, tool_velocity: Vec3, push: Vec3, allowed_approach: f64, mass: f64, h: f64) -> (Vec3, f64) {
+    let (dv, approach) = contact_velocity_change(coming, tool_velocity, push, allowed_approach);
     (dv * (mass / h), approach * mass / h)
 }
 
@@ -440,16 +469,23 @@ fn friction_force(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, no
     if sideways <= mu_static * normal_n { stick } else { stick * (mu_dynamic * normal_n / sideways) }
 }
 
-/// How far a node inside the tool lies above the tip face, when that face (not the
-/// side) is its nearest way out and it lies within `reach_m` of it (skin the face can
-/// have pressed since the last substep); None otherwise.
-pub(crate) fn face_depth(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<f64> {
+/// How deep a node inside the tool lies under the tip face and the way out (the face's
+/// normal: down the axis for a flat tip, the sphere's for a round one), when the face
+/// (not the side) is its nearest way out and it lies within `reach_m` of it (skin the
+/// face can have pressed since the last substep); None otherwise.
+pub(crate) fn face_exit(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<(f64, Vec3)> {
     let along = (x - tool.tip).dot(&tool.axis);
-    if along < 0.0 || along > reach_m.min(0.5 * tool.length_m) {
+    let reach_m = reach_m.min(0.5 * tool.length_m);
+    if tool.tip_shape == TipShape::Round {
+        // Below the hemisphere's centre its surface is the nearest way out; above it,
+        // the rod's side, which holds the skin that wraps the ball and climbs it.
+        return tool.round_tip_exit(x).filter(|&(depth, _)| depth <= reach_m);
+    }
+    if along < 0.0 || along > reach_m {
         return None;
     }
     let (through_side, _) = tool.section_exit(&(x - tool.tip - tool.axis * along))?;
-    (along < through_side).then_some(along)
+    (along < through_side).then_some((along, -tool.axis))
 }
 
 #[cfg(test)]
@@ -458,18 +494,45 @@ mod tests {
 
     use crate::msm::contact::tests::tool;
 
+    fn face_depth_of(t: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<f64> {
+        face_exit(t, x, reach_m).map(|(depth, out)| {
+            assert_eq!(out, -t.axis, "a flat face pushes down the axis");
+            depth
+        })
+    }
+
     #[test]
     fn the_face_holds_nodes_nearer_it_than_the_side() {
         let t = tool();
-        assert_eq!(face_depth(&t, &Vec3::new(0.0, 2e-4, 3e-4), 1.0), Some(3e-4));
+        assert_eq!(face_depth_of(&t, &Vec3::new(0.0, 2e-4, 3e-4), 1.0), Some(3e-4));
         // Nearer the side: the side's penalty pushes it, not the face.
-        assert_eq!(face_depth(&t, &Vec3::new(0.0, 9e-4, 3e-4), 1.0), None);
+        assert_eq!(face_depth_of(&t, &Vec3::new(0.0, 9e-4, 3e-4), 1.0), None);
         // Below the tip, outside the radius, or up the shaft: not held.
-        assert_eq!(face_depth(&t, &Vec3::new(0.0, 0.0, -1e-6), 1.0), None);
-        assert_eq!(face_depth(&t, &Vec3::new(0.0, 1.1e-3, 1e-5), 1.0), None);
-        assert_eq!(face_depth(&t, &Vec3::new(0.0, 0.0, 0.06), 1.0), None);
+        assert_eq!(face_depth_of(&t, &Vec3::new(0.0, 0.0, -1e-6), 1.0), None);
+        assert_eq!(face_depth_of(&t, &Vec3::new(0.0, 1.1e-3, 1e-5), 1.0), None);
+        assert_eq!(face_depth_of(&t, &Vec3::new(0.0, 0.0, 0.06), 1.0), None);
         // Deeper than the tip can have pressed since the last substep: got in from the side.
-        assert_eq!(face_depth(&t, &Vec3::new(0.0, 2e-4, 3e-4), 1e-4), None);
+        assert_eq!(face_depth_of(&t, &Vec3::new(0.0, 2e-4, 3e-4), 1e-4), None);
+    }
+
+    #[test]
+    fn a_round_tip_holds_nodes_inside_its_hemisphere_out_along_its_normal() {
+        // Radius 1 mm: the hemisphere's centre 1 mm above the apex at the origin.
+        let t = PlacedTool { tip_shape: TipShape::Round, ..tool() };
+        // Under the apex: out down the axis by its depth.
+        let (depth, out) = face_exit(&t, &Vec3::new(0.0, 0.0, 2e-4), 1.0).unwrap();
+        assert!((depth - 2e-4).abs() < 1e-15 && (out + Vec3::z()).norm() < 1e-12, "{depth} {out:?}");
+        // Off the axis, inside the sphere: along the normal through it.
+        let x = Vec3::new(6e-4, 0.0, 3e-4);
+        let (depth, out) = face_exit(&t, &x, 1.0).unwrap();
+        let from_centre = x - Vec3::new(0.0, 0.0, 1e-3);
+        assert!((depth - (1e-3 - from_centre.norm())).abs() < 1e-15 && (out - from_centre.normalize()).norm() < 1e-12, "{depth} {out:?}");
+        // Where a flat face would hold it, the rounded edge is not there: not inside.
+        assert!(face_exit(&t, &Vec3::new(9e-4, 0.0, 1e-4), 1.0).is_none());
+        assert!(face_exit(&PlacedTool { tip_shape: TipShape::Flat, ..t }, &Vec3::new(8e-4, 0.0, 1e-4), 1.0).is_some());
+        // Above the centre (the side's) or deeper than the reach: not held.
+        assert!(face_exit(&t, &Vec3::new(0.0, 5e-4, 1.1e-3), 1.0).is_none());
+        assert!(face_exit(&t, &Vec3::new(0.0, 0.0, 2e-4), 1e-4).is_none());
     }
 
     #[test]
@@ -477,11 +540,14 @@ mod tests {
         let (push, mass, h) = (-Vec3::z(), 1e-3, 1e-4);
         let tool_velocity = Vec3::new(0.0, 0.0, -0.01);
         let v = Vec3::new(0.3, 0.0, 0.5);
-        let (f, normal_n) = contact_force(v, tool_velocity, push, mass, h);
+        let (f, normal_n) = contact_force(v, tool_velocity, push, 0.0, mass, h);
         assert!((v + f * (h / mass) - Vec3::new(0.3, 0.0, -0.01)).norm() < 1e-12, "moves with the tool, keeps its slide: {:?}", v + f * (h / mass));
         assert!((normal_n - 0.51 * mass / h).abs() < 1e-9, "the force that stops it within the substep: {normal_n}");
         let away = Vec3::new(0.0, 0.0, -0.5);
-        assert_eq!(contact_force(away, tool_velocity, push, mass, h), (Vec3::zeros(), 0.0), "moving away faster: untouched");
+        assert_eq!(contact_force(away, tool_velocity, push, 0.0, mass, h), (Vec3::zeros(), 0.0), "moving away faster: untouched");
+        // A gap of 0.2 µm may close over the substep (2 mm/s of approach): only the rest is stopped.
+        let (f, _) = contact_force(v, tool_velocity, push, 2e-7 / h, mass, h);
+        assert!((v + f * (h / mass) - Vec3::new(0.3, 0.0, -0.008)).norm() < 1e-12, "{:?}", v + f * (h / mass));
     }
 
     #[test]

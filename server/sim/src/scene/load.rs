@@ -202,17 +202,27 @@ impl Scene {
             }
         }
         for (i, tool) in self.tools.iter().enumerate() {
-            let super::ToolShapeSpec::Cylinder { radius_m, length_m } = &tool.shape else {
+            let super::ToolShapeSpec::Cylinder { radius_m, length_m, tip } = &tool.shape else {
                 return Err(SceneError::new(
                     origin,
                     format!("tools[{i}].shape"),
                     "the branched grid's tools are cylinders (capsules against its voxels); a blade plate is built for the mass-spring skin only",
                 ));
             };
+            if *tip == Some(super::TipSpec::Flat) {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].shape.cylinder.tip"),
+                    "the branched grid's tools are capsules (a round tip against its voxels); a flat tip is built for the mass-spring skin only: use \"round\" or leave it out",
+                ));
+            }
             let Some(inner) = &tool.cutting_shape else { continue };
-            let super::ToolShapeSpec::Cylinder { radius_m: r_in, length_m: l_in } = inner else {
+            let super::ToolShapeSpec::Cylinder { radius_m: r_in, length_m: l_in, tip: inner_tip } = inner else {
                 return Err(SceneError::new(origin, format!("tools[{i}].cutting_shape"), "a cutting shape is a cylinder"));
             };
+            if *inner_tip == Some(super::TipSpec::Flat) {
+                return Err(SceneError::new(origin, format!("tools[{i}].cutting_shape.cylinder.tip"), "a cutting shape is a capsule (a round tip): use \"round\" or leave it out"));
+            }
             if r_in.get() >= radius_m.get() || l_in.get() > length_m.get() {
                 return Err(SceneError::new(
                     origin,

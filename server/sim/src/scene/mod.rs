@@ -402,6 +402,14 @@ pub struct ToolSpec {
     pub edge: EdgeSpec,
 }
 
+/// The end of a cylinder at its tip.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum TipSpec {
+    Flat,
+    Round,
+}
+
 /// The direction a blade's edge faces, in the tool's frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 pub enum EdgeSpec {
@@ -440,8 +448,16 @@ fn default_max_force() -> ForceN {
 #[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields)]
 pub enum ToolShapeSpec {
-    /// A segment from the tip along the tool's +z axis, with a radius.
-    Cylinder { radius_m: RadiusM, length_m: ToolLengthM },
+    /// A segment from the tip along the tool's +z axis, with a radius, and its tip's end.
+    Cylinder {
+        radius_m: RadiusM,
+        length_m: ToolLengthM,
+        /// The end at the tip: `flat` (a cut-off rod) or `round` (a hemisphere of the
+        /// rod's radius, a blunt probe). Default: flat on the mass-spring skin; the
+        /// branched grid's tools are capsules (round) and refuse `flat`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        tip: Option<TipSpec>,
+    },
     /// A scalpel blade: a flat plate from the tip along the tool's +z axis, `length_m`
     /// long (its cutting edge's length), `width_m` across the axis along the tool's
     /// `edge` direction and `thickness_m` across its flat. Its cutting edge is the long
