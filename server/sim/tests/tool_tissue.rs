@@ -182,6 +182,38 @@ fn a_probe_pressed_to_its_rated_force_never_goes_through() {
     }
 }
 
+/// Ball-ended probes smaller and larger than the default's, on a node and off it, with
+/// either integrator, reach their rated force without the skin getting past the ball's
+/// apex. A 5 mm ball on a node went through the explicit skin at 32 mm before its
+/// triangle was held across a gap of a micrometre (docs/tool-tissue.md "Tool shapes").
+#[test]
+fn ball_ended_probes_of_several_sizes_hold_the_skin_with_either_integrator() {
+    let ModelSpec::Msm(spec) = &default_scene().model else { unreachable!() };
+    let edge_m = cutsim_sim::msm::build_from_scene(&default_scene(), spec).unwrap().mean_edge_length_m();
+    for radius in [0.002, 0.005] {
+        for implicit in [false, true] {
+            let scene = edit(&default_scene(), |s| {
+                s["tools"][1]["shape"] = serde_json::json!({ "cylinder": { "radius_m": radius, "length_m": 0.08, "tip": "round" } });
+                if implicit {
+                    s["model"]["msm"]["integrator"] = serde_json::json!({ "implicit-euler": { "cg_max_iterations": 100, "cg_tolerance": 1e-6 } });
+                }
+            });
+            let integrator = if implicit { "implicit" } else { "explicit" };
+            for xy in [(0.0, 0.0), (0.0002, 0.0001)] {
+                let trace = press(&scene, 1, xy, false, 0.05, 9.9, 0.06);
+                let last = trace.last().unwrap();
+                let deepest_through = trace.iter().filter_map(|s| s.skin_z.map(|z| z - s.tip_z)).fold(f64::NEG_INFINITY, f64::max);
+                println!("{integrator}, ball radius {:.0} mm at {xy:?}: {:.2} N at {:.1} mm, skin at most {:.3} mm above the tip", radius * 1e3, last.force_n, -last.tip_z * 1e3, deepest_through * 1e3);
+                assert!(last.force_n >= 9.9, "{integrator}, radius {radius} at {xy:?}: reached only {:.2} N at {:.1} mm", last.force_n, -last.tip_z * 1e3);
+                // Explicit: held on the ball; implicit: within the held contact's
+                // compliance (10 N sinks about 0.5 mm), never half an edge.
+                let allowed = if implicit { 0.5 * edge_m } else { 1e-4 };
+                assert!(deepest_through < allowed, "{integrator}, radius {radius} at {xy:?}: the skin {:.3} mm above the tip", deepest_through * 1e3);
+            }
+        }
+    }
+}
+
 #[test]
 fn a_blade_goes_in_only_when_it_presses_with_the_puncture_force() {
     let scene = default_scene();
