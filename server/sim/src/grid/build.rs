@@ -120,6 +120,7 @@ pub fn build_parts(scene: &Scene, spec: &BranchedGridSpec) -> Result<GridParts, 
             poisson: m.poisson.get(),
             density_kg_per_m3: m.density_kg_per_m3.get(),
             friction: m.friction.map_or_else(Default::default, |f| super::friction::Friction { static_coefficient: f.static_coefficient.get(), dynamic_coefficient: f.dynamic_coefficient.get() }),
+            fracture_toughness_j_per_m2: m.fracture_toughness_j_per_m2.get(),
         })
         .collect();
     let constants: Vec<(f64, f64, f64)> = materials.iter().map(|m| (m.young_pa, m.poisson, m.density_kg_per_m3)).collect();

@@ -2,6 +2,7 @@
 
 mod build;
 pub mod condense;
+pub mod cut_resistance;
 pub mod factorization;
 pub mod fidelity;
 pub mod friction;

@@ -43,6 +43,7 @@ pub struct GridMaterial {
     pub poisson: f64,
     pub density_kg_per_m3: f64,
     pub friction: super::friction::Friction,
+    pub fracture_toughness_j_per_m2: f64,
 }
 
 /// Per tool: the current cut stroke (the cut button held).
@@ -50,6 +51,10 @@ pub struct GridMaterial {
 struct Stroke {
     removed_any: bool,
     last_tip: Option<Vec3>,
+    /// Where the tip was at the stroke's last step (grid frame), and the tissue's
+    /// averaged resistance (super::cut_resistance).
+    previous_tip: Option<Vec3>,
+    resistance: super::cut_resistance::CutResistance,
 }
 
 /// The branched-grid tissue.
@@ -414,6 +419,7 @@ impl BranchedGrid {
                 feedback[i].cutting = true;
                 tips.push((i, tip));
             }
+            self.resist_cut(i, tip, (top - tip) / length, &removed[before..], &mut feedback[i]);
         }
         if removed.is_empty() {
             return;
@@ -432,6 +438,22 @@ impl BranchedGrid {
             stroke.last_tip = Some(tip);
         }
         self.apply_removal(&removed);
+    }
+
+    /// The tissue's resistance to cutting tool `i`, its tip at `tip` and its axis along
+    /// `axis` (grid frame), its cutting capsule having removed `removed` this step: added
+    /// to its feedback as a dissipative force (super::cut_resistance).
+    fn resist_cut(&mut self, i: usize, tip: Vec3, axis: Vec3, removed: &[usize], feedback: &mut ToolFeedback) {
+        let spacing = self.topo.layout.spacing_m;
+        let voxel_m = (spacing[0] * spacing[1] * spacing[2]).cbrt();
+        let along = removed.iter().map(|&v| ((self.voxel_position(v) - tip).dot(&axis), self.materials[usize::from(self.topo.material[v]) - 1].fracture_toughness_j_per_m2));
+        let removed = super::cut_resistance::removed(along);
+        let stroke = &mut self.strokes[i];
+        let motion = stroke.previous_tip.map_or(Vec3::zeros(), |before| tip - before);
+        stroke.previous_tip = Some(tip);
+        let force = self.frame.rotation * stroke.resistance.step(motion, removed, voxel_m, self.dt_s);
+        feedback.force_n += force;
+        feedback.resistance_n += force;
     }
 
     /// Removes voxels from the grid and the surface and records the topology delta.

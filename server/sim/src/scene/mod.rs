@@ -618,6 +618,11 @@ pub struct LabelMaterialSpec {
     /// "Tools"). Absent: frictionless.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub friction: Option<FrictionSpec>,
+    /// The work a blade needs per unit area of cut, J/m²: the cutting tool then feels
+    /// J times the depth it has in the tissue against its motion (docs/branched-grid.md,
+    /// "Cutting that resists"). 0: cutting needs no force.
+    #[serde(default)]
+    pub fracture_toughness_j_per_m2: FractureToughnessJPerM2,
 }
 
 fn soft_tissue_poisson() -> Poisson {
