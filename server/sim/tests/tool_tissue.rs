@@ -17,6 +17,11 @@ fn default_scene() -> Scene {
     Scene::load(&root().join("server/scenes/skin-patch.json")).unwrap()
 }
 
+/// The skin's implicit integrator, solved tightly (CG ≤ 100, 1e-6), in a scene's JSON.
+fn use_implicit_integrator(scene: &mut serde_json::Value) {
+    scene["model"]["msm"]["integrator"] = serde_json::json!({ "implicit-euler": { "cg_max_iterations": 100, "cg_tolerance": 1e-6 } });
+}
+
 fn edit(scene: &Scene, change: impl FnOnce(&mut serde_json::Value)) -> Scene {
     let mut json = serde_json::to_value(scene).unwrap();
     change(&mut json);
@@ -195,7 +200,7 @@ fn ball_ended_probes_of_several_sizes_hold_the_skin_with_either_integrator() {
             let scene = edit(&default_scene(), |s| {
                 s["tools"][1]["shape"] = serde_json::json!({ "cylinder": { "radius_m": radius, "length_m": 0.08, "tip": "round" } });
                 if implicit {
-                    s["model"]["msm"]["integrator"] = serde_json::json!({ "implicit-euler": { "cg_max_iterations": 100, "cg_tolerance": 1e-6 } });
+                    use_implicit_integrator(s);
                 }
             });
             let integrator = if implicit { "implicit" } else { "explicit" };
@@ -380,7 +385,7 @@ fn friction_drags_the_skin_under_a_probe_drawn_sideways_with_either_integrator()
 fn a_tool_thrust_through_the_skin_in_one_step_does_not_pass_between_poses() {
     let explicit = default_scene();
     let implicit = edit(&explicit, |json| {
-        json["model"]["msm"]["integrator"] = serde_json::json!({ "implicit-euler": { "cg_max_iterations": 100, "cg_tolerance": 1e-6 } });
+        use_implicit_integrator(json);
     });
     let ModelSpec::Msm(spec) = &explicit.model else { unreachable!() };
     let edge_m = cutsim_sim::msm::build_from_scene(&explicit, spec).unwrap().mean_edge_length_m();
@@ -413,7 +418,7 @@ fn with_probe(radius_m: f64, tip: &str, refined: u32, implicit: bool) -> Scene {
         }
         s["tools"][1]["shape"] = serde_json::json!({ "cylinder": { "radius_m": radius_m, "length_m": 0.08, "tip": tip } });
         if implicit {
-            s["model"]["msm"]["integrator"] = serde_json::json!({ "implicit-euler": { "cg_max_iterations": 100, "cg_tolerance": 1e-6 } });
+            use_implicit_integrator(s);
         }
     })
 }
@@ -559,13 +564,12 @@ fn default_rest_top() -> f64 {
 /// fracture toughness `toughness` J/m², with a scalpel (capsule r 2.4 mm, cutting
 /// capsule r 2.2 mm).
 fn grid_block(toughness: f64) -> Scene {
-    let young = 30000.0;
     let text = format!(
         r#"{{ "name": "block", "time_step_s": 0.001,
         "model": {{ "branched-grid": {{
             "volume": {{ "box": {{ "size_m": [0.06, 0.03, 0.02], "voxel_size_m": 0.001 }} }},
             "centre": true,
-            "materials": [ {{ "label": 1, "young_pa": {young}, "density_kg_per_m3": 1060, "fracture_toughness_j_per_m2": {toughness} }} ],
+            "materials": [ {{ "label": 1, "young_pa": 30000, "density_kg_per_m3": 1060, "fracture_toughness_j_per_m2": {toughness} }} ],
             "level": 2,
             "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
             "cutting": {{}} }} }},

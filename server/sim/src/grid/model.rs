@@ -51,9 +51,7 @@ pub struct GridMaterial {
 struct Stroke {
     removed_any: bool,
     last_tip: Option<Vec3>,
-    /// Where the tip was at the stroke's last step (grid frame), and the tissue's
-    /// averaged resistance (super::cut_resistance).
-    previous_tip: Option<Vec3>,
+    /// The tissue's averaged resistance (super::cut_resistance).
     resistance: super::cut_resistance::CutResistance,
 }
 
@@ -220,11 +218,12 @@ impl BranchedGrid {
             self.solved_contact_forces(feedback);
             self.move_anchors(commands);
         }
-        for (previous, command) in self.previous_tips.iter_mut().zip(commands) {
-            *previous = (command.active && command.pose.is_finite()).then(|| self.frame.to_local(&command.pose.position_m));
-        }
+        // The cut reads the tips' motion over the step (`previous_tips`, still last step's).
         if self.max_voxels_per_step.is_some() {
             self.cut(commands, feedback);
+        }
+        for (previous, command) in self.previous_tips.iter_mut().zip(commands) {
+            *previous = (command.active && command.pose.is_finite()).then(|| self.frame.to_local(&command.pose.position_m));
         }
         for (fb, tool) in feedback.iter_mut().zip(&self.tools) {
             fb.clamp_force(tool.max_force_n);
@@ -448,10 +447,8 @@ impl BranchedGrid {
         let voxel_m = (spacing[0] * spacing[1] * spacing[2]).cbrt();
         let along = removed.iter().map(|&v| ((self.voxel_position(v) - tip).dot(&axis), self.materials[usize::from(self.topo.material[v]) - 1].fracture_toughness_j_per_m2));
         let removed = super::cut_resistance::removed(along);
-        let stroke = &mut self.strokes[i];
-        let motion = stroke.previous_tip.map_or(Vec3::zeros(), |before| tip - before);
-        stroke.previous_tip = Some(tip);
-        let force = self.frame.rotation * stroke.resistance.step(motion, removed, voxel_m, self.dt_s);
+        let motion = self.previous_tips[i].map_or(Vec3::zeros(), |before| tip - before);
+        let force = self.frame.rotation * self.strokes[i].resistance.step(motion, removed, voxel_m, self.dt_s);
         feedback.force_n += force;
         feedback.resistance_n += force;
     }
