@@ -17,6 +17,7 @@ pub mod grid;
 pub mod hash;
 pub mod math;
 pub mod msm;
+pub mod multirate;
 pub mod quantity;
 pub mod runner;
 pub mod scene;
@@ -36,6 +37,9 @@ use tissue::Tissue;
 pub fn build_tissue(scene: &Scene) -> Result<Box<dyn Tissue>, SceneError> {
     match &scene.model {
         ModelSpec::Msm(spec) => Ok(Box::new(msm::build_from_scene(scene, spec)?)),
-        ModelSpec::BranchedGrid(spec) => Ok(Box::new(grid::build_from_scene(scene, spec)?)),
+        ModelSpec::BranchedGrid(spec) => match &spec.schedule {
+            scene::ScheduleSpec::SingleRate => Ok(Box::new(grid::build_from_scene(scene, spec)?)),
+            scene::ScheduleSpec::Multirate(schedule) => Ok(Box::new(multirate::build_from_scene(scene, schedule)?)),
+        },
     }
 }

@@ -115,6 +115,8 @@ bounded!(/// Physics time step.
     TimeStepS: f64, "number", what = "time step", unit = "s", range = [1e-6, 0.1]);
 bounded!(/// Explicit substeps per physics step.
     Substeps: u32, "integer", what = "substeps", unit = "", range = [1, 1000]);
+bounded!(/// Haptic steps per deformation step of a multirate schedule.
+    DeformationEvery: u32, "integer", what = "haptic steps per deformation step", unit = "", range = [2, 100]);
 bounded!(/// Conjugate-gradient iteration cap.
     CgIterations: u32, "integer", what = "conjugate-gradient iteration cap", unit = "", range = [1, 10000]);
 bounded!(/// Conjugate-gradient relative residual tolerance.

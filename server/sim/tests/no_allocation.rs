@@ -1,6 +1,7 @@
 //! The 1 kHz path allocates nothing: steps with a tool pressing the skin, and steps with
 //! the blade in the skin and its cut button held, make no heap allocation, nor do the
-//! branched grid's steps with a probe pressed in, with each preconditioner. Only a cut
+//! branched grid's steps with a probe pressed in, with each preconditioner, and its
+//! haptic steps under a multirate schedule. Only a cut
 //! update (a topology change) may allocate; the count is printed for the record.
 
 mod common;
@@ -117,34 +118,51 @@ fn blade_in_the_skin_between_cut_updates_allocates_nothing() {
 /// and the Cholesky factor's schedule hands the solved system to its worker by swapping
 /// buffers and reuses the job that came back (the first factor and the first job's
 /// buffers are made in the warm-up).
+/// A 40 × 20 × 10 mm block at level 1 held at its bottom, its grid's settings ending
+/// with `extra`, a probe pressed 2 mm into it over 100 steps; then the allocations of
+/// 200 steps with the probe held there, and the last force on it.
+fn grid_allocations_with_a_probe_held(extra: &str) -> (u64, f64) {
+    let text = format!(
+        r#"{{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
+        "model": {{ "branched-grid": {{
+            "volume": {{ "box": {{ "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 }} }},
+            "centre": true,
+            "materials": [ {{ "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 }} ],
+            "level": 1,
+            "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
+            {extra} }} }},
+        "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": 0.004, "length_m": 0.06 }} }} }} ] }}"#
+    );
+    let mut model = cutsim_sim::build_tissue(&scene(&text)).unwrap_or_else(|e| panic!("{e}"));
+    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.009 - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: false }];
+    let mut feedback = [ToolFeedback::default()];
+    for i in 0..100 {
+        model.step(&press(i), &mut feedback);
+    }
+    let allocations = allocations_during(|| {
+        for i in 100..300 {
+            model.step(&press(i), &mut feedback);
+        }
+    });
+    (allocations, feedback[0].force_n.norm())
+}
+
 #[test]
 fn grid_steps_with_a_probe_allocate_nothing_with_every_preconditioner() {
     for preconditioner in ["jacobi", "multigrid", "cholesky"] {
-        let text = format!(
-            r#"{{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
-            "model": {{ "branched-grid": {{
-                "volume": {{ "box": {{ "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 }} }},
-                "centre": true,
-                "materials": [ {{ "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 }} ],
-                "level": 1,
-                "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
-                "solver": {{ "preconditioner": "{preconditioner}", "cg_max_iterations": 200 }} }} }},
-            "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": 0.004, "length_m": 0.06 }} }} }} ] }}"#
-        );
-        let mut model = cutsim_sim::build_tissue(&scene(&text)).unwrap_or_else(|e| panic!("{e}"));
-        let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.009 - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: false }];
-        let mut feedback = [ToolFeedback::default()];
-        for i in 0..100 {
-            model.step(&press(i), &mut feedback);
-        }
-        let allocations = allocations_during(|| {
-            for i in 100..300 {
-                model.step(&press(i), &mut feedback);
-            }
-        });
-        assert!(feedback[0].force_n.norm() > 0.0, "{preconditioner}: the probe presses the block");
+        let (allocations, force) = grid_allocations_with_a_probe_held(&format!(r#""solver": {{ "preconditioner": "{preconditioner}", "cg_max_iterations": 200 }}"#));
+        assert!(force > 0.0, "{preconditioner}: the probe presses the block");
         assert_eq!(allocations, 0, "{preconditioner}: steps with the probe pressed in allocated");
     }
+}
+
+/// Under a multirate schedule the session's thread runs the haptic loop and swaps the
+/// deformation's results in: neither allocates (the deformation thread may).
+#[test]
+fn multirate_haptic_steps_allocate_nothing() {
+    let (allocations, force) = grid_allocations_with_a_probe_held(r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#);
+    assert!(force > 0.0, "the probe presses the block");
+    assert_eq!(allocations, 0, "multirate haptic steps allocated");
 }
 
 /// A step that must wait for a background result (a slow worker, a loaded machine)

@@ -16,6 +16,7 @@ use crate::hash::StateHasher;
 use crate::math::{Matrix3, Vec3, closest_point_on_segment};
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{Tissue, TissueCounters};
+use crate::multirate::patch::{ContactPatch, MAX_PATCH_VERTICES};
 use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 
 /// The grid's frame in the scene: `world = rotation · local + translation`.
@@ -91,6 +92,17 @@ pub struct BranchedGrid {
     last_update: Option<LastUpdate>,
     /// How `"fidelity": "auto"` chose the level (None for a fixed level).
     fidelity: Option<super::fidelity::FidelityChoice>,
+    /// Multirate scratch: the vertices near a tool, and the nodal force and motion of a
+    /// compliance solve.
+    patch_scratch: Vec<(u32, f64)>,
+    compliance_force: Vec<Vec3>,
+    compliance_motion: Vec<Vec3>,
+}
+
+/// A deformation step's multirate inputs and outputs (see `deformation_step`).
+struct Deformation<'a> {
+    patches: &'a mut [ContactPatch],
+    margin_m: f64,
 }
 
 /// What the last voxel removal did and what each part of it cost.
@@ -170,6 +182,9 @@ impl BranchedGrid {
             removed_volume_m3: 0.0,
             last_update: None,
             fidelity: None,
+            patch_scratch: Vec::new(),
+            compliance_force: Vec::new(),
+            compliance_motion: Vec::new(),
             tools,
             topo,
             surface,
@@ -182,6 +197,19 @@ impl BranchedGrid {
 
     /// Advances one step; see the module documentation.
     pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        self.advance(commands, feedback, None);
+    }
+
+    /// One deformation step of a multirate schedule (crate::multirate): a step as
+    /// [`Self::step`] (its own implicit contact with the tools where `commands` put them,
+    /// and cuts) that also publishes each tool's contact patch into `patches`: its
+    /// compliance from this step's system, the contact force the step ended with, and
+    /// its vertices within `margin_m` of the tool as the step and its cuts leave them.
+    pub fn deformation_step(&mut self, commands: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+        self.advance(commands, feedback, Some(Deformation { patches, margin_m }));
+    }
+
+    fn advance(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], mut multirate: Option<Deformation<'_>>) {
         debug_assert_eq!(commands.len(), self.tools.len());
         self.contacts.clear();
         self.contact_levers.clear();
@@ -200,7 +228,15 @@ impl BranchedGrid {
         }
         self.backup_x.copy_from_slice(&self.topo.nodes.x);
         self.backup_v.copy_from_slice(&self.topo.nodes.v);
-        let max_dv = self.dynamics.step(&mut self.topo, &self.settings, &self.contacts, self.step_index);
+        self.dynamics.assemble_tissue(&mut self.topo, &self.settings);
+        if let Some(d) = multirate.as_mut() {
+            // The tissue's compliance, before the tools' contacts enter the system.
+            for (i, command) in commands.iter().enumerate() {
+                self.patch_compliance(i, command, d.margin_m, &mut d.patches[i]);
+            }
+        }
+        self.dynamics.solve_with_contacts(&self.topo, &self.settings, &self.contacts, self.step_index);
+        let max_dv = self.dynamics.finish_step(&mut self.topo, &self.settings, self.step_index);
         self.counters.count_solve(&self.dynamics.last);
         self.counters.solver_waits = self.dynamics.waits();
         self.counters.solver_factor_failures = self.dynamics.factor_failures();
@@ -218,9 +254,19 @@ impl BranchedGrid {
             self.solved_contact_forces(feedback);
             self.move_anchors(commands);
         }
+        if let Some(d) = multirate.as_mut() {
+            for (patch, fb) in d.patches.iter_mut().zip(feedback.iter()) {
+                patch.applied = -fb.force_n;
+            }
+        }
         // The cut reads the tips' motion over the step (`previous_tips`, still last step's).
         if self.max_voxels_per_step.is_some() {
             self.cut(commands, feedback);
+        }
+        if let Some(d) = multirate.as_mut() {
+            for (i, command) in commands.iter().enumerate() {
+                self.patch_vertices(i, command, d.margin_m, &mut d.patches[i]);
+            }
         }
         for (previous, command) in self.previous_tips.iter_mut().zip(commands) {
             *previous = (command.active && command.pose.is_finite()).then(|| self.frame.to_local(&command.pose.position_m));
@@ -232,6 +278,105 @@ impl BranchedGrid {
             }
         }
         self.step_index += 1;
+    }
+
+    /// Surface vertices within `margin_m` of tool `i`'s outer capsule (its axis within
+    /// its radius plus the margin), nearest first, at most [`MAX_PATCH_VERTICES`]:
+    /// (vertex, distance from the axis) into `out`.
+    fn near_vertices(&self, i: usize, command: &ToolCommand, margin_m: f64, out: &mut Vec<(u32, f64)>) {
+        out.clear();
+        if !command.active || !command.pose.is_finite() {
+            return;
+        }
+        let tool = &self.tools[i];
+        let tip = self.frame.to_local(&command.pose.position_m);
+        let top = tip + self.frame.rotation.transpose() * command.pose.axis() * tool.length_m;
+        let reach = tool.radius_m + margin_m;
+        let (lo, hi) = (tip.inf(&top) - Vec3::repeat(reach), tip.sup(&top) + Vec3::repeat(reach));
+        for cell in 0..self.surface.cell_vertices.len() {
+            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
+                continue;
+            }
+            for &v in &self.surface.cell_vertices[cell] {
+                let p = self.surface.position(&self.topo, v as usize);
+                let distance = (p - closest_point_on_segment(&p, &tip, &top).1).norm();
+                if distance < reach && self.topo.voxel_element[self.surface.voxel[v as usize] as usize] != NONE {
+                    out.push((v, distance));
+                }
+            }
+        }
+        out.sort_unstable_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+        out.truncate(MAX_PATCH_VERTICES);
+    }
+
+    /// Tool `i`'s patch compliance from the tissue's system (before the tools' contacts
+    /// enter it): a unit force spread over the vertices the tool presses on, in
+    /// proportion to their contact forces (the mode the contact loads; touching none, evenly
+    /// over the nearest vertices, within half a voxel of the nearest), solved along each
+    /// axis, and the patch's motion read with the same weights.
+    fn patch_compliance(&mut self, i: usize, command: &ToolCommand, margin_m: f64, patch: &mut ContactPatch) {
+        patch.compliance = Matrix3::zeros();
+        patch.compliance_residual = 0.0;
+        let mut shares = std::mem::take(&mut self.patch_scratch);
+        let (start, end) = self.contact_ranges[i];
+        shares.clear();
+        shares.extend((start..end).map(|c| (self.contact_vertices[c], self.contacts[c].force.norm())).filter(|&(_, f)| f > 0.0));
+        if shares.is_empty() {
+            self.near_vertices(i, command, margin_m, &mut shares);
+            let half_voxel = self.topo.layout.spacing_m.iter().copied().fold(0.0, f64::max) * 0.5;
+            let limit = shares.first().map_or(0.0, |&(_, d)| d + half_voxel);
+            shares.retain(|&(_, d)| d <= limit);
+            shares.iter_mut().for_each(|(_, w)| *w = 1.0);
+        }
+        let total: f64 = shares.iter().map(|&(_, w)| w).sum();
+        if total > 0.0 {
+            shares.iter_mut().for_each(|(_, w)| *w /= total);
+            let n = self.topo.nodes.len();
+            self.compliance_force.resize(n, Vec3::zeros());
+            self.compliance_motion.resize(n, Vec3::zeros());
+            let mut columns = Matrix3::zeros();
+            for axis in 0..3 {
+                self.compliance_force.iter_mut().for_each(|f| *f = Vec3::zeros());
+                for &(v, share) in &shares {
+                    let (element, weights) = self.vertex_embedding(v as usize);
+                    for (k, &node) in self.topo.elements.nodes[element].iter().enumerate() {
+                        self.compliance_force[node as usize] += Vec3::ith(axis, share * weights[k]);
+                    }
+                }
+                let convergence = self.dynamics.compliance(&self.topo, &self.settings, self.step_index, &self.compliance_force, &mut self.compliance_motion);
+                patch.compliance_residual = patch.compliance_residual.max(convergence.residual);
+                let mut moved = Vec3::zeros();
+                for &(v, share) in &shares {
+                    let (element, weights) = self.vertex_embedding(v as usize);
+                    for (k, &node) in self.topo.elements.nodes[element].iter().enumerate() {
+                        moved += self.compliance_motion[node as usize] * (weights[k] * share);
+                    }
+                }
+                columns.set_column(axis, &moved);
+            }
+            let symmetric = (columns + columns.transpose()) * 0.5;
+            patch.compliance = self.frame.rotation * symmetric * self.frame.rotation.transpose();
+        }
+        self.patch_scratch = shares;
+    }
+
+    /// Tool `i`'s patch vertices and their positions (world), as the step and its cuts
+    /// left the surface.
+    fn patch_vertices(&mut self, i: usize, command: &ToolCommand, margin_m: f64, patch: &mut ContactPatch) {
+        let mut near = std::mem::take(&mut self.patch_scratch);
+        self.near_vertices(i, command, margin_m, &mut near);
+        patch.vertices.clear();
+        patch.positions.clear();
+        for &(v, _) in &near {
+            patch.vertices.push(v);
+            patch.positions.push(self.frame.to_world(&self.surface.position(&self.topo, v as usize)));
+        }
+        self.patch_scratch = near;
+    }
+
+    /// A live surface vertex's element and trilinear weights in it.
+    fn vertex_embedding(&self, v: usize) -> (usize, [f64; 8]) {
+        (self.topo.voxel_element[self.surface.voxel[v] as usize] as usize, self.surface.weights[v])
     }
 
     /// Each tool's force and torque from its contacts at the end of the step, as the

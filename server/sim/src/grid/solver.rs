@@ -200,10 +200,10 @@ impl Dynamics {
         self.stale_pattern = false;
     }
 
-    /// The step's system (rotations, element blocks, mass, contacts, supports) into
-    /// `system`, and the forces f_el − (β + h) K_R v, gravity, contacts and supports into
+    /// The step's system without the tools (rotations, element blocks, mass, supports)
+    /// into `system`, and the forces f_el − (β + h) K_R v, gravity and supports into
     /// `force`; which nodes are active.
-    fn assemble(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact]) {
+    fn assemble(&mut self, topo: &mut Topology, settings: &SolverSettings) {
         if self.stale_pattern {
             self.rebuild_pattern(topo);
         }
@@ -262,6 +262,17 @@ impl Dynamics {
                 self.force[i] += g * topo.nodes.mass[i];
             }
         }
+        // The supports' springs at coarse levels (super::support), linearised like the
+        // contacts: their stiffness in the element's blocks, −h K_s v in the force.
+        topo.supports.add_forces(topo, h, &mut self.force);
+        let (system, scatter) = (&mut self.system, &self.scatter);
+        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
+    }
+
+    /// The tools' contacts into the assembled system and force.
+    fn add_contacts(&mut self, topo: &Topology, settings: &SolverSettings, contacts: &[PointContact]) {
+        let h = settings.dt_s;
+        let a_contact = h * h;
         for c in contacts {
             let nodes = &topo.elements.nodes[c.element as usize];
             let blocks = &self.scatter.blocks[c.element as usize];
@@ -280,11 +291,6 @@ impl Dynamics {
                 }
             }
         }
-        // The supports' springs at coarse levels (super::support), linearised like the
-        // contacts: their stiffness in the element's blocks, −h K_s v in the force.
-        topo.supports.add_forces(topo, h, &mut self.force);
-        let (system, scatter) = (&mut self.system, &self.scatter);
-        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
     }
 
     /// Does the preconditioner's first heavy work now, from the model as it stands (at
@@ -295,12 +301,12 @@ impl Dynamics {
         match settings.preconditioner {
             Preconditioning::Jacobi => {}
             Preconditioning::Cholesky => {
-                self.assemble(topo, settings, &[]);
-                node_rotations(&self.first_element, &self.rotations, &mut self.node_rotations);
+                self.assemble(topo, settings);
+                node_rotations_into(&self.first_element, &self.rotations, &mut self.node_rotations);
                 self.factorization.prime(&self.system, &self.active, &self.node_rotations);
             }
             Preconditioning::Multigrid => {
-                self.assemble(topo, settings, &[]);
+                self.assemble(topo, settings);
                 self.multigrid.prime(topo, &self.active);
             }
         }
@@ -308,51 +314,119 @@ impl Dynamics {
 
     /// Step `step`, with the given contacts. Returns the max |Δv| (not finite on a blow-up).
     pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) -> f64 {
-        self.assemble(topo, settings, contacts);
+        self.solve_step(topo, settings, contacts, step);
+        self.finish_step(topo, settings, step)
+    }
+
+    /// The first half of a step: assembles its system and solves for Δv (into `dv`,
+    /// `last` says how it went); the state has not moved yet. Between this and
+    /// [`Self::finish_step`] the step's system can answer [`Self::compliance`] queries.
+    pub fn solve_step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) {
+        self.assemble_tissue(topo, settings);
+        self.solve_with_contacts(topo, settings, contacts, step);
+    }
+
+    /// The first part of [`Self::solve_step`]: the system of the tissue alone (the
+    /// tools' contacts not in it yet), which [`Self::compliance`] queries ask about.
+    pub fn assemble_tissue(&mut self, topo: &mut Topology, settings: &SolverSettings) {
+        self.assemble(topo, settings);
+        self.refresh_diagonal(topo);
+    }
+
+    /// The rest of [`Self::solve_step`]: the contacts into the system, then the solve.
+    pub fn solve_with_contacts(&mut self, topo: &Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) {
+        if !contacts.is_empty() {
+            self.add_contacts(topo, settings, contacts);
+            self.refresh_diagonal(topo);
+        }
         let h = settings.dt_s;
-        let a_mass = 1.0 + h * settings.alpha_per_s;
-        let a_stiff = h * settings.beta_s + h * h;
         let n = topo.nodes.len();
         // b = h (f − αM v − (β + h) K_R v); the last term is already in `force`.
         mass_times(topo, settings.mass, &topo.nodes.v, &mut self.q);
         for i in 0..n {
             self.b[i] = if self.active[i] { (self.force[i] - self.q[i] * settings.alpha_per_s) * h } else { Vec3::zeros() };
-            self.diagonal[i] = self.system.diagonal(i);
         }
-        self.jacobi.update(&self.system, &self.active);
         let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: VELOCITY_FLOOR };
-        let operator = Assembled { matrix: &self.system, active: &self.active };
+        self.last = self.solve_b(topo, settings, step, &pcg_settings, Unknown::VelocityChange);
+    }
+
+    /// How far constant nodal forces `f` (N) move the nodes over one step of the
+    /// tissue's system as [`Self::assemble_tissue`] left it: `x = h² A⁻¹ f` (m; held and dead nodes do not
+    /// move), solved with the step's preconditioner to its tolerance and cap. The
+    /// compliance a multirate haptic loop renders contact against (crate::multirate).
+    pub fn compliance(&mut self, topo: &Topology, settings: &SolverSettings, step: u64, f: &[Vec3], x: &mut [Vec3]) -> Convergence {
+        let h = settings.dt_s;
+        for i in 0..topo.nodes.len() {
+            self.b[i] = if self.active[i] { f[i] * h } else { Vec3::zeros() };
+            self.q[i] = Vec3::zeros();
+        }
+        // No absolute floor: a unit force's velocity change may be far below the state's.
+        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: 0.0 };
+        let convergence = self.solve_b(topo, settings, step, &pcg_settings, Unknown::Scratch);
+        for (x, q) in x.iter_mut().zip(&self.q) {
+            *x = q * h;
+        }
+        convergence
+    }
+
+    /// Solves the assembled system for `b` into `dv` (warm-started) or the scratch `q`
+    /// (from zero), preconditioned as the settings say.
+    fn solve_b(&mut self, topo: &Topology, settings: &SolverSettings, step: u64, pcg_settings: &PcgSettings, unknown: Unknown) -> Convergence {
+        let h = settings.dt_s;
+        let a_mass = 1.0 + h * settings.alpha_per_s;
+        let a_stiff = h * settings.beta_s + h * h;
+        let Dynamics { system, active, jacobi, multigrid, factorization, node_rotations, first_element, rotations, vcycle_scratch, pcg, b, dv, q, diagonal, .. } = self;
+        let x = match unknown {
+            Unknown::VelocityChange => dv,
+            Unknown::Scratch => q,
+        };
+        let operator = Assembled { matrix: system, active };
         let hierarchy = match settings.preconditioner {
-            Preconditioning::Multigrid => self.multigrid.prepare(step, topo, &self.active, &self.rotations, a_mass, a_stiff),
+            Preconditioning::Multigrid => multigrid.prepare(step, topo, active, rotations, a_mass, a_stiff),
             Preconditioning::Jacobi | Preconditioning::Cholesky => None,
         };
         let factor = match settings.preconditioner {
             Preconditioning::Cholesky => {
-                node_rotations(&self.first_element, &self.rotations, &mut self.node_rotations);
-                self.factorization.prepare(step, &self.system, &self.active, &self.node_rotations)
+                node_rotations_into(first_element, rotations, node_rotations);
+                factorization.prepare(step, system, active, node_rotations)
             }
             _ => None,
         };
-
-        self.last = match (hierarchy, factor) {
-            (_, Some(factor)) => self.pcg.solve(&operator, &factor, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
+        match (hierarchy, factor) {
+            (_, Some(factor)) => pcg.solve(&operator, &factor, b, x, active, diagonal, pcg_settings),
             (Some(hierarchy), None) => {
                 let vcycle = VCycle {
                     hierarchy: std::cell::RefCell::new(hierarchy),
-                    matrix: &self.system,
-                    smoother: &self.jacobi,
-                    active: &self.active,
-                    scratch: std::cell::RefCell::new(&mut self.vcycle_scratch),
+                    matrix: system,
+                    smoother: jacobi,
+                    active,
+                    scratch: std::cell::RefCell::new(vcycle_scratch),
                 };
-                self.pcg.solve(&operator, &vcycle, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings)
+                pcg.solve(&operator, &vcycle, b, x, active, diagonal, pcg_settings)
             }
-            (None, None) => self.pcg.solve(&operator, &self.jacobi, &self.b, &mut self.dv, &self.active, &self.diagonal, &pcg_settings),
-        };
+            (None, None) => pcg.solve(&operator, jacobi, b, x, active, diagonal, pcg_settings),
+        }
+    }
+
+    /// The system's diagonal (the residual's metric) and its block-Jacobi inverse, after
+    /// the system changed.
+    fn refresh_diagonal(&mut self, topo: &Topology) {
+        for i in 0..topo.nodes.len() {
+            self.diagonal[i] = self.system.diagonal(i);
+        }
+        self.jacobi.update(&self.system, &self.active);
+    }
+
+    /// The second half of a step: hands the system to the Cholesky worker when it is due
+    /// a factor, then moves the state by Δv. Returns the max |Δv| (not finite on a
+    /// blow-up).
+    pub fn finish_step(&mut self, topo: &mut Topology, settings: &SolverSettings, step: u64) -> f64 {
         if settings.preconditioner == Preconditioning::Cholesky {
             self.factorization.after_solve(step, &mut self.system, &self.active, &self.node_rotations);
         }
+        let h = settings.dt_s;
         let mut max_dv: f64 = 0.0;
-        for i in 0..n {
+        for i in 0..topo.nodes.len() {
             if !self.active[i] {
                 topo.nodes.v[i] = Vec3::zeros();
                 continue;
@@ -367,6 +441,15 @@ impl Dynamics {
         }
         max_dv
     }
+}
+
+/// Which vector a solve of the assembled system fills.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Unknown {
+    /// `dv`, from its warm start: the step's solve.
+    VelocityChange,
+    /// The scratch `q`, from zero: a compliance query.
+    Scratch,
 }
 
 /// The pattern of the step's system: every pair of nodes sharing a live element, except
@@ -467,7 +550,7 @@ fn first_elements(topo: &Topology) -> Vec<u32> {
 
 /// Each node's rotation, from the element [`first_elements`] gave it (the identity for
 /// a node without one).
-fn node_rotations(first_element: &[u32], element_rotations: &[Matrix3<f64>], out: &mut Vec<Matrix3<f64>>) {
+fn node_rotations_into(first_element: &[u32], element_rotations: &[Matrix3<f64>], out: &mut Vec<Matrix3<f64>>) {
     out.clear();
     out.extend(first_element.iter().map(|&e| if e == super::topology::NONE { Matrix3::identity() } else { element_rotations[e as usize] }));
 }

@@ -522,6 +522,41 @@ pub struct BranchedGridSpec {
     /// Cutting by voxel removal. Absent: the scene cannot be cut.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cutting: Option<GridCuttingSpec>,
+    /// How the session steps the model: everything every `time_step_s` (single-rate,
+    /// the default), or tool contact every `time_step_s` against the compliance of a
+    /// deformation stepped less often on a thread of its own (multirate;
+    /// docs/branched-grid.md, "Multirate haptics").
+    #[serde(default, skip_serializing_if = "ScheduleSpec::is_single_rate")]
+    pub schedule: ScheduleSpec,
+}
+
+/// How the session steps a branched grid.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub enum ScheduleSpec {
+    /// Contact, deformation and cuts together, every `time_step_s`.
+    #[default]
+    SingleRate,
+    /// Contact every `time_step_s` (the haptic rate), solved against each tool's contact
+    /// patch as the last deformation step published it; the deformation, with the
+    /// contact forces of the period before and the cuts, every
+    /// `deformation_every_steps` haptic steps (its step is that many times
+    /// `time_step_s`, at most 0.1 s).
+    Multirate(MultirateSpec),
+}
+
+impl ScheduleSpec {
+    pub fn is_single_rate(&self) -> bool {
+        *self == ScheduleSpec::SingleRate
+    }
+}
+
+/// The multirate schedule's rates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MultirateSpec {
+    /// Haptic steps per deformation step (33 at 1 kHz: deformation at 30 Hz).
+    pub deformation_every_steps: DeformationEvery,
 }
 
 /// A label volume source.

@@ -80,6 +80,19 @@ impl<I: Send + 'static, O: Send + 'static> Background<I, O> {
             Err(std::sync::mpsc::TryRecvError::Disconnected) => None,
         }
     }
+
+    /// The pending job's result now, before its step (waiting for the worker if it has
+    /// not finished; not counted as a step's wait): for a caller that needs what the job
+    /// holds (a copy of a model whose state is out with its worker). None when no job is
+    /// out or the worker died.
+    pub fn take_early(&mut self) -> Option<O> {
+        self.due.take()?;
+        match self.results.try_recv() {
+            Ok(result) => Some(result),
+            Err(std::sync::mpsc::TryRecvError::Empty) => poll_until_ready(&self.results, Instant::now()),
+            Err(std::sync::mpsc::TryRecvError::Disconnected) => None,
+        }
+    }
 }
 
 /// Polls `results` until a result arrives (None: the worker is gone), giving the CPU

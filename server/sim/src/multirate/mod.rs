@@ -1,0 +1,460 @@
+//! Multirate haptics: a contact loop at the haptic rate against the compliance of a
+//! deformation model stepped at a lower rate on a thread of its own.
+//!
+//! - [`patch`]: what a deformation step publishes per tool (its contact patch: vertices,
+//!   positions and compliance) and the haptic loop's contact solve against it.
+//! - [`Multirate`]: the schedule behind the session's [`Tissue`] interface.
+//!
+//! The schedule, by step index (haptic steps of the scene's `time_step_s`, deformation
+//! every N of them):
+//!
+//! ```text
+//! haptic step   0 ... N-1 | N ... 2N-1 | 2N ...
+//! deformation   [ job 0  ]  [ job N   ]  [ job 2N ...        (on the worker thread)
+//! job k takes   the tools' commands at step k; its result is swapped in at step k + N
+//! haptic loop   renders against the patches job k-N published (from step k on)
+//! ```
+//!
+//! The deformation model is the branched grid with a step of N haptic steps, its
+//! contact with the tools solved implicitly in its own step with the tools where the
+//! newest commands put them (as SOFA's simulation does; its haptic loop only renders).
+//! Handing the haptic loop's forces to the deformation step as constant loads instead
+//! was tried: an explicit coupling of the stiff penalty, it rang in a limit cycle of
+//! ±0.1 N around a probe held still (docs/branched-grid.md). A job's result is taken at
+//! its step index whatever the clock says (a late one is waited for and counted), so a
+//! session gives the same state hash in real time, in lockstep and in replay. When a new patch arrives the force it gives differs from the old one's at
+//! the same pose: the difference is rendered and faded out over the next N steps, so
+//! the force a device feels has no step (docs/branched-grid.md, "Multirate haptics").
+
+pub mod patch;
+
+use std::cell::RefCell;
+use std::sync::Arc;
+
+use crate::grid::BranchedGrid;
+use crate::hash::StateHasher;
+use crate::math::Vec3;
+use crate::quantity::TimeStepS;
+use crate::scene::{ModelSpec, MultirateSpec, Scene, SceneError, ScheduleSpec};
+use crate::solver::background::Background;
+use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
+use crate::tissue::{Tissue, TissueCounters};
+use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
+use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES};
+
+/// The fastest a tool is assumed to move, m/s: a patch reaches this far beyond the
+/// tool's radius for the two deformation periods it is used over after it was chosen.
+const TOOL_SPEED_M_PER_S: f64 = 0.2;
+
+/// The branched grid under a multirate schedule.
+pub struct Multirate {
+    /// The haptic step, s, and the haptic steps per deformation step.
+    dt_s: f64,
+    every: u64,
+    tools: Vec<ToolShape>,
+    step_index: u64,
+    /// How far beyond a tool's radius its patch reaches, m.
+    margin_m: f64,
+    /// Per tool: the patch the haptic loop renders against now.
+    patches: Vec<ContactPatch>,
+    /// Per tool: the force and torque on the tool to add while they fade (the old
+    /// patch's minus the new one's when it arrived), and the steps they fade over.
+    fading: Vec<(Vec3, Vec3)>,
+    fade_left: u64,
+    /// The deformation model's state as the last job left it.
+    published: Published,
+    /// Per tool: the last deformation step's cut (whether it removed tissue, its
+    /// resistance), rendered until the next one.
+    cut_feedback: Vec<(bool, Vec3)>,
+    deltas: Vec<TopologyDelta>,
+    /// Hash of the pending job's commands (its grid is the published state).
+    pending_inputs: u64,
+    deformer: RefCell<Deformer>,
+    haptic_counters: TissueCounters,
+    fidelity: Option<(u32, String)>,
+}
+
+/// A deformation step's inputs, outputs and the model it steps: one box that goes to
+/// the worker and comes back, its buffers reused.
+#[derive(Clone)]
+struct Job {
+    grid: BranchedGrid,
+    commands: Vec<ToolCommand>,
+    patches: Vec<ContactPatch>,
+    feedback: Vec<ToolFeedback>,
+    published: Published,
+    margin_m: f64,
+}
+
+impl Job {
+    fn run(mut self: Box<Self>) -> Box<Self> {
+        let job = &mut *self;
+        job.grid.deformation_step(&job.commands, &mut job.patches, job.margin_m, &mut job.feedback);
+        job.published.refresh(&mut job.grid);
+        self
+    }
+}
+
+/// What the session reads of the deformation model between its steps.
+#[derive(Clone, Default)]
+struct Published {
+    /// Per vertex slot: world position (f32, as viewers get it) and whether it lives.
+    positions: Vec<[f32; 3]>,
+    alive: Vec<bool>,
+    /// Per vertex slot: its material index; and the live triangles. Rebuilt when the
+    /// topology changed.
+    materials: Arc<Vec<u16>>,
+    triangles: Arc<Vec<SurfaceTriangle>>,
+    topology_version: Option<u64>,
+    pieces: usize,
+    deltas: Vec<TopologyDelta>,
+    counters: TissueCounters,
+    grid_hash: u64,
+}
+
+impl Published {
+    fn refresh(&mut self, grid: &mut BranchedGrid) {
+        let capacity = grid.vertex_capacity();
+        self.positions.resize(capacity, [0.0; 3]);
+        grid.write_positions(&mut self.positions);
+        self.alive.clear();
+        self.alive.extend((0..capacity).map(|v| grid.vertex_alive(v as u32)));
+        grid.drain_deltas(&mut self.deltas);
+        self.counters = grid.counters();
+        self.grid_hash = grid.state_hash();
+        if self.topology_version != Some(grid.topology_version()) {
+            let snapshot = grid.snapshot();
+            let mut materials = vec![0u16; capacity];
+            for v in &snapshot.vertices {
+                materials[v.id as usize] = v.material;
+            }
+            self.materials = Arc::new(materials);
+            self.triangles = Arc::new(snapshot.triangles);
+            self.topology_version = Some(grid.topology_version());
+            self.pieces = grid.pieces();
+        }
+    }
+}
+
+/// Where the deformation job is: out with the worker thread, or home (finished early,
+/// or run here when no thread could be started).
+struct Deformer {
+    worker: Option<Background<Box<Job>, Box<Job>>>,
+    /// A finished job, and the step its result is due at.
+    home: Option<Box<Job>>,
+    due: u64,
+    /// Run jobs here, at submission (tests compare this with the worker).
+    inline: bool,
+    waits: u64,
+}
+
+impl Deformer {
+    fn submit(&mut self, job: Box<Job>, due: u64) {
+        self.due = due;
+        if !self.inline && self.worker.is_none() {
+            self.worker = Background::new("multirate-deformation", Job::run).ok();
+        }
+        let refused = match self.worker.as_mut() {
+            Some(worker) if !self.inline => worker.submit(job, due).err(),
+            _ => Some(job),
+        };
+        // Inline, or no worker thread could be started: run here, due as planned.
+        if let Some(job) = refused {
+            self.home = Some(job.run());
+        }
+    }
+
+    /// The job due at `step` (waiting for it if it is not finished).
+    fn take_due(&mut self, step: u64) -> Box<Job> {
+        debug_assert_eq!(self.due, step);
+        if let Some(job) = self.home.take() {
+            return job;
+        }
+        let worker = self.worker.as_mut().expect("a worker has the job");
+        let before = worker.waits;
+        let job = worker.take_if_due(step).expect("the multirate deformation worker died (its panic is above)");
+        self.waits += worker.waits - before;
+        job
+    }
+
+    /// The pending job, home (waiting for the worker to finish it).
+    fn fetch_home(&mut self) -> &Job {
+        if self.home.is_none() {
+            let worker = self.worker.as_mut().expect("a worker has the job");
+            self.home = Some(worker.take_early().expect("the multirate deformation worker died (its panic is above)"));
+        }
+        self.home.as_deref().expect("the job is home")
+    }
+}
+
+/// Builds a branched-grid scene with a multirate schedule: the grid with a step of
+/// `deformation_every_steps` haptic steps (its load-time checks, and `"fidelity":
+/// "auto"`'s timing, run at that step), under the schedule.
+pub fn build_from_scene(scene: &Scene, schedule: &MultirateSpec) -> Result<Multirate, SceneError> {
+    let every = schedule.deformation_every_steps.get();
+    let dt = scene.time_step_s.get();
+    let field = "model.branched-grid.schedule.multirate.deformation_every_steps";
+    let deformation_dt = TimeStepS::new(dt * f64::from(every))
+        .map_err(|e| SceneError::new(&scene.origin, field, format!("{every} haptic steps of {dt} s make a deformation step out of range: {e}")))?;
+    let mut deformation = scene.clone();
+    deformation.time_step_s = deformation_dt;
+    let ModelSpec::BranchedGrid(grid_spec) = &mut deformation.model else { unreachable!("a branched-grid scene") };
+    grid_spec.schedule = ScheduleSpec::SingleRate;
+    let grid_spec = grid_spec.clone();
+    let grid = crate::grid::build_from_scene(&deformation, &grid_spec)?;
+    Ok(Multirate::new(grid, dt, every, false))
+}
+
+impl Multirate {
+    /// The grid, built with a step of `every` haptic steps of `dt_s`, under the schedule.
+    /// `inline`: run the deformation on the calling thread (same results, for tests).
+    pub fn new(mut grid: BranchedGrid, dt_s: f64, every: u32, inline: bool) -> Self {
+        let every = u64::from(every.max(1));
+        let tools = grid.tools().to_vec();
+        let count = tools.len();
+        let voxel = grid.topology().layout.spacing_m.iter().copied().fold(0.0, f64::max);
+        let margin_m = 2.0 * voxel + TOOL_SPEED_M_PER_S * 2.0 * every as f64 * dt_s;
+        let mut published = Published::default();
+        published.refresh(&mut grid);
+        let fidelity = Tissue::fidelity(&grid);
+        let job = Box::new(Job {
+            grid,
+            commands: vec![ToolCommand::default(); count],
+            patches: vec![ContactPatch::default(); count],
+            feedback: vec![ToolFeedback::default(); count],
+            published: published.clone(),
+            margin_m,
+        });
+        let patches = (0..count).map(|_| ContactPatch { vertices: Vec::with_capacity(MAX_PATCH_VERTICES), positions: Vec::with_capacity(MAX_PATCH_VERTICES), ..ContactPatch::default() }).collect();
+        Multirate {
+            dt_s,
+            every,
+            tools,
+            step_index: 0,
+            margin_m,
+            patches,
+            fading: vec![(Vec3::zeros(), Vec3::zeros()); count],
+            fade_left: 0,
+            published,
+            cut_feedback: vec![(false, Vec3::zeros()); count],
+            deltas: Vec::new(),
+            pending_inputs: 0,
+            deformer: RefCell::new(Deformer { worker: None, home: Some(job), due: 0, inline, waits: 0 }),
+            haptic_counters: TissueCounters::default(),
+            fidelity,
+        }
+    }
+
+    /// Haptic steps per deformation step.
+    pub fn deformation_every(&self) -> u64 {
+        self.every
+    }
+
+    /// How far beyond its radius a tool's patch reaches, m.
+    pub fn patch_margin_m(&self) -> f64 {
+        self.margin_m
+    }
+
+    /// Tool `i`'s patch now.
+    pub fn patch(&self, i: usize) -> &ContactPatch {
+        &self.patches[i]
+    }
+
+    /// The deformation model as the last finished job left it (waits for the pending
+    /// job: for tests and reports, not for the haptic loop).
+    pub fn with_grid<R>(&self, read: impl FnOnce(&BranchedGrid) -> R) -> R {
+        read(&self.deformer.borrow_mut().fetch_home().grid)
+    }
+
+    /// At a deformation boundary: takes the finished job (from step `k − N`), makes its
+    /// patches current (the force's jump fading out), and hands the next job over with
+    /// the newest commands.
+    fn exchange(&mut self, commands: &[ToolCommand]) {
+        let k = self.step_index;
+        let deformer = self.deformer.get_mut();
+        let mut job = if k == 0 { deformer.home.take().expect("the first job is home") } else { deformer.take_due(k) };
+        if k > 0 {
+            std::mem::swap(&mut self.patches, &mut job.patches);
+            std::mem::swap(&mut self.published, &mut job.published);
+            self.deltas.append(&mut self.published.deltas);
+            for (i, (fb, command)) in job.feedback.iter().zip(commands).enumerate() {
+                self.cut_feedback[i] = (fb.cutting, fb.resistance_n);
+                // The old patch (now in `job`) against the new, at this step's pose.
+                let (old, new) = match capsule(&self.tools[i], command) {
+                    Some(tool) => (job.patches[i].solve(&tool), self.patches[i].solve(&tool)),
+                    None => Default::default(),
+                };
+                let remaining = if self.fade_left > 0 { self.fade_left as f64 / self.every as f64 } else { 0.0 };
+                let (force, torque) = self.fading[i];
+                self.fading[i] = (old.force_n - new.force_n + force * remaining, old.torque_nm - new.torque_nm + torque * remaining);
+            }
+            self.fade_left = self.every;
+        }
+        job.commands.copy_from_slice(commands);
+        job.margin_m = self.margin_m;
+        let mut h = StateHasher::new();
+        for c in commands {
+            hash_command(&mut h, c);
+        }
+        self.pending_inputs = h.finish();
+        deformer.submit(job, k + self.every);
+    }
+
+    /// The haptic step: each tool's contact solved against its patch.
+    fn render(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        let fade = if self.fade_left > 0 { self.fade_left as f64 / self.every as f64 } else { 0.0 };
+        for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
+            *fb = ToolFeedback::default();
+            if command.active && !command.pose.is_finite() {
+                self.haptic_counters.rejected_poses += 1;
+            }
+            let Some(tool) = capsule(&self.tools[i], command) else { continue };
+            let contact = self.patches[i].solve(&tool);
+            let (force, torque) = self.fading[i];
+            fb.force_n = contact.force_n + force * fade;
+            fb.torque_nm = contact.torque_nm + torque * fade;
+            fb.contacts = contact.contacts;
+            let (cutting, resistance) = self.cut_feedback[i];
+            if command.cut && self.tools[i].can_cut {
+                fb.cutting = cutting;
+                fb.force_n += resistance;
+                fb.resistance_n = resistance;
+            }
+            fb.clamp_force(self.tools[i].max_force_n);
+            if fb.force_clamped {
+                self.haptic_counters.force_clamps += 1;
+            }
+        }
+        self.fade_left = self.fade_left.saturating_sub(1);
+    }
+}
+
+/// A tool's outer capsule at its commanded pose (None: away or not finite).
+fn capsule(tool: &ToolShape, command: &ToolCommand) -> Option<Capsule> {
+    if !command.active || !command.pose.is_finite() {
+        return None;
+    }
+    let tip = command.pose.position_m;
+    Some(Capsule { tip, top: tip + command.pose.axis() * tool.length_m, radius_m: tool.radius_m, stiffness_n_per_m: tool.contact_stiffness_n_per_m })
+}
+
+fn hash_command(h: &mut StateHasher, c: &ToolCommand) {
+    h.write_u8(u8::from(c.active) | (u8::from(c.cut) << 1));
+    for x in c.pose.position_m.iter() {
+        h.write_f64(*x);
+    }
+    for x in c.pose.orientation.coords.iter() {
+        h.write_f64(*x);
+    }
+}
+
+impl Tissue for Multirate {
+    fn model_name(&self) -> &'static str {
+        "branched-grid"
+    }
+
+    fn fidelity(&self) -> Option<(u32, String)> {
+        self.fidelity.clone()
+    }
+
+    fn time_step_s(&self) -> f64 {
+        self.dt_s
+    }
+
+    fn tools(&self) -> &[ToolShape] {
+        &self.tools
+    }
+
+    fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        debug_assert_eq!(commands.len(), self.tools.len());
+        if self.step_index.is_multiple_of(self.every) {
+            self.exchange(commands);
+        }
+        self.render(commands, feedback);
+        self.step_index += 1;
+    }
+
+    fn step_index(&self) -> u64 {
+        self.step_index
+    }
+
+    fn snapshot(&self) -> SurfaceSnapshot {
+        let p = &self.published;
+        let vertices = (0..p.positions.len()).filter(|&v| p.alive[v]).map(|v| SurfaceVertex { id: v as u32, position_m: p.positions[v], material: p.materials.get(v).copied().unwrap_or(0) }).collect();
+        SurfaceSnapshot { version: p.topology_version.unwrap_or(0), vertices, triangles: p.triangles.as_ref().clone() }
+    }
+
+    fn topology_version(&self) -> u64 {
+        self.published.topology_version.unwrap_or(0)
+    }
+
+    fn drain_deltas(&mut self, out: &mut Vec<TopologyDelta>) {
+        out.append(&mut self.deltas);
+    }
+
+    fn vertex_capacity(&self) -> usize {
+        self.published.positions.len()
+    }
+
+    fn write_positions(&self, out: &mut [[f32; 3]]) {
+        let p = &self.published;
+        for ((o, position), alive) in out.iter_mut().zip(&p.positions).zip(&p.alive) {
+            if *alive {
+                *o = *position;
+            }
+        }
+    }
+
+    fn vertex_alive(&self, id: u32) -> bool {
+        self.published.alive.get(id as usize).copied().unwrap_or(false)
+    }
+
+    fn state_hash(&self) -> u64 {
+        let mut h = StateHasher::new();
+        h.write_u64(self.step_index);
+        h.write_u64(self.published.grid_hash);
+        h.write_u64(self.pending_inputs);
+        for (force, torque) in &self.fading {
+            force.iter().chain(torque.iter()).for_each(|c| h.write_f64(*c));
+        }
+        h.write_u64(self.fade_left);
+        h.finish()
+    }
+
+    fn counters(&self) -> TissueCounters {
+        let waits = self.deformer.borrow().waits;
+        TissueCounters {
+            rejected_poses: self.haptic_counters.rejected_poses,
+            force_clamps: self.haptic_counters.force_clamps + self.published.counters.force_clamps,
+            solver_waits: self.published.counters.solver_waits + waits,
+            ..self.published.counters
+        }
+    }
+
+    fn pieces(&self) -> usize {
+        self.published.pieces
+    }
+
+    fn clone_box(&self) -> Box<dyn Tissue> {
+        let mut deformer = self.deformer.borrow_mut();
+        let job = Box::new(deformer.fetch_home().clone());
+        let copy = Deformer { worker: None, home: Some(job), due: deformer.due, inline: deformer.inline, waits: deformer.waits };
+        Box::new(Multirate {
+            dt_s: self.dt_s,
+            every: self.every,
+            tools: self.tools.clone(),
+            step_index: self.step_index,
+            margin_m: self.margin_m,
+            patches: self.patches.clone(),
+            fading: self.fading.clone(),
+            fade_left: self.fade_left,
+            published: self.published.clone(),
+            cut_feedback: self.cut_feedback.clone(),
+            deltas: self.deltas.clone(),
+            pending_inputs: self.pending_inputs,
+            deformer: RefCell::new(copy),
+            haptic_counters: self.haptic_counters,
+            fidelity: self.fidelity.clone(),
+        })
+    }
+}

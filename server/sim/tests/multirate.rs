@@ -1,0 +1,183 @@
+//! The multirate schedule (crate::multirate): contact every millisecond against the
+//! patch a branched grid stepped every N milliseconds publishes. A held probe settles
+//! to the single-rate model's force; the force has no step when a new patch arrives;
+//! while pressing it follows the single-rate force closely; the state hash is the same
+//! whether the deformation runs on its thread or inline, and a copy goes on alike;
+//! a schedule whose deformation step is out of range is refused naming the field.
+
+use cutsim_sim::grid::BranchedGrid;
+use cutsim_sim::math::{Pose, Quat, Vec3};
+use cutsim_sim::multirate::Multirate;
+use cutsim_sim::scene::{ModelSpec, Scene};
+use cutsim_sim::tissue::Tissue;
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
+
+/// A 32 × 32 × 16 mm block of 2 mm voxels at level 1 held at its bottom, a blade and a
+/// 6 mm probe; the model's step `dt` s (Cholesky-preconditioned: a step of 10 ms or more
+/// needs too many block-Jacobi iterations).
+fn block(dt: f64) -> String {
+    format!(
+        r#"{{ "name": "block", "time_step_s": {dt},
+        "model": {{ "branched-grid": {{
+            "volume": {{ "box": {{ "size_m": [0.032, 0.032, 0.016], "voxel_size_m": 0.002 }} }},
+            "centre": true,
+            "materials": [ {{ "label": 1, "young_pa": 20000, "density_kg_per_m3": 1000 }} ],
+            "level": 1,
+            "damping": {{ "mass_per_s": 20, "stiffness_s": 0.002 }},
+            "solver": {{ "preconditioner": "cholesky" }},
+            "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
+            "cutting": {{}} }} }},
+        "tools": [
+            {{ "name": "blade", "shape": {{ "cylinder": {{ "radius_m": 0.0014, "length_m": 0.05 }} }}, "cutting_shape": {{ "cylinder": {{ "radius_m": 0.0011, "length_m": 0.05 }} }}, "can_cut": true, "contact_stiffness_n_per_m": 400, "max_force_n": 100 }},
+            {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": 0.006, "length_m": 0.05 }} }}, "contact_stiffness_n_per_m": 400, "max_force_n": 100 }}
+        ] }}"#
+    )
+}
+
+fn grid(json: &str) -> BranchedGrid {
+    let scene = Scene::from_json_str(json, "test scene", None).unwrap_or_else(|e| panic!("{e}"));
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { panic!("a branched-grid scene") };
+    cutsim_sim::grid::build_from_scene(&scene, spec).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// The block under a multirate schedule: haptics at 1 kHz, deformation every `every` ms.
+fn multirate(every: u32, inline: bool) -> Multirate {
+    Multirate::new(grid(&block(1e-3 * f64::from(every))), 1e-3, every, inline)
+}
+
+fn probe_at(tip: Vec3) -> Vec<ToolCommand> {
+    let mut commands = vec![ToolCommand::default(); 2];
+    commands[1] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
+    commands
+}
+
+/// The block's top is at z = 8 mm; the probe's rounded end reaches 6 mm below its tip.
+fn probe_depth(depth: f64) -> Vec3 {
+    Vec3::new(0.0011, 0.0013, 0.014 - depth)
+}
+
+/// Lowers the probe into the block at 10 mm/s to `depth`, holds it there for `hold`
+/// steps; returns each step's force on the probe.
+fn press_and_hold(tissue: &mut dyn Tissue, depth: f64, hold: usize) -> Vec<Vec3> {
+    let mut feedback = vec![ToolFeedback::default(); 2];
+    let mut forces = Vec::new();
+    let start = 0.0005;
+    let steps = ((depth + start) / 1e-5).round() as usize;
+    for step in 0..steps + hold {
+        let d = (-start + 1e-5 * step as f64).min(depth);
+        tissue.step(&probe_at(probe_depth(d)), &mut feedback);
+        forces.push(feedback[1].force_n);
+    }
+    forces
+}
+
+#[test]
+fn a_probe_held_in_the_block_settles_to_the_single_rate_force() {
+    let mut single = grid(&block(1e-3));
+    let settled_single = *press_and_hold(&mut single, 0.002, 800).last().unwrap();
+    for every in [10, 33] {
+        let mut model = multirate(every, false);
+        let forces = press_and_hold(&mut model, 0.002, 800);
+        let settled = *forces.last().unwrap();
+        let off = (settled - settled_single).norm() / settled_single.norm();
+        println!(
+            "probe 2 mm deep, held: single-rate {:.4} N, multirate (deformation every {every} ms) {:.4} N: {:.2} % apart; patch of {} vertices, compliance {:.3} mm/N down",
+            settled_single.z,
+            settled.z,
+            off * 100.0,
+            model.patch(1).vertices.len(),
+            model.patch(1).compliance[(2, 2)] * 1e3
+        );
+        assert!(settled_single.z > 0.1, "the probe is pushed back: {settled_single:?}");
+        assert!(off < 0.03, "multirate every {every} ms settles {:.1} % off the single-rate force", off * 100.0);
+    }
+}
+
+#[test]
+fn the_force_has_no_step_when_a_new_patch_arrives() {
+    // The haptic bridge limits the force's rate to 100 N/s: 0.1 N a millisecond. Pressed
+    // at 10 mm/s to 3 mm and held, the force the multirate loop renders changes by less
+    // than that at every step, the steps where a new patch arrives included.
+    let every = 33;
+    let mut model = multirate(every, false);
+    let forces = press_and_hold(&mut model, 0.003, 400);
+    let jumps: Vec<f64> = forces.windows(2).map(|w| (w[1] - w[0]).norm()).collect();
+    let largest = jumps.iter().copied().fold(0.0, f64::max);
+    let at_arrivals = jumps.iter().enumerate().filter(|(i, _)| (i + 1) % every as usize == 0).map(|(_, j)| *j).fold(0.0, f64::max);
+    let peak = forces.iter().map(|f| f.norm()).fold(0.0, f64::max);
+    println!("peak {peak:.3} N; largest change in a step {largest:.4} N, at a new patch {at_arrivals:.4} N");
+    assert!(peak > 0.2, "the probe pressed: {peak} N");
+    assert!(largest < 0.1, "the force changed by {largest:.3} N in one step");
+}
+
+#[test]
+fn the_same_session_gives_the_same_state_on_the_deformation_thread_and_inline() {
+    // A probe pressed and a blade drawn through the block with the cut button held:
+    // contact, loads, cuts and patches all go through the schedule.
+    let run = |inline: bool| {
+        let mut model = multirate(10, inline);
+        let mut feedback = vec![ToolFeedback::default(); 2];
+        let mut hashes = Vec::new();
+        for step in 0..600 {
+            let t = step as f64 * 1e-3;
+            let mut commands = probe_at(probe_depth(0.001 + 0.002 * (t * 5.0).sin().abs()));
+            commands[1].pose.position_m.x = -0.008;
+            commands[0] = ToolCommand { pose: Pose::new(Vec3::new(0.004, -0.012 + 0.04 * t, 0.004), Quat::identity()), active: true, cut: true };
+            model.step(&commands, &mut feedback);
+            if step % 50 == 49 {
+                hashes.push(model.state_hash());
+            }
+        }
+        (hashes, model.counters(), model.topology_version())
+    };
+    let (threaded, counters, version) = run(false);
+    let (inline, _, _) = run(true);
+    println!("{} voxels removed in {} updates (topology version {version})", counters.removed_elements, counters.cut_updates);
+    assert!(counters.removed_elements > 0, "the blade cut");
+    assert_eq!(threaded, inline, "the same state at every checkpoint");
+    assert_eq!(run(false).0, threaded, "and again");
+}
+
+#[test]
+fn a_copy_goes_on_as_the_original_does() {
+    let mut model = multirate(10, false);
+    let mut feedback = vec![ToolFeedback::default(); 2];
+    for step in 0..255 {
+        model.step(&probe_at(probe_depth(1e-5 * step as f64)), &mut feedback);
+    }
+    let mut copy = model.clone_box();
+    for step in 255..400 {
+        let commands = probe_at(probe_depth(1e-5 * step as f64));
+        model.step(&commands, &mut feedback);
+        copy.step(&commands, &mut feedback);
+    }
+    assert_eq!(model.state_hash(), copy.state_hash());
+}
+
+#[test]
+fn a_deformation_step_out_of_range_is_refused_naming_the_field() {
+    let json = block(1e-3).replace(r#""cutting": {}"#, r#""cutting": {}, "schedule": { "multirate": { "deformation_every_steps": 60 } }"#).replace(r#""time_step_s": 0.001"#, r#""time_step_s": 0.002"#);
+    let scene = Scene::from_json_str(&json, "test scene", None).unwrap();
+    let error = cutsim_sim::build_tissue(&scene).err().expect("refused").to_string();
+    assert!(error.contains("schedule.multirate.deformation_every_steps") && error.contains("0.1"), "{error}");
+    let fine = json.replace(r#""time_step_s": 0.002"#, r#""time_step_s": 0.001"#);
+    let tissue = cutsim_sim::build_tissue(&Scene::from_json_str(&fine, "test scene", None).unwrap()).unwrap();
+    assert_eq!(tissue.time_step_s(), 1e-3, "the session steps at the haptic rate");
+}
+
+#[test]
+fn while_pressing_the_force_follows_the_single_rate_model() {
+    // Pressed at 10 mm/s to 3 mm and held: the deformation lags the tool by one to two
+    // deformation steps, and between them the patch moves as a whole; the force the
+    // haptic loop renders stays close to the single-rate model's at every step.
+    let mut single = grid(&block(1e-3));
+    let reference = press_and_hold(&mut single, 0.003, 300);
+    let peak = reference.iter().map(|f| f.norm()).fold(0.0, f64::max);
+    for (every, allowed) in [(10, 0.05), (33, 0.2)] {
+        let mut model = multirate(every, false);
+        let forces = press_and_hold(&mut model, 0.003, 300);
+        let worst = forces.iter().zip(&reference).map(|(a, b)| (a - b).norm()).fold(0.0, f64::max);
+        println!("deformation every {every} ms: at most {worst:.4} N from the single-rate force ({:.1} % of its peak {peak:.3} N)", 100.0 * worst / peak);
+        assert!(worst < allowed * peak, "every {every} ms: {worst:.3} N off");
+    }
+}
