@@ -48,19 +48,31 @@ async fn script_run_twice_gives_the_same_hash_and_its_expectations() {
 /// headless, and the real-time session's recording replays to it.
 #[tokio::test]
 async fn a_grid_script_with_multigrid_gives_the_same_hash_in_real_time_and_lockstep() {
-    same_hash_in_real_time_and_lockstep("multigrid").await;
+    same_hash_in_real_time_and_lockstep("multigrid", None).await;
 }
 
 /// The same with the Cholesky preconditioner: factors of recent systems made on a worker
 /// every 32 steps and after each cut, each swapped in at its due step.
 #[tokio::test]
 async fn a_grid_script_with_cholesky_gives_the_same_hash_in_real_time_and_lockstep() {
-    same_hash_in_real_time_and_lockstep("cholesky").await;
+    same_hash_in_real_time_and_lockstep("cholesky", None).await;
 }
 
-async fn same_hash_in_real_time_and_lockstep(preconditioner: &str) {
+/// And under a multirate schedule: the haptic loop every step on the session's thread,
+/// the deformation every 10 steps on its own, its results swapped in at their due steps.
+#[tokio::test]
+async fn a_multirate_grid_script_gives_the_same_hash_in_real_time_and_lockstep() {
+    same_hash_in_real_time_and_lockstep("cholesky", Some(serde_json::json!({ "multirate": { "deformation_every_steps": 10 } }))).await;
+}
+
+async fn same_hash_in_real_time_and_lockstep(preconditioner: &str, schedule: Option<serde_json::Value>) {
     let server = Server::start();
-    let scene = inline("u-tube", |s| s["model"]["branched-grid"]["solver"] = serde_json::json!({ "preconditioner": preconditioner }));
+    let scene = inline("u-tube", |s| {
+        s["model"]["branched-grid"]["solver"] = serde_json::json!({ "preconditioner": preconditioner });
+        if let Some(schedule) = &schedule {
+            s["model"]["branched-grid"]["schedule"] = schedule.clone();
+        }
+    });
     let script = example_script("u-tube-slit-base.json");
     let lockstep = create_inline(&server, scene.clone(), pb::SessionMode::Lockstep).await.unwrap();
     let first = run_script(&server, &lockstep, &script).await.unwrap();

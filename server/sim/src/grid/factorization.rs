@@ -30,20 +30,23 @@ use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorS
 
 /// A new factor is asked for this often (steps).
 pub const REFACTOR_EVERY: u64 = 16;
-/// The shortest delay between asking for a factor and using it (steps).
+/// The shortest delay between asking for a factor and using it (ms; at least one step).
 pub const MIN_DELAY: u64 = 16;
 
-/// Steps between asking for a factor with `factor_entries` entries in L over `unknowns`
-/// unknowns and using it: twice the factorization's time at 2·10¹⁰ units of
-/// entries² / unknowns per second, in 1 ms steps; at least [`MIN_DELAY`]. Measured on
+/// Steps of `step_s` between asking for a factor with `factor_entries` entries in L over
+/// `unknowns` unknowns and using it: twice the factorization's time at 2·10¹⁰ units of
+/// entries² / unknowns per second; at least [`MIN_DELAY`] ms (and one step). Measured on
 /// this project's 2-core machine (faer, one thread), that rate is 1.5–3.6·10¹⁰: 3.3 ms
 /// for 0.5 M entries over 5,226 unknowns, 44 ms for 3.5 M over 9,720, 2.0 s for 80 M
-/// over 90,033. A function of the structure alone, so the schedule is the same on every
-/// machine; a slower one waits (counted in `solver_waits`).
-pub fn delay_for(factor_entries: usize, unknowns: usize) -> u64 {
+/// over 90,033. A function of the structure and the step alone, so the schedule is the
+/// same on every machine; a slower one waits (counted in `solver_waits`). The step
+/// counts because a multirate schedule's deformation steps are tens of ms long.
+pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64) -> u64 {
     let work = (factor_entries as f64).powi(2) / unknowns.max(1) as f64;
     let ms = 2.0 * work / 2e10 * 1e3;
-    MIN_DELAY.max(ms.ceil() as u64)
+    let step_ms = step_s * 1e3;
+    let at_least = (MIN_DELAY as f64 / step_ms).ceil().max(1.0);
+    (ms / step_ms).ceil().max(at_least) as u64
 }
 
 /// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
@@ -106,6 +109,8 @@ pub struct Factorization {
     generation: u64,
     /// Steps from asking for a factor to using it: [`delay_for`] the last factor made.
     delay: u64,
+    /// The model's step, s (set when it is primed).
+    step_s: f64,
     /// The last job back from the worker, its allocation and buffers reused for the next
     /// (nothing is allocated on the physics thread once the first job is back), and the
     /// last factor retired, whose buffer the next one is written into.
@@ -145,6 +150,7 @@ impl Clone for Factorization {
             worker: None,
             generation: self.generation,
             delay: self.delay,
+            step_s: self.step_s,
             spare_job: None,
             retired: None,
             hand_over: self.hand_over,
@@ -157,7 +163,7 @@ impl Clone for Factorization {
 
 impl Factorization {
     pub fn new() -> Self {
-        Factorization { delay: MIN_DELAY, ..Factorization::default() }
+        Factorization { delay: MIN_DELAY, step_s: 1e-3, ..Factorization::default() }
     }
 
     /// The topology changed (a cut): the structure no longer fits. Every change of the
@@ -180,7 +186,7 @@ impl Factorization {
             let mut job = pending.job;
             match result {
                 Some(Ok(factor)) if pending.generation == self.generation => {
-                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
+                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s);
                     // The old factor's buffer goes to the next job, not to the allocator:
                     // freeing megabytes here would cost this step an unmap.
                     self.retired = self.current.replace(factor).map(Factor::into_values);
@@ -211,10 +217,11 @@ impl Factorization {
 
     /// Makes the first factor, of `system` (whose nodes are turned by `rotations`), at
     /// once: at load, from the model at rest, so that the first step does not make it.
-    pub fn prime(&mut self, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) {
+    pub fn prime(&mut self, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>], step_s: f64) {
+        self.step_s = step_s;
         match Factor::of(system, active) {
             Ok(factor) => {
-                self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns());
+                self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s);
                 self.current = Some(factor);
                 self.factored_rotations.clear();
                 self.factored_rotations.extend_from_slice(rotations);

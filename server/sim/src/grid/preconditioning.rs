@@ -26,8 +26,14 @@ use crate::solver::multigrid::Hierarchy;
 
 /// Coarse operators are re-assembled this often (steps).
 pub const REFRESH_EVERY: u64 = 4;
-/// A hierarchy rebuilt after a cut is due this many steps after it was asked for.
+/// A hierarchy rebuilt after a cut is due this long after it was asked for (ms; at
+/// least one step: a multirate schedule's deformation steps are tens of ms long).
 pub const REBUILD_DELAY: u64 = 32;
+
+/// [`REBUILD_DELAY`] in steps of `step_s`.
+fn rebuild_delay_steps(step_s: f64) -> u64 {
+    (REBUILD_DELAY as f64 / (step_s * 1e3)).ceil().max(1.0) as u64
+}
 
 /// One coarser grid: its elements, where they go in its matrix, and whose rotation each
 /// takes.
@@ -124,6 +130,8 @@ pub struct Multigrid {
     rotated: Box<[[F8; 3]; 24]>,
     /// Steps that waited for the worker.
     pub waits: u64,
+    /// Steps from asking for a rebuild to using it (0 before `prime`: [`REBUILD_DELAY`]).
+    rebuild_delay: u64,
 }
 
 impl Clone for Multigrid {
@@ -143,6 +151,7 @@ impl Clone for Multigrid {
             rebuild: self.rebuild,
             rotated: self.rotated.clone(),
             waits: self.waits,
+            rebuild_delay: self.rebuild_delay,
         }
     }
 }
@@ -150,7 +159,8 @@ impl Clone for Multigrid {
 impl Multigrid {
     /// Builds the first coarse grids, with the model (so that no step builds them on
     /// the physics thread). The first step assembles their operators.
-    pub fn prime(&mut self, topo: &Topology, active: &[bool]) {
+    pub fn prime(&mut self, topo: &Topology, active: &[bool], step_s: f64) {
+        self.rebuild_delay = rebuild_delay_steps(step_s);
         self.current = Some(Box::new(build(&Coarsening::of(topo), active)));
         self.rebuild = false;
     }
@@ -180,7 +190,7 @@ impl Multigrid {
         if self.rebuild && self.pending.is_none() {
             let coarsening = Arc::new(Coarsening::of(topo));
             let fine_active = Arc::new(active.to_vec());
-            let due = step + REBUILD_DELAY;
+            let due = step + if self.rebuild_delay == 0 { REBUILD_DELAY } else { self.rebuild_delay };
             self.pending = Some((due, self.generation, coarsening.clone(), fine_active.clone()));
             if self.worker.is_none() {
                 self.worker = Background::new("grid-multigrid", |(c, a): (Arc<Coarsening>, Arc<Vec<bool>>)| Box::new(build(&c, &a))).ok();

@@ -303,11 +303,11 @@ impl Dynamics {
             Preconditioning::Cholesky => {
                 self.assemble(topo, settings);
                 node_rotations_into(&self.first_element, &self.rotations, &mut self.node_rotations);
-                self.factorization.prime(&self.system, &self.active, &self.node_rotations);
+                self.factorization.prime(&self.system, &self.active, &self.node_rotations, settings.dt_s);
             }
             Preconditioning::Multigrid => {
                 self.assemble(topo, settings);
-                self.multigrid.prime(topo, &self.active);
+                self.multigrid.prime(topo, &self.active, settings.dt_s);
             }
         }
     }
@@ -360,8 +360,10 @@ impl Dynamics {
             self.b[i] = if self.active[i] { f[i] * h } else { Vec3::zeros() };
             self.q[i] = Vec3::zeros();
         }
-        // No absolute floor: a unit force's velocity change may be far below the state's.
-        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: 0.0 };
+        // A compliance the haptic loop renders against needs three digits, not the
+        // state's tolerance; and no absolute floor: a unit force's velocity change may be
+        // far below the state's.
+        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance.max(COMPLIANCE_TOLERANCE), floor: 0.0 };
         let convergence = self.solve_b(topo, settings, step, &pcg_settings, Unknown::Scratch);
         for (x, q) in x.iter_mut().zip(&self.q) {
             *x = q * h;
@@ -442,6 +444,9 @@ impl Dynamics {
         max_dv
     }
 }
+
+/// The relative residual a compliance query is solved to (see `Dynamics::compliance`).
+pub const COMPLIANCE_TOLERANCE: f64 = 1e-3;
 
 /// Which vector a solve of the assembled system fills.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -88,9 +88,11 @@ struct Job {
 
 impl Job {
     fn run(mut self: Box<Self>) -> Box<Self> {
+        let started = std::time::Instant::now();
         let job = &mut *self;
         job.grid.deformation_step(&job.commands, &mut job.patches, job.margin_m, &mut job.feedback);
         job.published.refresh(&mut job.grid);
+        job.published.took_ns = started.elapsed().as_nanos() as u64;
         self
     }
 }
@@ -110,6 +112,8 @@ struct Published {
     deltas: Vec<TopologyDelta>,
     counters: TissueCounters,
     grid_hash: u64,
+    /// How long the job took, ns (its step, compliance solves and this copy).
+    took_ns: u64,
 }
 
 impl Published {
@@ -253,6 +257,17 @@ impl Multirate {
     /// How far beyond its radius a tool's patch reaches, m.
     pub fn patch_margin_m(&self) -> f64 {
         self.margin_m
+    }
+
+    /// How long the deformation job whose results are current took, ns (its step, its
+    /// patches' compliance solves, publishing).
+    pub fn last_deformation_ns(&self) -> u64 {
+        self.published.took_ns
+    }
+
+    /// Steps that waited for a deformation job past its due step.
+    pub fn deformation_waits(&self) -> u64 {
+        self.deformer.borrow().waits
     }
 
     /// Tool `i`'s patch now.
