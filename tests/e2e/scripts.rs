@@ -79,6 +79,9 @@ async fn same_hash_in_real_time_and_lockstep(preconditioner: &str, schedule: Opt
     assert!(first.passed, "{:?}", first.expectations);
     assert!(first.cuts > 0 && first.removed_elements > 0, "the script cuts (work redone on the worker)");
     let realtime = create_inline(&server, scene.clone(), pb::SessionMode::Realtime).await.unwrap();
+    let info = server.sessions().await.get_session(authed(pb::GetSessionRequest { session_id: realtime.id.clone(), with_state_hash: false }, &realtime.observe)).await.unwrap().into_inner();
+    let every = schedule.as_ref().map(|s| s["multirate"]["deformation_every_steps"].as_f64().unwrap());
+    assert_eq!(info.deformation_rate_hz, every.map_or(0.0, |n| 1000.0 / n), "the session reports its deformation rate");
     tokio::time::sleep(std::time::Duration::from_millis(300)).await;
     let second = run_script(&server, &realtime, &script).await.unwrap();
     assert_eq!(second.state_hash, first.state_hash, "real time and lockstep agree");

@@ -355,7 +355,8 @@ export class SessionPanel {
     const s = h.session;
     this.rateHz = s.rate_hz;
     this.playback = s.playback;
-    this.el.querySelector('.scene').textContent = `— ${s.scene} (${s.model}, ${Math.round(s.rate_hz)} Hz)${s.playback ? ` — replay of ${s.playback.recorded_session}` : ''}`;
+    const deformation = s.deformation_rate_hz ? `, deformation ${Math.round(s.deformation_rate_hz)} Hz` : '';
+    this.el.querySelector('.scene').textContent = `— ${s.scene} (${s.model}, ${Math.round(s.rate_hz)} Hz${deformation})${s.playback ? ` — replay of ${s.playback.recorded_session}` : ''}`;
     this.toolInfo = s.tools;
     this.toolGroup.clear();
     this.toolMeshes = s.tools.map((t) => {

@@ -148,6 +148,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         scene: s.scene_name.clone(),
         model: s.model.to_owned(),
         fidelity: s.fidelity.clone(),
+        deformation_rate_hz: s.deformation_rate_hz,
         recording_problem: s.recording_problem().unwrap_or_default(),
         mode: mode(s.mode) as i32,
         status: status(if s.failure().is_some() {

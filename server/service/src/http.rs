@@ -192,6 +192,8 @@ pub struct SessionSummary {
     pub mode: String,
     pub status: String,
     pub rate_hz: f64,
+    /// Multirate: the deformation's rate, Hz (0: single-rate).
+    pub deformation_rate_hz: f64,
     pub age_s: f64,
     pub step: u64,
     pub viewers: u32,
@@ -221,6 +223,7 @@ fn summaries(sessions: &[Arc<crate::session::Session>]) -> Vec<SessionSummary> {
                     .map(|st| st.as_str_name().trim_start_matches("SESSION_STATUS_").to_lowercase())
                     .unwrap_or_default(),
                 rate_hz: info.rate_hz,
+                deformation_rate_hz: info.deformation_rate_hz,
                 age_s: info.age_s,
                 step: info.step,
                 viewers: info.viewers,

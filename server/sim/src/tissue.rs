@@ -81,6 +81,12 @@ pub trait Tissue: Send {
     /// The fixed physics step, s.
     fn time_step_s(&self) -> f64;
 
+    /// Under a multirate schedule (crate::multirate): the deformation's rate, Hz (the
+    /// tools' contact runs every `time_step_s`). None: single-rate.
+    fn deformation_rate_hz(&self) -> Option<f64> {
+        None
+    }
+
     /// The tools, in the scene's order; `step` takes one command and one feedback per tool.
     fn tools(&self) -> &[ToolShape];
 

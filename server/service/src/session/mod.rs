@@ -130,6 +130,8 @@ pub struct Session {
     pub fidelity: String,
     pub mode: Mode,
     pub rate_hz: f64,
+    /// Under a multirate schedule, the deformation's rate, Hz (0: single-rate).
+    pub deformation_rate_hz: f64,
     pub tools: Vec<ToolShape>,
     /// Bounding box of the tissue at the start, m.
     pub bounds: (Vec3, Vec3),
@@ -511,6 +513,7 @@ impl Registry {
         let (hub_tx, hub_rx) = mpsc::unbounded_channel();
         let (control_tx, control_rx) = std::sync::mpsc::channel();
         let rate_hz = 1.0 / tissue.time_step_s();
+        let deformation_rate_hz = tissue.deformation_rate_hz().unwrap_or(0.0);
         let model = tissue.model_name();
         let settings = physics::Settings {
             stale_after: std::time::Duration::from_secs_f64(self.config.limits.stale_command_ms / 1e3),
@@ -575,6 +578,7 @@ impl Registry {
             fidelity: fidelity.map(|(_, summary)| summary).unwrap_or_default(),
             mode,
             rate_hz,
+            deformation_rate_hz,
             commands: (0..tools.len()).map(|_| SeqSlot::default()).collect(),
             feedback: (0..tools.len()).map(|_| SeqSlot::default()).collect(),
             tools,

@@ -376,6 +376,10 @@ impl Tissue for Multirate {
         self.dt_s
     }
 
+    fn deformation_rate_hz(&self) -> Option<f64> {
+        Some(1.0 / (self.dt_s * self.every as f64))
+    }
+
     fn tools(&self) -> &[ToolShape] {
         &self.tools
     }
