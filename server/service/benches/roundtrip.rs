@@ -1,7 +1,9 @@
 //! The whole haptic loop through the real server over loopback: a client sends a pose
 //! every millisecond for 10 s and measures the round trip to the force that answers it
 //! (transport, the wait for the step, the physics step itself), with 0, 1 and 20 viewers
-//! attached; then the lockstep script throughput.
+//! attached, on the default scene; with 20 viewers on the CT liver at level 2 under a
+//! multirate schedule (deformation every 33 ms; needs the shared data); then the
+//! lockstep script throughput.
 //!
 //! Run: `cargo bench -p cutsim-server --bench roundtrip` (add `-- --quick` for 2 s runs).
 
@@ -50,10 +52,40 @@ fn authed<T>(m: T, token: &str) -> tonic::Request<T> {
     r
 }
 
-async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
+/// What a round-trip run presses on: the session's scene and where the probe (tool 1)
+/// rests, its tip moving ±2 mm along x around there so that every step works.
+#[derive(Clone)]
+struct Target {
+    name: String,
+    scene: pb::create_session_request::Scene,
+    tip: [f64; 3],
+}
+
+/// The default scene: the probe resting 1.5 mm into the skin.
+fn skin_patch() -> Target {
+    Target { name: "skin-patch".into(), scene: pb::create_session_request::Scene::SceneName("skin-patch".into()), tip: [0.01, 0.01, -0.0015] }
+}
+
+/// The CT liver at level 2 under a multirate schedule (deformation every 33 ms,
+/// multigrid), the probe pressed 1 mm into its broad top; None without the shared data.
+fn liver_multirate() -> Option<Target> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/liver.json");
+    let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let spec = &mut json["model"]["branched-grid"];
+    spec["level"] = 2.into();
+    spec["solver"]["preconditioner"] = "multigrid".into();
+    spec["schedule"] = serde_json::json!({ "multirate": { "deformation_every_steps": 33 } });
+    let text = json.to_string();
+    let scene = cutsim_sim::scene::Scene::from_json_str(&text, "liver (multirate)", path.parent()).ok()?;
+    let cutsim_sim::scene::ModelSpec::BranchedGrid(spec) = &scene.model else { return None };
+    let top = cutsim_sim::grid::build_from_scene(&scene, spec).ok()?.broad_top()?;
+    Some(Target { name: "liver L2, deformation every 33 ms".into(), scene: pb::create_session_request::Scene::SceneJson(text), tip: [top.x, top.y, top.z + 0.005 - 0.001] })
+}
+
+async fn round_trips(grpc: &str, http: &str, target: &Target, viewers: usize, seconds: f64) {
     let channel = tonic::transport::Channel::from_shared(format!("http://{grpc}")).unwrap().connect().await.unwrap();
     let created = SessionsClient::new(channel.clone())
-        .create_session(authed(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneName("skin-patch".into())), mode: 1, label: "bench".into() }, OPERATOR))
+        .create_session(authed(pb::CreateSessionRequest { scene: Some(target.scene.clone()), mode: 1, label: "bench".into() }, OPERATOR))
         .await
         .unwrap()
         .into_inner();
@@ -76,6 +108,7 @@ async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
     request.metadata_mut().insert("cutsim-token", created.control_token.parse().unwrap());
     let mut feedback = HapticsClient::new(channel.clone()).stream(request).await.unwrap().into_inner();
     let origin = Instant::now();
+    let tip = target.tip;
     let sender = tokio::spawn(async move {
         let mut tick = tokio::time::interval(Duration::from_millis(1));
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
@@ -83,9 +116,8 @@ async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
         let mut i = 0u64;
         while Instant::now() < end {
             tick.tick().await;
-            // The probe resting 1.5 mm into the skin, moving a little so every step works.
-            let x = 0.01 + 0.002 * ((i as f64) * 0.01).sin();
-            let pose = pb::Pose { position_m: Some(pb::Vec3 { x, y: 0.01, z: -0.0015 }), orientation: Some(pb::Quaternion { w: 1.0, x: 0.0, y: 0.0, z: 0.0 }) };
+            let x = tip[0] + 0.002 * ((i as f64) * 0.01).sin();
+            let pose = pb::Pose { position_m: Some(pb::Vec3 { x, y: tip[1], z: tip[2] }), orientation: Some(pb::Quaternion { w: 1.0, x: 0.0, y: 0.0, z: 0.0 }) };
             let sent_ns = origin.elapsed().as_nanos() as u64 + 1;
             if tx.send(pb::ToolCommand { tool: 1, pose: Some(pose), active: true, cut: false, client_time_ns: sent_ns, feedback_every_steps: 1 }).await.is_err() {
                 break;
@@ -128,7 +160,8 @@ async fn round_trips(grpc: &str, http: &str, viewers: usize, seconds: f64) {
     }
     let us = |ns: u64| ns as f64 / 1e3;
     println!(
-        "{viewers:>2} viewers: {sent} poses, {} answered | round trip p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs | server part p50 {:.0} µs, p99 {:.0} µs | step p50 {:.0} µs, p99 {:.0} µs, missed deadlines {} of {} | {:.0} Hz | viewers received {:.1} MB",
+        "{}, {viewers:>2} viewers: {sent} poses, {} answered | round trip p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs | server part p50 {:.0} µs, p99 {:.0} µs | step p50 {:.0} µs, p99 {:.0} µs, missed deadlines {} of {} | {:.0} Hz | viewers received {:.1} MB",
+        target.name,
         rtt.count(),
         us(rtt.quantile_ns(0.5)),
         us(rtt.quantile_ns(0.99)),
@@ -182,10 +215,16 @@ fn main() {
     let seconds = if quick { 2.0 } else { 10.0 };
     let (mut child, grpc, http) = start_server();
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
-    println!("haptic round trip through cutsim-server over loopback, 1 kHz poses for {seconds} s, default scene (release)");
+    println!("haptic round trip through cutsim-server over loopback, 1 kHz poses for {seconds} s (release)");
+    let skin = skin_patch();
+    let liver = liver_multirate();
     runtime.block_on(async {
         for viewers in [0, 1, 20] {
-            round_trips(&grpc, &http, viewers, seconds).await;
+            round_trips(&grpc, &http, &skin, viewers, seconds).await;
+        }
+        match &liver {
+            Some(liver) => round_trips(&grpc, &http, liver, 20, seconds).await,
+            None => println!("liver (multirate): skipped, the shared data is not there"),
         }
         script_throughput(&grpc).await;
     });
