@@ -22,9 +22,10 @@
 //! was tried: an explicit coupling of the stiff penalty, it rang in a limit cycle of
 //! ±0.1 N around a probe held still (docs/branched-grid.md). A job's result is taken at
 //! its step index whatever the clock says (a late one is waited for and counted), so a
-//! session gives the same state hash in real time, in lockstep and in replay. When a new patch arrives the force it gives differs from the old one's at
-//! the same pose: the difference is rendered and faded out over the next N steps, so
-//! the force a device feels has no step (docs/branched-grid.md, "Multirate haptics").
+//! session gives the same state hash in real time, in lockstep and in replay. When a
+//! new patch arrives the force it gives differs from the old one's at the same pose: the
+//! difference is rendered and faded out over the next N steps, so the force a device
+//! feels has no step (docs/branched-grid.md, "Multirate haptics").
 
 pub mod patch;
 
@@ -444,7 +445,9 @@ impl Tissue for Multirate {
         let waits = self.deformer.borrow().waits;
         TissueCounters {
             rejected_poses: self.haptic_counters.rejected_poses,
-            force_clamps: self.haptic_counters.force_clamps + self.published.counters.force_clamps,
+            // The forces rendered are the haptic loop's; the deformation step's own
+            // contact forces are never sent to a device.
+            force_clamps: self.haptic_counters.force_clamps,
             solver_waits: self.published.counters.solver_waits + waits,
             ..self.published.counters
         }

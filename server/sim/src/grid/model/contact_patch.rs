@@ -1,0 +1,151 @@
+//! The branched grid's side of multirate haptics (crate::multirate): after a
+//! deformation step's tissue system is assembled, each tool's contact patch — the
+//! surface vertices near it and their compliance — for the haptic loop to render
+//! against until the next deformation step.
+
+use super::BranchedGrid;
+use crate::math::{Matrix3, Vec3, closest_point_on_segment};
+use crate::multirate::patch::{ContactPatch, MAX_PATCH_VERTICES};
+use crate::tool::ToolCommand;
+use crate::grid::topology::NONE;
+
+/// A tool's patch compliance being kept up to date (see `patch_compliance`): where its
+/// tip was and the topology when its columns were first solved, the columns (grid
+/// frame) with their solves' residuals, and the column to solve next.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct CachedCompliance {
+    tip: Vec3,
+    topology_version: u64,
+    columns: Matrix3<f64>,
+    residuals: [f64; 3],
+    next_axis: usize,
+}
+
+impl BranchedGrid {
+    /// Surface vertices within `margin_m` of tool `i`'s outer capsule (its axis within
+    /// its radius plus the margin), nearest first, at most [`MAX_PATCH_VERTICES`]:
+    /// (vertex, distance from the axis) into `out`.
+    fn near_vertices(&self, i: usize, command: &ToolCommand, margin_m: f64, out: &mut Vec<(u32, f64)>) {
+        out.clear();
+        if !command.active || !command.pose.is_finite() {
+            return;
+        }
+        let tool = &self.tools[i];
+        let tip = self.frame.to_local(&command.pose.position_m);
+        let top = tip + self.frame.rotation.transpose() * command.pose.axis() * tool.length_m;
+        let reach = tool.radius_m + margin_m;
+        let (lo, hi) = (tip.inf(&top) - Vec3::repeat(reach), tip.sup(&top) + Vec3::repeat(reach));
+        for cell in 0..self.surface.cell_vertices.len() {
+            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
+                continue;
+            }
+            for &v in &self.surface.cell_vertices[cell] {
+                let p = self.surface.position(&self.topo, v as usize);
+                let distance = (p - closest_point_on_segment(&p, &tip, &top).1).norm();
+                if distance < reach && self.topo.voxel_element[self.surface.voxel[v as usize] as usize] != NONE {
+                    out.push((v, distance));
+                }
+            }
+        }
+        out.sort_unstable_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+        out.truncate(MAX_PATCH_VERTICES);
+    }
+
+    /// Tool `i`'s patch compliance from the tissue's system (before the tools' contacts
+    /// enter it): a unit force spread over the vertices the tool presses on, in
+    /// proportion to their contact forces (the mode the contact loads; touching none,
+    /// evenly over the nearest vertices, within half a voxel of the nearest), solved along
+    /// an axis, and the patch's motion read with the same weights: a column of C. Each
+    /// solve costs about what the step's own does, so while the tool stays within a voxel
+    /// of where its columns were first solved and nothing is cut, one column is solved
+    /// a step, in turn; otherwise all three.
+    pub(super) fn patch_compliance(&mut self, i: usize, command: &ToolCommand, margin_m: f64, patch: &mut ContactPatch) {
+        patch.compliance = Matrix3::zeros();
+        patch.compliance_residual = 0.0;
+        let Some(tip) = (command.active && command.pose.is_finite()).then(|| self.frame.to_local(&command.pose.position_m)) else {
+            self.compliance_cache[i] = None;
+            return;
+        };
+        let voxel = self.topo.layout.spacing_m.iter().copied().fold(0.0, f64::max);
+        let mut shares = std::mem::take(&mut self.patch_scratch);
+        let (start, end) = self.contact_ranges[i];
+        shares.clear();
+        shares.extend((start..end).map(|c| (self.contact_vertices[c], self.contacts[c].force.norm())).filter(|&(_, f)| f > 0.0));
+        if shares.is_empty() {
+            self.near_vertices(i, command, margin_m, &mut shares);
+            let limit = shares.first().map_or(0.0, |&(_, d)| d + voxel * 0.5);
+            shares.retain(|&(_, d)| d <= limit);
+            shares.iter_mut().for_each(|(_, w)| *w = 1.0);
+        }
+        let total: f64 = shares.iter().map(|&(_, w)| w).sum();
+        if total > 0.0 {
+            shares.iter_mut().for_each(|(_, w)| *w /= total);
+            let fresh = match &self.compliance_cache[i] {
+                Some(cached) => cached.topology_version != self.topology_version || (cached.tip - tip).norm() >= voxel,
+                None => true,
+            };
+            let mut cached = match self.compliance_cache[i] {
+                Some(cached) if !fresh => cached,
+                _ => CachedCompliance { tip, topology_version: self.topology_version, columns: Matrix3::zeros(), residuals: [0.0; 3], next_axis: 0 },
+            };
+            let axes = if fresh { 0..3 } else { cached.next_axis..cached.next_axis + 1 };
+            for axis in axes {
+                let (column, residual) = self.compliance_column(&shares, axis);
+                cached.columns.set_column(axis, &column);
+                cached.residuals[axis] = residual;
+            }
+            cached.next_axis = if fresh { 0 } else { (cached.next_axis + 1) % 3 };
+            let symmetric = (cached.columns + cached.columns.transpose()) * 0.5;
+            patch.compliance = self.frame.rotation * symmetric * self.frame.rotation.transpose();
+            patch.compliance_residual = cached.residuals.iter().copied().fold(0.0, f64::max);
+            self.compliance_cache[i] = Some(cached);
+        } else {
+            self.compliance_cache[i] = None;
+        }
+        self.patch_scratch = shares;
+    }
+
+    /// How far the vertices `shares` (vertex, weight summing to 1) move on average per
+    /// newton spread over them along `axis`, over one step of the tissue's system, and
+    /// the relative residual of that solve.
+    fn compliance_column(&mut self, shares: &[(u32, f64)], axis: usize) -> (Vec3, f64) {
+        let n = self.topo.nodes.len();
+        self.compliance_force.resize(n, Vec3::zeros());
+        self.compliance_motion.resize(n, Vec3::zeros());
+        self.compliance_force.iter_mut().for_each(|f| *f = Vec3::zeros());
+        for &(v, share) in shares {
+            let (element, weights) = self.vertex_embedding(v as usize);
+            for (k, &node) in self.topo.elements.nodes[element].iter().enumerate() {
+                self.compliance_force[node as usize] += Vec3::ith(axis, share * weights[k]);
+            }
+        }
+        let convergence = self.dynamics.compliance(&self.topo, &self.settings, self.step_index, &self.compliance_force, &mut self.compliance_motion);
+        let mut moved = Vec3::zeros();
+        for &(v, share) in shares {
+            let (element, weights) = self.vertex_embedding(v as usize);
+            for (k, &node) in self.topo.elements.nodes[element].iter().enumerate() {
+                moved += self.compliance_motion[node as usize] * (weights[k] * share);
+            }
+        }
+        (moved, convergence.residual)
+    }
+
+    /// Tool `i`'s patch vertices and their positions (world), as the step and its cuts
+    /// left the surface.
+    pub(super) fn patch_vertices(&mut self, i: usize, command: &ToolCommand, margin_m: f64, patch: &mut ContactPatch) {
+        let mut near = std::mem::take(&mut self.patch_scratch);
+        self.near_vertices(i, command, margin_m, &mut near);
+        patch.vertices.clear();
+        patch.positions.clear();
+        for &(v, _) in &near {
+            patch.vertices.push(v);
+            patch.positions.push(self.frame.to_world(&self.surface.position(&self.topo, v as usize)));
+        }
+        self.patch_scratch = near;
+    }
+
+    /// A live surface vertex's element and trilinear weights in it.
+    fn vertex_embedding(&self, v: usize) -> (usize, [f64; 8]) {
+        (self.topo.voxel_element[self.surface.voxel[v] as usize] as usize, self.surface.weights[v])
+    }
+}
