@@ -261,3 +261,52 @@ async fn entering_a_no_go_region_plays_a_cue_pulse() {
     assert!(assessment.no_go_entries >= 1, "the blade entered the region: {assessment:?}");
     assert!(report["cues"].as_u64().unwrap() >= 1, "a cue was played: {report}");
 }
+
+/// A multirate session through the bridge (a 20 kPa block as a branched grid, its
+/// deformation every 10 ms on its own thread, the probe's contact every millisecond
+/// against the patch the deformation last published): pressing 3 mm in and holding, the
+/// force the server renders never changes faster than a desktop device's coupling
+/// allows (100 N/s), also when a new patch arrives, so the bridge's rate limiter never
+/// has to cut it.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_multirate_session_renders_a_force_the_rate_limit_never_has_to_cut() {
+    let server = Server::start();
+    let scene = serde_json::json!({
+        "name": "block (multirate)",
+        "model": { "branched-grid": {
+            "volume": { "box": { "size_m": [0.032, 0.032, 0.016], "voxel_size_m": 0.002 } },
+            "centre": true,
+            "materials": [ { "label": 1, "young_pa": 20000, "density_kg_per_m3": 1000 } ],
+            "level": 1,
+            "damping": { "mass_per_s": 20, "stiffness_s": 0.002 },
+            "solver": { "preconditioner": "cholesky" },
+            "fixed": [ { "side": { "side": "-z" } } ],
+            "schedule": { "multirate": { "deformation_every_steps": 10 } } } },
+        "tools": [
+            { "name": "blade", "shape": { "cylinder": { "radius_m": 0.0014, "length_m": 0.05 } }, "can_cut": true, "contact_stiffness_n_per_m": 400 },
+            { "name": "probe", "shape": { "cylinder": { "radius_m": 0.004, "length_m": 0.05 } }, "contact_stiffness_n_per_m": 400 }
+        ] });
+    let session = create_inline(&server, scene.to_string(), pb::SessionMode::Realtime).await.unwrap();
+    let dir = TempDir::new("bridge-multirate");
+    // sim:press lowers the device from +5 mm to -3 mm over 1 s, then rocks it ±0.5 mm;
+    // its origin at the block's top (z = 8 mm) plus the probe's radius: 3 mm deep.
+    let (max_force, max_rate) = (3.3, 100.0);
+    let out = Command::new(BRIDGE)
+        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "1", "--device", "sim:press"])
+        .args(["--duration-s", "3", "--max-force-n", &max_force.to_string(), "--max-force-rate-n-per-s", &max_rate.to_string(), "--offset-m", "0", "0", "0.012"])
+        .arg("--report")
+        .arg(dir.0.join("report.json"))
+        .arg("--trace")
+        .arg(dir.0.join("trace.csv"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
+    let rows = trace(&dir);
+    let pressed = rows.iter().filter(|r| r.0 > 1.2 && r.0 < 2.8).map(|r| r.1).fold(f64::INFINITY, f64::min);
+    println!("multirate through the bridge: largest force {:.3} N, at least {pressed:.3} N while pressed, largest change in 1 ms {:.4} N, rate-limited on {} of {} steps", report["max_force_n"], report["max_force_step_n"], report["rate_limited"], report["device_steps"]);
+    assert!(pressed > 0.1, "the probe pressed 3 mm into the block feels it: {pressed} N");
+    assert!(report["max_force_n"].as_f64().unwrap() < max_force, "{report}");
+    assert_eq!(report["rate_limited"], 0, "the limiter had to cut the force's rate: {report}");
+    assert_eq!(report["non_finite"], 0);
+}
