@@ -139,6 +139,31 @@ fn the_same_session_gives_the_same_state_on_the_deformation_thread_and_inline() 
 }
 
 #[test]
+fn a_blade_drawn_fast_cuts_between_deformation_steps_as_a_single_rate_model_does() {
+    // The blade drawn 24 mm across the block at 0.1 m/s, 4 mm deep: 3.3 mm a deformation
+    // step of 33 ms, more than its cutting capsule's 2.2 mm width. The deformation step
+    // cuts along the haptic steps' poses since the last one, so the incision has no gaps.
+    let draw = |tissue: &mut dyn Tissue| {
+        let mut feedback = vec![ToolFeedback::default(); 2];
+        for step in 0..300 {
+            let y = -0.012 + 0.1 * 1e-3 * step.min(240) as f64;
+            let mut commands = vec![ToolCommand::default(); 2];
+            commands[0] = ToolCommand { pose: Pose::new(Vec3::new(0.001, y, 0.004), Quat::identity()), active: true, cut: true };
+            tissue.step(&commands, &mut feedback);
+        }
+        tissue.counters().removed_elements
+    };
+    let single = draw(&mut grid(&block(1e-3)));
+    let multi = draw(&mut multirate(33, false));
+    println!("voxels removed by the blade: single-rate {single}, multirate (deformation every 33 ms) {multi}");
+    assert!(single > 20, "the blade cuts: {single}");
+    // Cutting only at each deformation step's pose removed 22 (gaps between the capsule's
+    // positions); along the path 39: a little more than single-rate, because between
+    // deformation steps the blade does not push the tissue aside before it cuts.
+    assert!(multi >= single && (multi as f64) < 1.5 * single as f64, "single-rate {single}, multirate {multi}");
+}
+
+#[test]
 fn a_copy_goes_on_as_the_original_does() {
     let mut model = multirate(10, false);
     let mut feedback = vec![ToolFeedback::default(); 2];

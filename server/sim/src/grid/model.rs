@@ -105,6 +105,7 @@ pub struct BranchedGrid {
 
 /// A deformation step's multirate inputs and outputs (see `deformation_step`).
 struct Deformation<'a> {
+    path: &'a [ToolCommand],
     patches: &'a mut [ContactPatch],
     margin_m: f64,
 }
@@ -207,11 +208,13 @@ impl BranchedGrid {
 
     /// One deformation step of a multirate schedule (crate::multirate): a step as
     /// [`Self::step`] (its own implicit contact with the tools where `commands` put them,
-    /// and cuts) that also publishes each tool's contact patch into `patches`: its
-    /// compliance from this step's system, the contact force the step ended with, and
-    /// its vertices within `margin_m` of the tool as the step and its cuts leave them.
-    pub fn deformation_step(&mut self, commands: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
-        self.advance(commands, feedback, Some(Deformation { patches, margin_m }));
+    /// and cuts, also along `path`: the haptic steps' commands since the last deformation
+    /// step, one per tool per step) that also publishes each tool's contact patch into
+    /// `patches`: its compliance from this step's system, the contact force the step
+    /// ended with, and its vertices within `margin_m` of the tool as the step and its cuts
+    /// leave them.
+    pub fn deformation_step(&mut self, commands: &[ToolCommand], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+        self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }
 
     fn advance(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], mut multirate: Option<Deformation<'_>>) {
@@ -266,7 +269,7 @@ impl BranchedGrid {
         }
         // The cut reads the tips' motion over the step (`previous_tips`, still last step's).
         if self.max_voxels_per_step.is_some() {
-            self.cut(commands, feedback);
+            self.cut_along(multirate.as_ref().map_or(&[], |d| d.path), commands, feedback);
         }
         if let Some(d) = multirate.as_mut() {
             for (i, command) in commands.iter().enumerate() {
@@ -434,37 +437,34 @@ impl BranchedGrid {
         (0..8).map(|k| self.topo.nodes.x[nodes[k] as usize] * w[k]).sum()
     }
 
-    /// Removes the voxels inside the inner capsule of every cutting tool.
-    fn cut(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+    /// Removes the voxels inside the inner capsule of every cutting tool, each also
+    /// removing the voxels its inner capsule held along `path` — the commands of the
+    /// haptic steps since the last deformation step under a multirate schedule (one per
+    /// tool per step, in order), taken where the cut button was held and the tip had
+    /// moved half a voxel since the last pose taken — so that an incision follows the
+    /// blade between deformation steps.
+    fn cut_along(&mut self, path: &[ToolCommand], commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
         let limit = self.max_voxels_per_step.unwrap_or(0);
         let mut removed: Vec<usize> = Vec::new();
         let mut tips: Vec<(usize, Vec3)> = Vec::new();
+        let half_voxel = self.topo.layout.spacing_m.iter().copied().fold(f64::INFINITY, f64::min) * 0.5;
+        let tools = self.tools.len();
         for (i, command) in commands.iter().enumerate() {
-            let tool = &self.tools[i];
-            let cutting = tool.can_cut && command.active && command.cut && command.pose.is_finite();
-            if !cutting {
+            let cutting = |c: &ToolCommand| self.tools[i].can_cut && c.active && c.cut && c.pose.is_finite();
+            if !cutting(command) {
                 self.strokes[i] = Stroke::default();
                 continue;
             }
-            let (radius, length) = tool.cutting_capsule();
-            let tip = self.frame.to_local(&command.pose.position_m);
-            let top = tip + self.frame.rotation.transpose() * command.pose.axis() * length;
-            let capsule = Capsule { tip, top, radius, lo: tip.inf(&top) - Vec3::repeat(radius), hi: tip.sup(&top) + Vec3::repeat(radius) };
             let before = removed.len();
-            for cell in 0..self.topo.cell_elements.len() {
-                if removed.len() >= limit {
-                    break;
-                }
-                if self.topo.cell_elements[cell].is_empty() || !self.cell_overlaps(cell, &capsule.lo, &capsule.hi) {
-                    continue;
-                }
-                for k in 0..self.topo.cell_elements[cell].len() {
-                    let e = self.topo.cell_elements[cell][k] as usize;
-                    let corners: [Vec3; 8] = std::array::from_fn(|n| self.topo.nodes.x[self.topo.elements.nodes[e][n] as usize]);
-                    let search = VoxelSearch { topo: &self.topo, element: e as u32, cell_first_voxel: self.topo.layout.cell_coords(cell).map(|c| c * self.topo.layout.side), corners, capsule: &capsule, limit };
-                    search.descend([0; 3], self.topo.layout.side, &mut removed);
+            let mut last_taken: Option<Vec3> = None;
+            for step in path.chunks_exact(tools.max(1)) {
+                let c = &step[i];
+                if cutting(c) && last_taken.is_none_or(|p| (p - c.pose.position_m).norm() >= half_voxel) {
+                    last_taken = Some(c.pose.position_m);
+                    self.voxels_in_cutting_capsule(i, c, limit, &mut removed);
                 }
             }
+            let (tip, top, length) = self.voxels_in_cutting_capsule(i, command, limit, &mut removed);
             if removed.len() > before {
                 feedback[i].cutting = true;
                 tips.push((i, tip));
@@ -488,6 +488,31 @@ impl BranchedGrid {
             stroke.last_tip = Some(tip);
         }
         self.apply_removal(&removed);
+    }
+
+    /// Adds the voxels whose deformed centres tool `i`'s inner capsule holds at
+    /// `command`'s pose to `removed` (up to `limit` in all); returns the capsule's tip,
+    /// top and length (grid frame).
+    fn voxels_in_cutting_capsule(&self, i: usize, command: &ToolCommand, limit: usize, removed: &mut Vec<usize>) -> (Vec3, Vec3, f64) {
+        let (radius, length) = self.tools[i].cutting_capsule();
+        let tip = self.frame.to_local(&command.pose.position_m);
+        let top = tip + self.frame.rotation.transpose() * command.pose.axis() * length;
+        let capsule = Capsule { tip, top, radius, lo: tip.inf(&top) - Vec3::repeat(radius), hi: tip.sup(&top) + Vec3::repeat(radius) };
+        for cell in 0..self.topo.cell_elements.len() {
+            if removed.len() >= limit {
+                break;
+            }
+            if self.topo.cell_elements[cell].is_empty() || !self.cell_overlaps(cell, &capsule.lo, &capsule.hi) {
+                continue;
+            }
+            for &e in &self.topo.cell_elements[cell] {
+                let e = e as usize;
+                let corners: [Vec3; 8] = std::array::from_fn(|n| self.topo.nodes.x[self.topo.elements.nodes[e][n] as usize]);
+                let search = VoxelSearch { topo: &self.topo, element: e as u32, cell_first_voxel: self.topo.layout.cell_coords(cell).map(|c| c * self.topo.layout.side), corners, capsule: &capsule, limit };
+                search.descend([0; 3], self.topo.layout.side, removed);
+            }
+        }
+        (tip, top, length)
     }
 
     /// The tissue's resistance to cutting tool `i`, its tip at `tip` and its axis along

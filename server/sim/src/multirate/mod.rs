@@ -68,6 +68,9 @@ pub struct Multirate {
     /// resistance), rendered until the next one.
     cut_feedback: Vec<(bool, Vec3)>,
     deltas: Vec<TopologyDelta>,
+    /// The commands of this period's haptic steps (one per tool per step), handed to the
+    /// next job to cut along.
+    path: Vec<ToolCommand>,
     /// Hash of the pending job's commands (its grid is the published state).
     pending_inputs: u64,
     deformer: RefCell<Deformer>,
@@ -81,6 +84,9 @@ pub struct Multirate {
 struct Job {
     grid: BranchedGrid,
     commands: Vec<ToolCommand>,
+    /// The haptic steps' commands over the period before (one per tool per step): the
+    /// deformation step cuts along them.
+    path: Vec<ToolCommand>,
     patches: Vec<ContactPatch>,
     feedback: Vec<ToolFeedback>,
     published: Published,
@@ -91,7 +97,7 @@ impl Job {
     fn run(mut self: Box<Self>) -> Box<Self> {
         let started = std::time::Instant::now();
         let job = &mut *self;
-        job.grid.deformation_step(&job.commands, &mut job.patches, job.margin_m, &mut job.feedback);
+        job.grid.deformation_step(&job.commands, &job.path, &mut job.patches, job.margin_m, &mut job.feedback);
         job.published.refresh(&mut job.grid);
         job.published.took_ns = started.elapsed().as_nanos() as u64;
         self
@@ -225,6 +231,7 @@ impl Multirate {
         let job = Box::new(Job {
             grid,
             commands: vec![ToolCommand::default(); count],
+            path: Vec::with_capacity(count * every as usize),
             patches: vec![ContactPatch::default(); count],
             feedback: vec![ToolFeedback::default(); count],
             published: published.clone(),
@@ -243,6 +250,7 @@ impl Multirate {
             published,
             cut_feedback: vec![(false, Vec3::zeros()); count],
             deltas: Vec::new(),
+            path: Vec::with_capacity(count * every as usize),
             pending_inputs: 0,
             deformer: RefCell::new(Deformer { worker: None, home: Some(job), due: 0, inline, waits: 0 }),
             haptic_counters: TissueCounters::default(),
@@ -307,9 +315,11 @@ impl Multirate {
             self.fade_left = self.every;
         }
         job.commands.copy_from_slice(commands);
+        std::mem::swap(&mut job.path, &mut self.path);
+        self.path.clear();
         job.margin_m = self.margin_m;
         let mut h = StateHasher::new();
-        for c in commands {
+        for c in commands.iter().chain(&job.path) {
             hash_command(&mut h, c);
         }
         self.pending_inputs = h.finish();
@@ -391,6 +401,7 @@ impl Tissue for Multirate {
             self.exchange(commands);
         }
         self.render(commands, feedback);
+        self.path.extend_from_slice(commands);
         self.step_index += 1;
     }
 
@@ -434,6 +445,9 @@ impl Tissue for Multirate {
         h.write_u64(self.step_index);
         h.write_u64(self.published.grid_hash);
         h.write_u64(self.pending_inputs);
+        for c in &self.path {
+            hash_command(&mut h, c);
+        }
         for (force, torque) in &self.fading {
             force.iter().chain(torque.iter()).for_each(|c| h.write_f64(*c));
         }
@@ -473,6 +487,11 @@ impl Tissue for Multirate {
             published: self.published.clone(),
             cut_feedback: self.cut_feedback.clone(),
             deltas: self.deltas.clone(),
+            path: {
+                let mut path = Vec::with_capacity(self.path.capacity());
+                path.extend_from_slice(&self.path);
+                path
+            },
             pending_inputs: self.pending_inputs,
             deformer: RefCell::new(copy),
             haptic_counters: self.haptic_counters,
