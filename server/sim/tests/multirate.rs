@@ -164,6 +164,22 @@ fn a_blade_drawn_fast_cuts_between_deformation_steps_as_a_single_rate_model_does
 }
 
 #[test]
+fn auto_fidelity_fits_the_deformation_level_to_its_period_and_reports_the_schedule() {
+    // The block from level 3 down to level 0 with its deformation every 20 ms: the
+    // calibration times deformation steps against 20 ms (not the haptic step's 1 ms).
+    let json = block(1e-3)
+        .replace(r#""level": 1,"#, r#""level": 0, "fidelity": "auto","#)
+        .replace(r#""cutting": {}"#, r#""cutting": {}, "schedule": { "multirate": { "deformation_every_steps": 20 } }"#);
+    let tissue = cutsim_sim::build_tissue(&Scene::from_json_str(&json, "test scene", None).unwrap()).unwrap_or_else(|e| panic!("{e}"));
+    let (level, summary) = tissue.fidelity().expect("an auto level");
+    println!("{summary}");
+    assert!(summary.contains("budget of 20000 µs"), "{summary}");
+    assert!(summary.contains("every 20 steps (50 Hz)"), "{summary}");
+    assert!(level <= 3);
+    assert_eq!(tissue.deformation_rate_hz(), Some(50.0));
+}
+
+#[test]
 fn a_copy_goes_on_as_the_original_does() {
     let mut model = multirate(10, false);
     let mut feedback = vec![ToolFeedback::default(); 2];

@@ -77,6 +77,12 @@ pub struct StepTiming {
 /// first 100 steps and held there; no tool when the body has no broad top. Stops early
 /// once the median of 20 or more steps exceeds `stop_above_us`.
 pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>) -> StepTiming {
+    time_probe_with(grid, warmup, steps, stop_above_us, &mut |grid, commands, feedback| grid.step(commands, feedback))
+}
+
+/// [`time_probe`], each step taken by `step` (a multirate schedule's deformation step
+/// does more than [`BranchedGrid::step`]).
+pub fn time_probe_with(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>, step: &mut dyn FnMut(&mut BranchedGrid, &[ToolCommand], &mut [ToolFeedback])) -> StepTiming {
     let tools = crate::tissue::Tissue::tools(grid).to_vec();
     let probe = tools.iter().position(|t| !t.can_cut).or(if tools.is_empty() { None } else { Some(0) });
     let top = grid.broad_top();
@@ -85,22 +91,22 @@ pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_abo
     let radius = probe.map_or(0.0, |p| tools[p].radius_m);
     let mut histogram = LatencyHistogram::new();
     let mut iterations = 0u64;
-    for step in 0..warmup + steps {
+    for index in 0..warmup + steps {
         if let (Some(p), Some(top)) = (probe, top) {
-            let depth = 0.004 * (step as f64 / 100.0).min(1.0);
+            let depth = 0.004 * (index as f64 / 100.0).min(1.0);
             // The capsule's lowest point is its tip less its radius.
             let tip = Vec3::new(top.x, top.y, top.z + radius - depth);
             commands[p] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
         }
         let started = Instant::now();
-        grid.step(&commands, &mut feedback);
+        step(grid, &commands, &mut feedback);
         let elapsed = started.elapsed();
-        if step >= warmup {
+        if index >= warmup {
             histogram.record(elapsed);
             iterations += u64::from(grid.last_solve().0);
         }
         if let Some(limit) = stop_above_us {
-            if step >= warmup + 20 && histogram.quantile_ns(0.5) as f64 / 1e3 > limit {
+            if index >= warmup + 20 && histogram.quantile_ns(0.5) as f64 / 1e3 > limit {
                 break;
             }
         }
@@ -121,6 +127,20 @@ pub fn error_table() -> ErrorTable {
 pub fn build_auto(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid, SceneError> {
     let budget_us = spec.step_budget_ms.get() * 1e3;
     build_auto_with(scene, spec, &mut |grid| time_probe(grid, 30, CALIBRATION_STEPS, Some(budget_us)).p99_us)
+}
+
+/// [`build_auto`] for a multirate schedule's deformation (the scene's `time_step_s` is
+/// the deformation's step): the budget is `budget_ms` (the deformation period), and a
+/// step is timed as a deformation job takes it (its patch compliance included).
+pub fn build_auto_deformation(scene: &Scene, spec: &BranchedGridSpec, budget_ms: f64) -> Result<BranchedGrid, SceneError> {
+    let mut spec = spec.clone();
+    spec.step_budget_ms = crate::quantity::StepBudgetMs::new(budget_ms).map_err(|e| SceneError::new(&scene.origin, "model.branched-grid.schedule", e))?;
+    let budget_us = budget_ms * 1e3;
+    let mut patches = vec![crate::multirate::patch::ContactPatch::default(); crate::tool::tool_shapes(scene).len()];
+    build_auto_with(scene, &spec, &mut |grid| {
+        let margin_m = crate::multirate::patch_margin_m(grid, scene.time_step_s.get());
+        time_probe_with(grid, 10, CALIBRATION_STEPS / 3, Some(budget_us), &mut |grid, commands, feedback| grid.deformation_step(commands, &[], &mut patches, margin_m, feedback)).p99_us
+    })
 }
 
 /// [`build_auto`] with each candidate's p99 step time, µs, measured by `p99_us` (on a

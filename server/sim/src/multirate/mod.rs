@@ -36,7 +36,7 @@ use crate::grid::BranchedGrid;
 use crate::hash::StateHasher;
 use crate::math::Vec3;
 use crate::quantity::TimeStepS;
-use crate::scene::{ModelSpec, MultirateSpec, Scene, SceneError, ScheduleSpec};
+use crate::scene::{FidelitySpec, ModelSpec, MultirateSpec, Scene, SceneError, ScheduleSpec};
 use crate::solver::background::Background;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{Tissue, TissueCounters};
@@ -46,6 +46,14 @@ use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES};
 /// The fastest a tool is assumed to move, m/s: a patch reaches this far beyond the
 /// tool's radius for the two deformation periods it is used over after it was chosen.
 const TOOL_SPEED_M_PER_S: f64 = 0.2;
+
+/// How far beyond a tool's radius its patch reaches for a deformation step of
+/// `period_s`, m: two voxels, and the distance a tool at [`TOOL_SPEED_M_PER_S`] covers
+/// in the two periods a patch is used over after it was chosen.
+pub fn patch_margin_m(grid: &BranchedGrid, period_s: f64) -> f64 {
+    let voxel = grid.topology().layout.spacing_m.iter().copied().fold(0.0, f64::max);
+    2.0 * voxel + TOOL_SPEED_M_PER_S * 2.0 * period_s
+}
 
 /// The branched grid under a multirate schedule.
 pub struct Multirate {
@@ -212,7 +220,11 @@ pub fn build_from_scene(scene: &Scene, schedule: &MultirateSpec) -> Result<Multi
     let ModelSpec::BranchedGrid(grid_spec) = &mut deformation.model else { unreachable!("a branched-grid scene") };
     grid_spec.schedule = ScheduleSpec::SingleRate;
     let grid_spec = grid_spec.clone();
-    let grid = crate::grid::build_from_scene(&deformation, &grid_spec)?;
+    let grid = match grid_spec.fidelity {
+        // The deformation's level is fitted to its period, not to the haptic step.
+        FidelitySpec::Auto => crate::grid::fidelity::build_auto_deformation(&deformation, &grid_spec, deformation_dt.get() * 1e3)?,
+        FidelitySpec::Fixed => crate::grid::build_from_scene(&deformation, &grid_spec)?,
+    };
     Ok(Multirate::new(grid, dt, every, false))
 }
 
@@ -223,8 +235,7 @@ impl Multirate {
         let every = u64::from(every.max(1));
         let tools = grid.tools().to_vec();
         let count = tools.len();
-        let voxel = grid.topology().layout.spacing_m.iter().copied().fold(0.0, f64::max);
-        let margin_m = 2.0 * voxel + TOOL_SPEED_M_PER_S * 2.0 * every as f64 * dt_s;
+        let margin_m = patch_margin_m(&grid, every as f64 * dt_s);
         let mut published = Published::default();
         published.refresh(&mut grid);
         let fidelity = Tissue::fidelity(&grid);
@@ -380,7 +391,9 @@ impl Tissue for Multirate {
     }
 
     fn fidelity(&self) -> Option<(u32, String)> {
-        self.fidelity.clone()
+        self.fidelity.as_ref().map(|(level, summary)| {
+            (*level, format!("{summary}; multirate: haptics every {:.1} ms, the deformation at that level every {} steps ({:.0} Hz)", self.dt_s * 1e3, self.every, 1.0 / (self.dt_s * self.every as f64)))
+        })
     }
 
     fn time_step_s(&self) -> f64 {
