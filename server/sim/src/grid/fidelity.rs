@@ -80,9 +80,12 @@ pub fn time_probe(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_abo
     time_probe_with(grid, warmup, steps, stop_above_us, &mut |grid, commands, feedback| grid.step(commands, feedback))
 }
 
+/// A step of the grid as a caller takes it (commands and feedback, one per tool).
+pub type StepWith<'a> = dyn FnMut(&mut BranchedGrid, &[ToolCommand], &mut [ToolFeedback]) + 'a;
+
 /// [`time_probe`], each step taken by `step` (a multirate schedule's deformation step
 /// does more than [`BranchedGrid::step`]).
-pub fn time_probe_with(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>, step: &mut dyn FnMut(&mut BranchedGrid, &[ToolCommand], &mut [ToolFeedback])) -> StepTiming {
+pub fn time_probe_with(grid: &mut BranchedGrid, warmup: usize, steps: usize, stop_above_us: Option<f64>, step: &mut StepWith<'_>) -> StepTiming {
     let tools = crate::tissue::Tissue::tools(grid).to_vec();
     let probe = tools.iter().position(|t| !t.can_cut).or(if tools.is_empty() { None } else { Some(0) });
     let top = grid.broad_top();

@@ -356,9 +356,9 @@ impl Dynamics {
     /// compliance a multirate haptic loop renders contact against (crate::multirate).
     pub fn compliance(&mut self, topo: &Topology, settings: &SolverSettings, step: u64, f: &[Vec3], x: &mut [Vec3]) -> Convergence {
         let h = settings.dt_s;
-        for i in 0..topo.nodes.len() {
-            self.b[i] = if self.active[i] { f[i] * h } else { Vec3::zeros() };
-            self.q[i] = Vec3::zeros();
+        for (i, (b, q)) in self.b.iter_mut().zip(self.q.iter_mut()).enumerate().take(topo.nodes.len()) {
+            *b = if self.active[i] { f[i] * h } else { Vec3::zeros() };
+            *q = Vec3::zeros();
         }
         // A compliance the haptic loop renders against needs three digits, not the
         // state's tolerance; and no absolute floor: a unit force's velocity change may be
