@@ -1,4 +1,4 @@
-//! Multirate haptics (issue 18), in real time: the liver and the layered abdomen under a
+//! Multirate haptics (issue 18), in real time: the livers and the layered abdomen under a
 //! multirate schedule, the haptic loop paced at 1 kHz on this thread and the
 //! deformation on its worker thread, as a session runs them. Needs the shared data
 //! (`$CUTSIM_DATA_DIR` or ../shared/data).
@@ -89,6 +89,8 @@ fn main() {
         ("liver.json", "liver", 1, 50, "multigrid", None),
         ("liver.json", "liver", 2, 10, "multigrid", None),
         ("liver.json", "liver", 2, 33, "multigrid", None),
+        ("liver-smooth.json", "liver-smooth", 2, 33, "cholesky", None),
+        ("liver-smooth.json", "liver-smooth", 1, 33, "multigrid", None),
         ("abdomen-layers.json", "abdomen-layers", 2, 33, "cholesky", Some(400)),
         ("abdomen-layers.json", "abdomen-layers", 3, 10, "cholesky", None),
         ("abdomen-layers.json", "abdomen-layers", 3, 20, "cholesky", Some(200)),
