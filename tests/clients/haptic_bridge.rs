@@ -31,6 +31,22 @@ fn bridge(server: &Server, session: &Created, seconds: f64, dir: &TempDir) -> Co
     c
 }
 
+/// Runs the bridge on `session` with `args` (tool, device, limits, …) until it exits,
+/// writing its report and trace into `dir`; returns the report.
+fn run_bridge(server: &Server, session: &Created, dir: &TempDir, args: &[&str]) -> serde_json::Value {
+    let out = Command::new(BRIDGE)
+        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control])
+        .args(args)
+        .arg("--report")
+        .arg(dir.0.join("report.json"))
+        .arg("--trace")
+        .arg(dir.0.join("trace.csv"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap()
+}
+
 /// (t_s, |F| N, fresh, connected) per millisecond.
 fn trace(dir: &TempDir) -> Vec<(f64, f64, bool, bool)> {
     std::fs::read_to_string(dir.0.join("trace.csv"))
@@ -206,17 +222,7 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
     let server = Server::start();
     let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let dir = TempDir::new("bridge-cut");
-    let out = Command::new(BRIDGE)
-        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "0", "--device", "sim:cut"])
-        .args(["--duration-s", "4.5", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100"])
-        .arg("--report")
-        .arg(dir.0.join("report.json"))
-        .arg("--trace")
-        .arg(dir.0.join("trace.csv"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
+    let report = run_bridge(&server, &session, &dir, &["--tool", "0", "--device", "sim:cut", "--duration-s", "4.5", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100"]);
     let max_force = report["max_force_n"].as_f64().unwrap();
     assert!((0.3..=3.3 + 1e-12).contains(&max_force), "the largest force sent to the device: {max_force} N\n{report}");
     // While the blade moves through the middle of the patch (1–3.5 s), the device renders
@@ -248,15 +254,7 @@ async fn entering_a_no_go_region_plays_a_cue_pulse() {
     let dir = TempDir::new("bridge-cues");
     // sim:cut moves the device 10 mm/s from x = -20 mm; the blade (the coupling's proxy,
     // held back by the cutting resistance) reaches the region after about 1–2 s.
-    let out = Command::new(BRIDGE)
-        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "0", "--device", "sim:cut"])
-        .args(["--duration-s", "3", "--cues"])
-        .arg("--report")
-        .arg(dir.0.join("report.json"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
+    let report = run_bridge(&server, &session, &dir, &["--tool", "0", "--device", "sim:cut", "--duration-s", "3", "--cues"]);
     let assessment = server.sessions().await.get_assessment(authed(pb::GetAssessmentRequest { session_id: session.id.clone() }, &session.observe)).await.unwrap().into_inner();
     assert!(assessment.no_go_entries >= 1, "the blade entered the region: {assessment:?}");
     assert!(report["cues"].as_u64().unwrap() >= 1, "a cue was played: {report}");
@@ -290,18 +288,8 @@ async fn a_multirate_session_renders_a_force_the_rate_limit_never_has_to_cut() {
     let dir = TempDir::new("bridge-multirate");
     // sim:press lowers the device from +5 mm to -3 mm over 1 s, then rocks it ±0.5 mm;
     // its origin at the block's top (z = 8 mm) plus the probe's radius: 3 mm deep.
-    let (max_force, max_rate) = (3.3, 100.0);
-    let out = Command::new(BRIDGE)
-        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "1", "--device", "sim:press"])
-        .args(["--duration-s", "3", "--max-force-n", &max_force.to_string(), "--max-force-rate-n-per-s", &max_rate.to_string(), "--offset-m", "0", "0", "0.012"])
-        .arg("--report")
-        .arg(dir.0.join("report.json"))
-        .arg("--trace")
-        .arg(dir.0.join("trace.csv"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
+    let max_force = 3.3;
+    let report = run_bridge(&server, &session, &dir, &["--tool", "1", "--device", "sim:press", "--duration-s", "3", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--offset-m", "0", "0", "0.012"]);
     let rows = trace(&dir);
     let pressed = rows.iter().filter(|r| r.0 > 1.2 && r.0 < 2.8).map(|r| r.1).fold(f64::INFINITY, f64::min);
     println!("multirate through the bridge: largest force {:.3} N, at least {pressed:.3} N while pressed, largest change in 1 ms {:.4} N, rate-limited on {} of {} steps", report["max_force_n"], report["max_force_step_n"], report["rate_limited"], report["device_steps"]);

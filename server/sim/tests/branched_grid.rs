@@ -2,6 +2,9 @@
 //! separates a bar, nested tool shapes (a blade cuts where a probe pressed as hard does
 //! not), locality of a voxel removal, determinism, and procedural scenes without data.
 
+mod common;
+use common::build_grid;
+
 use std::collections::BTreeSet;
 
 use cutsim_sim::grid::BranchedGrid;
@@ -11,11 +14,6 @@ use cutsim_sim::surface::SurfaceReplica;
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
-fn grid(json: &str) -> BranchedGrid {
-    let scene = Scene::from_json_str(json, "test scene", None).unwrap_or_else(|e| panic!("{e}"));
-    let ModelSpec::BranchedGrid(spec) = &scene.model else { panic!("a branched-grid scene") };
-    cutsim_sim::grid::build_from_scene(&scene, spec).unwrap_or_else(|e| panic!("{e}"))
-}
 
 /// A 40 × 8 × 8 mm bar of 1 mm voxels at level 2, held at its −x end.
 fn bar(gravity: bool) -> String {
@@ -56,7 +54,7 @@ fn surface_pieces(g: &BranchedGrid) -> usize {
 
 #[test]
 fn a_cut_through_a_bar_separates_two_bodies_that_fall_apart() {
-    let mut g = grid(&bar(true));
+    let mut g = build_grid(&bar(true));
     let (mut commands, mut feedback) = (vec![], vec![]);
     for _ in 0..200 {
         g.step(&commands, &mut feedback);
@@ -121,7 +119,7 @@ fn block_with_tools() -> String {
 /// Lowers tool `tool` onto the block's top (z = +8 mm) at 5 mm/s with the cut button
 /// held until it cuts or pushes with `stop_force` N; returns (force reached, cut?).
 fn press(tool: usize, stop_force: f64) -> (f64, bool) {
-    let mut g = grid(&block_with_tools());
+    let mut g = build_grid(&block_with_tools());
     let mut feedback = vec![ToolFeedback::default(); 2];
     let mut commands = vec![ToolCommand::default(); 2];
     let mut z = 0.0085;
@@ -153,7 +151,7 @@ fn a_blade_cuts_where_a_broad_probe_pressed_as_hard_does_not() {
 
 #[test]
 fn a_voxel_removal_changes_only_the_cells_that_hold_or_touch_it() {
-    let mut g = grid(&bar(false));
+    let mut g = build_grid(&bar(false));
     let t = g.topology().clone();
     let voxel = t.layout.voxel_index([13, 3, 7]);
     g.apply_removal(&[voxel]);
@@ -173,7 +171,7 @@ fn a_voxel_removal_changes_only_the_cells_that_hold_or_touch_it() {
 
 fn u_tube_cut_run() -> (u64, u64) {
     let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/u-tube.json")).unwrap();
-    let mut g = grid(&text);
+    let mut g = build_grid(&text);
     let mut feedback = vec![ToolFeedback::default(); 2];
     let mut commands = vec![ToolCommand::default(); 2];
     // The scalpel presses down into the top of the left arm (x from −8 to −2 mm, top at
@@ -242,7 +240,7 @@ fn a_single_voxel_element_stays_with_the_body() {
         "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": 0.004, "length_m": 0.05 }} }}, "contact_stiffness_n_per_m": 300 }} ] }}"#,
         path.display()
     );
-    let mut g = grid(&json);
+    let mut g = build_grid(&json);
     std::fs::remove_dir_all(&dir).ok();
     let single = (0..g.topology().elements.len()).filter(|&e| g.topology().elements.voxel_count[e] == 1).count();
     assert_eq!(single, 1, "the protruding voxel is an element of its own");
@@ -314,7 +312,7 @@ fn the_grid_feeds_back_the_contact_force_of_the_solved_state() {
     // The probe (6 mm, 400 N/m) pushed into the block's top at 0.1 m/s: its force is
     // the penalty at the end of each step, as the implicit step solved it, not the
     // penalty before the step (one step late).
-    let mut g = grid(&block_with_tools());
+    let mut g = build_grid(&block_with_tools());
     let mut feedback = vec![ToolFeedback::default(); 2];
     let mut commands = vec![ToolCommand::default(); 2];
     let (radius, length, k, speed, dt) = (0.006, 0.05, 400.0, 0.1, 1e-3);
@@ -414,7 +412,7 @@ fn press_and_draw_on_block(friction: Option<(f64, f64)>) -> (f64, f64, f64) {
     if let Some((mu_s, mu_d)) = friction {
         json["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": mu_s, "dynamic_coefficient": mu_d });
     }
-    let mut g = grid(&json.to_string());
+    let mut g = build_grid(&json.to_string());
     let (mut commands, mut feedback) = (vec![ToolCommand::default(); 2], vec![ToolFeedback::default(); 2]);
     let mut at = |x: f64, z: f64, g: &mut BranchedGrid| {
         commands[1] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false };
@@ -464,7 +462,7 @@ fn friction_drags_the_grids_surface_under_a_probe_drawn_sideways() {
 fn cholesky_and_multigrid_preconditioning_reach_jacobis_answer_in_fewer_iterations() {
     let run = |preconditioner: &str| {
         let text = bar(true).replace(r#""cutting": {}"#, &format!(r#""cutting": {{}}, "solver": {{ "preconditioner": "{preconditioner}", "cg_tolerance": 1e-8, "cg_max_iterations": 1000 }}"#));
-        let mut g = grid(&text);
+        let mut g = build_grid(&text);
         let mut feedback: [ToolFeedback; 0] = [];
         let mut iterations = 0;
         for _ in 0..80 {

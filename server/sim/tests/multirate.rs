@@ -5,10 +5,12 @@
 //! whether the deformation runs on its thread or inline, and a copy goes on alike;
 //! a schedule whose deformation step is out of range is refused naming the field.
 
-use cutsim_sim::grid::BranchedGrid;
+mod common;
+use common::build_grid;
+
 use cutsim_sim::math::{Pose, Quat, Vec3};
 use cutsim_sim::multirate::Multirate;
-use cutsim_sim::scene::{ModelSpec, Scene};
+use cutsim_sim::scene::Scene;
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
@@ -34,15 +36,10 @@ fn block(dt: f64) -> String {
     )
 }
 
-fn grid(json: &str) -> BranchedGrid {
-    let scene = Scene::from_json_str(json, "test scene", None).unwrap_or_else(|e| panic!("{e}"));
-    let ModelSpec::BranchedGrid(spec) = &scene.model else { panic!("a branched-grid scene") };
-    cutsim_sim::grid::build_from_scene(&scene, spec).unwrap_or_else(|e| panic!("{e}"))
-}
 
 /// The block under a multirate schedule: haptics at 1 kHz, deformation every `every` ms.
 fn multirate(every: u32, inline: bool) -> Multirate {
-    Multirate::new(grid(&block(1e-3 * f64::from(every))), 1e-3, every, inline)
+    Multirate::new(build_grid(&block(1e-3 * f64::from(every))), 1e-3, every, inline)
 }
 
 fn probe_at(tip: Vec3) -> Vec<ToolCommand> {
@@ -73,7 +70,7 @@ fn press_and_hold(tissue: &mut dyn Tissue, depth: f64, hold: usize) -> Vec<Vec3>
 
 #[test]
 fn a_probe_held_in_the_block_settles_to_the_single_rate_force() {
-    let mut single = grid(&block(1e-3));
+    let mut single = build_grid(&block(1e-3));
     let settled_single = *press_and_hold(&mut single, 0.002, 800).last().unwrap();
     for every in [10, 33] {
         let mut model = multirate(every, false);
@@ -153,7 +150,7 @@ fn a_blade_drawn_fast_cuts_between_deformation_steps_as_a_single_rate_model_does
         }
         tissue.counters().removed_elements
     };
-    let single = draw(&mut grid(&block(1e-3)));
+    let single = draw(&mut build_grid(&block(1e-3)));
     let multi = draw(&mut multirate(33, false));
     println!("voxels removed by the blade: single-rate {single}, multirate (deformation every 33 ms) {multi}");
     assert!(single > 20, "the blade cuts: {single}");
@@ -171,11 +168,12 @@ fn auto_fidelity_fits_the_deformation_level_to_its_period_and_reports_the_schedu
         .replace(r#""level": 1,"#, r#""level": 0, "fidelity": "auto","#)
         .replace(r#""cutting": {}"#, r#""cutting": {}, "schedule": { "multirate": { "deformation_every_steps": 20 } }"#);
     let tissue = cutsim_sim::build_tissue(&Scene::from_json_str(&json, "test scene", None).unwrap()).unwrap_or_else(|e| panic!("{e}"));
-    let (level, summary) = tissue.fidelity().expect("an auto level");
+    // Which level fits is this machine's business (a benchmark's); what it was fitted
+    // against and the schedule are the calibration's report.
+    let (_, summary) = tissue.fidelity().expect("an auto level");
     println!("{summary}");
     assert!(summary.contains("budget of 20000 µs"), "{summary}");
     assert!(summary.contains("every 20 steps (50 Hz)"), "{summary}");
-    assert!(level <= 3);
     assert_eq!(tissue.deformation_rate_hz(), Some(50.0));
 }
 
@@ -211,7 +209,7 @@ fn while_pressing_the_force_follows_the_single_rate_model() {
     // Pressed at 10 mm/s to 3 mm and held: the deformation lags the tool by one to two
     // deformation steps, and between them the patch moves as a whole; the force the
     // haptic loop renders stays close to the single-rate model's at every step.
-    let mut single = grid(&block(1e-3));
+    let mut single = build_grid(&block(1e-3));
     let reference = press_and_hold(&mut single, 0.003, 300);
     let peak = reference.iter().map(|f| f.norm()).fold(0.0, f64::max);
     for (every, allowed) in [(10, 0.05), (33, 0.2)] {

@@ -132,6 +132,8 @@ pub struct Multigrid {
     pub waits: u64,
     /// Steps from asking for a rebuild to using it (0 before `prime`: [`REBUILD_DELAY`]).
     rebuild_delay: u64,
+    /// The step the coarse operators were last assembled at.
+    assembled_at: Option<u64>,
 }
 
 impl Clone for Multigrid {
@@ -152,6 +154,7 @@ impl Clone for Multigrid {
             rotated: self.rotated.clone(),
             waits: self.waits,
             rebuild_delay: self.rebuild_delay,
+            assembled_at: self.assembled_at,
         }
     }
 }
@@ -206,9 +209,12 @@ impl Multigrid {
             self.rebuild = false;
         }
         let levels = self.current.as_deref_mut()?;
-        if fresh || step % REFRESH_EVERY == 0 {
+        // A step may ask more than once (a multirate deformation step's compliance
+        // solves before its own): the coarse operators are assembled once.
+        if fresh || (step % REFRESH_EVERY == 0 && self.assembled_at != Some(step)) {
             levels.assemble(rotations, a_mass, a_stiff, &mut self.rotated);
             levels.hierarchy.update();
+            self.assembled_at = Some(step);
         }
         Some(&mut levels.hierarchy)
     }

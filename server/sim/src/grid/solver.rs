@@ -121,6 +121,8 @@ pub struct Dynamics {
     active: Vec<bool>,
     /// `A = (1 + hα) M + (h² + hβ) K_R + h² K_c`, assembled every step.
     system: BlockMatrix<f32>,
+    /// `system` changed since `diagonal` and `jacobi` were taken from it.
+    diagonal_stale: bool,
     /// An element's stiffness in the world frame (scratch).
     rotated: Box<Planar24>,
     scatter: Scatter,
@@ -312,32 +314,22 @@ impl Dynamics {
         }
     }
 
-    /// Step `step`, with the given contacts. Returns the max |Δv| (not finite on a blow-up).
-    pub fn step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) -> f64 {
-        self.solve_step(topo, settings, contacts, step);
-        self.finish_step(topo, settings, step)
-    }
-
-    /// The first half of a step: assembles its system and solves for Δv (into `dv`,
-    /// `last` says how it went); the state has not moved yet. Between this and
-    /// [`Self::finish_step`] the step's system can answer [`Self::compliance`] queries.
-    pub fn solve_step(&mut self, topo: &mut Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) {
-        self.assemble_tissue(topo, settings);
-        self.solve_with_contacts(topo, settings, contacts, step);
-    }
-
-    /// The first part of [`Self::solve_step`]: the system of the tissue alone (the
-    /// tools' contacts not in it yet), which [`Self::compliance`] queries ask about.
+    /// A step is taken in three parts: [`Self::assemble_tissue`], then
+    /// [`Self::solve_with_contacts`] (Δv into `dv`, `last` says how the solve went), then
+    /// [`Self::finish_step`] (the state moves). Between the first two the tissue's own
+    /// system answers [`Self::compliance`] queries.
+    ///
+    /// The first part: the system of the tissue alone, the tools' contacts not in it yet.
     pub fn assemble_tissue(&mut self, topo: &mut Topology, settings: &SolverSettings) {
         self.assemble(topo, settings);
-        self.refresh_diagonal(topo);
+        self.diagonal_stale = true;
     }
 
-    /// The rest of [`Self::solve_step`]: the contacts into the system, then the solve.
+    /// The second part of a step: the contacts into the system, then the solve.
     pub fn solve_with_contacts(&mut self, topo: &Topology, settings: &SolverSettings, contacts: &[PointContact], step: u64) {
         if !contacts.is_empty() {
             self.add_contacts(topo, settings, contacts);
-            self.refresh_diagonal(topo);
+            self.diagonal_stale = true;
         }
         let h = settings.dt_s;
         let n = topo.nodes.len();
@@ -351,9 +343,10 @@ impl Dynamics {
     }
 
     /// How far constant nodal forces `f` (N) move the nodes over one step of the
-    /// tissue's system as [`Self::assemble_tissue`] left it: `x = h² A⁻¹ f` (m; held and dead nodes do not
-    /// move), solved with the step's preconditioner to its tolerance and cap. The
-    /// compliance a multirate haptic loop renders contact against (crate::multirate).
+    /// tissue's system as [`Self::assemble_tissue`] left it: `x = h² A⁻¹ f` (m; held and
+    /// dead nodes do not move), solved with the step's preconditioner to its cap and a
+    /// tolerance of at most [`COMPLIANCE_TOLERANCE`]. The compliance a multirate haptic
+    /// loop renders contact against (crate::multirate).
     pub fn compliance(&mut self, topo: &Topology, settings: &SolverSettings, step: u64, f: &[Vec3], x: &mut [Vec3]) -> Convergence {
         let h = settings.dt_s;
         for (i, (b, q)) in self.b.iter_mut().zip(self.q.iter_mut()).enumerate().take(topo.nodes.len()) {
@@ -374,6 +367,9 @@ impl Dynamics {
     /// Solves the assembled system for `b` into `dv` (warm-started) or the scratch `q`
     /// (from zero), preconditioned as the settings say.
     fn solve_b(&mut self, topo: &Topology, settings: &SolverSettings, step: u64, pcg_settings: &PcgSettings, unknown: Unknown) -> Convergence {
+        if std::mem::take(&mut self.diagonal_stale) {
+            self.refresh_diagonal(topo);
+        }
         let h = settings.dt_s;
         let a_mass = 1.0 + h * settings.alpha_per_s;
         let a_stiff = h * settings.beta_s + h * h;
@@ -410,8 +406,8 @@ impl Dynamics {
         }
     }
 
-    /// The system's diagonal (the residual's metric) and its block-Jacobi inverse, after
-    /// the system changed.
+    /// The system's diagonal (the residual's metric) and its block-Jacobi inverse, once
+    /// per change of the system before a solve needs them.
     fn refresh_diagonal(&mut self, topo: &Topology) {
         for i in 0..topo.nodes.len() {
             self.diagonal[i] = self.system.diagonal(i);
@@ -419,7 +415,7 @@ impl Dynamics {
         self.jacobi.update(&self.system, &self.active);
     }
 
-    /// The second half of a step: hands the system to the Cholesky worker when it is due
+    /// The third part of a step: hands the system to the Cholesky worker when it is due
     /// a factor, then moves the state by Δv. Returns the max |Δv| (not finite on a
     /// blow-up).
     pub fn finish_step(&mut self, topo: &mut Topology, settings: &SolverSettings, step: u64) -> f64 {

@@ -62,12 +62,11 @@ pub struct Multirate {
     every: u64,
     tools: Vec<ToolShape>,
     step_index: u64,
-    /// How far beyond a tool's radius its patch reaches, m.
-    margin_m: f64,
     /// Per tool: the patch the haptic loop renders against now.
     patches: Vec<ContactPatch>,
     /// Per tool: the force and torque on the tool to add while they fade (the old
-    /// patch's minus the new one's when it arrived), and the steps they fade over.
+    /// patch's minus the new one's when it arrived), and the steps left of the N they
+    /// fade over.
     fading: Vec<(Vec3, Vec3)>,
     fade_left: u64,
     /// The deformation model's state as the last job left it.
@@ -82,7 +81,9 @@ pub struct Multirate {
     /// Hash of the pending job's commands (its grid is the published state).
     pending_inputs: u64,
     deformer: RefCell<Deformer>,
-    haptic_counters: TissueCounters,
+    /// The haptic loop's own counts: commands whose pose was not finite, forces clamped.
+    rejected_poses: u64,
+    force_clamps: u64,
     fidelity: Option<(u32, String)>,
 }
 
@@ -98,6 +99,7 @@ struct Job {
     patches: Vec<ContactPatch>,
     feedback: Vec<ToolFeedback>,
     published: Published,
+    /// How far beyond a tool's radius its patch reaches, m ([`patch_margin_m`]).
     margin_m: f64,
 }
 
@@ -254,7 +256,6 @@ impl Multirate {
             every,
             tools,
             step_index: 0,
-            margin_m,
             patches,
             fading: vec![(Vec3::zeros(), Vec3::zeros()); count],
             fade_left: 0,
@@ -264,19 +265,10 @@ impl Multirate {
             path: Vec::with_capacity(count * every as usize),
             pending_inputs: 0,
             deformer: RefCell::new(Deformer { worker: None, home: Some(job), due: 0, inline, waits: 0 }),
-            haptic_counters: TissueCounters::default(),
+            rejected_poses: 0,
+            force_clamps: 0,
             fidelity,
         }
-    }
-
-    /// Haptic steps per deformation step.
-    pub fn deformation_every(&self) -> u64 {
-        self.every
-    }
-
-    /// How far beyond its radius a tool's patch reaches, m.
-    pub fn patch_margin_m(&self) -> f64 {
-        self.margin_m
     }
 
     /// How long the deformation job whose results are current took, ns (its step, its
@@ -319,16 +311,15 @@ impl Multirate {
                     Some(tool) => (job.patches[i].solve(&tool), self.patches[i].solve(&tool)),
                     None => Default::default(),
                 };
-                let remaining = if self.fade_left > 0 { self.fade_left as f64 / self.every as f64 } else { 0.0 };
-                let (force, torque) = self.fading[i];
-                self.fading[i] = (old.force_n - new.force_n + force * remaining, old.torque_nm - new.torque_nm + torque * remaining);
+                // The last difference has faded out by now: it fades over the N steps
+                // between two arrivals.
+                self.fading[i] = (old.force_n - new.force_n, old.torque_nm - new.torque_nm);
             }
             self.fade_left = self.every;
         }
         job.commands.copy_from_slice(commands);
         std::mem::swap(&mut job.path, &mut self.path);
         self.path.clear();
-        job.margin_m = self.margin_m;
         let mut h = StateHasher::new();
         for c in commands.iter().chain(&job.path) {
             hash_command(&mut h, c);
@@ -343,7 +334,7 @@ impl Multirate {
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             if command.active && !command.pose.is_finite() {
-                self.haptic_counters.rejected_poses += 1;
+                self.rejected_poses += 1;
             }
             let Some(tool) = capsule(&self.tools[i], command) else { continue };
             let contact = self.patches[i].solve(&tool);
@@ -359,7 +350,7 @@ impl Multirate {
             }
             fb.clamp_force(self.tools[i].max_force_n);
             if fb.force_clamped {
-                self.haptic_counters.force_clamps += 1;
+                self.force_clamps += 1;
             }
         }
         self.fade_left = self.fade_left.saturating_sub(1);
@@ -471,10 +462,10 @@ impl Tissue for Multirate {
     fn counters(&self) -> TissueCounters {
         let waits = self.deformer.borrow().waits;
         TissueCounters {
-            rejected_poses: self.haptic_counters.rejected_poses,
+            rejected_poses: self.rejected_poses,
             // The forces rendered are the haptic loop's; the deformation step's own
             // contact forces are never sent to a device.
-            force_clamps: self.haptic_counters.force_clamps,
+            force_clamps: self.force_clamps,
             solver_waits: self.published.counters.solver_waits + waits,
             ..self.published.counters
         }
@@ -493,7 +484,6 @@ impl Tissue for Multirate {
             every: self.every,
             tools: self.tools.clone(),
             step_index: self.step_index,
-            margin_m: self.margin_m,
             patches: self.patches.clone(),
             fading: self.fading.clone(),
             fade_left: self.fade_left,
@@ -507,7 +497,8 @@ impl Tissue for Multirate {
             },
             pending_inputs: self.pending_inputs,
             deformer: RefCell::new(copy),
-            haptic_counters: self.haptic_counters,
+            rejected_poses: self.rejected_poses,
+            force_clamps: self.force_clamps,
             fidelity: self.fidelity.clone(),
         })
     }

@@ -80,7 +80,7 @@ impl ContactPatch {
     pub fn solve(&self, tool: &Capsule) -> PatchContact {
         let mut u = Vec3::zeros();
         for _ in 0..NEWTON_ITERATIONS {
-            let (force, stiffness, _) = self.penalty(tool, &u);
+            let (force, stiffness) = self.penalty(tool, &u);
             // G(u) = u − C (F(u) − F_applied); dF/du = −K (K = Σ k n nᵀ over the touching).
             let residual = u - self.compliance * (force - self.applied);
             let jacobian = Matrix3::identity() + self.compliance * stiffness;
@@ -100,19 +100,18 @@ impl ContactPatch {
         contact
     }
 
-    /// The penalty forces on the tissue with the patch moved by `u`: their sum, their
-    /// stiffness Σ k n nᵀ, and how many vertices touch.
-    fn penalty(&self, tool: &Capsule, u: &Vec3) -> (Vec3, Matrix3<f64>, u32) {
-        let (mut force, mut stiffness, mut count) = (Vec3::zeros(), Matrix3::zeros(), 0);
+    /// The penalty forces on the tissue with the patch moved by `u`: their sum and their
+    /// stiffness Σ k n nᵀ.
+    fn penalty(&self, tool: &Capsule, u: &Vec3) -> (Vec3, Matrix3<f64>) {
+        let (mut force, mut stiffness) = (Vec3::zeros(), Matrix3::zeros());
         for x in &self.positions {
             if let Some(f) = vertex_force(tool, &(x + u)) {
                 let n = f.normalize();
                 force += f;
                 stiffness += n * n.transpose() * tool.stiffness_n_per_m;
-                count += 1;
             }
         }
-        (force, stiffness, count)
+        (force, stiffness)
     }
 }
 

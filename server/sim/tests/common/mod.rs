@@ -25,6 +25,13 @@ pub fn scene(text: &str) -> Scene {
     Scene::from_json_str(text, "test scene", None).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// A branched grid from a scene written inline.
+pub fn build_grid(json: &str) -> cutsim_sim::grid::BranchedGrid {
+    let scene = scene(json);
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { panic!("{}: not a branched-grid scene", scene.name) };
+    cutsim_sim::grid::build_from_scene(&scene, spec).unwrap_or_else(|e| panic!("{e}"))
+}
+
 pub fn build(scene: &Scene) -> MassSpring {
     let ModelSpec::Msm(spec) = &scene.model else { panic!("{}: not an msm scene", scene.name) };
     build_from_scene(scene, spec).unwrap_or_else(|e| panic!("{e}"))

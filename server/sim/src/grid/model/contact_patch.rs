@@ -80,21 +80,15 @@ impl BranchedGrid {
         let total: f64 = shares.iter().map(|&(_, w)| w).sum();
         if total > 0.0 {
             shares.iter_mut().for_each(|(_, w)| *w /= total);
-            let fresh = match &self.compliance_cache[i] {
-                Some(cached) => cached.topology_version != self.topology_version || (cached.tip - tip).norm() >= voxel,
-                None => true,
-            };
-            let mut cached = match self.compliance_cache[i] {
-                Some(cached) if !fresh => cached,
-                _ => CachedCompliance { tip, topology_version: self.topology_version, columns: Matrix3::zeros(), residuals: [0.0; 3], next_axis: 0 },
-            };
-            let axes = if fresh { 0..3 } else { cached.next_axis..cached.next_axis + 1 };
+            let kept = self.compliance_cache[i].filter(|c| c.topology_version == self.topology_version && (c.tip - tip).norm() < voxel);
+            let mut cached = kept.unwrap_or(CachedCompliance { tip, topology_version: self.topology_version, columns: Matrix3::zeros(), residuals: [0.0; 3], next_axis: 0 });
+            let axes = if kept.is_some() { cached.next_axis..cached.next_axis + 1 } else { 0..3 };
             for axis in axes {
                 let (column, residual) = self.compliance_column(&shares, axis);
                 cached.columns.set_column(axis, &column);
                 cached.residuals[axis] = residual;
             }
-            cached.next_axis = if fresh { 0 } else { (cached.next_axis + 1) % 3 };
+            cached.next_axis = if kept.is_some() { (cached.next_axis + 1) % 3 } else { 0 };
             let symmetric = (cached.columns + cached.columns.transpose()) * 0.5;
             patch.compliance = self.frame.rotation * symmetric * self.frame.rotation.transpose();
             patch.compliance_residual = cached.residuals.iter().copied().fold(0.0, f64::max);
@@ -110,24 +104,26 @@ impl BranchedGrid {
     /// the relative residual of that solve.
     fn compliance_column(&mut self, shares: &[(u32, f64)], axis: usize) -> (Vec3, f64) {
         let n = self.topo.nodes.len();
-        self.compliance_force.resize(n, Vec3::zeros());
-        self.compliance_motion.resize(n, Vec3::zeros());
-        self.compliance_force.iter_mut().for_each(|f| *f = Vec3::zeros());
-        for &(v, share) in shares {
-            let (element, weights) = self.vertex_embedding(v as usize);
-            for (k, &node) in self.topo.elements.nodes[element].iter().enumerate() {
-                self.compliance_force[node as usize] += Vec3::ith(axis, share * weights[k]);
-            }
+        let (mut force, mut motion) = (std::mem::take(&mut self.compliance_force), std::mem::take(&mut self.compliance_motion));
+        force.clear();
+        force.resize(n, Vec3::zeros());
+        motion.resize(n, Vec3::zeros());
+        for (node, weight) in self.share_nodes(shares) {
+            force[node] += Vec3::ith(axis, weight);
         }
-        let convergence = self.dynamics.compliance(&self.topo, &self.settings, self.step_index, &self.compliance_force, &mut self.compliance_motion);
-        let mut moved = Vec3::zeros();
-        for &(v, share) in shares {
-            let (element, weights) = self.vertex_embedding(v as usize);
-            for (k, &node) in self.topo.elements.nodes[element].iter().enumerate() {
-                moved += self.compliance_motion[node as usize] * (weights[k] * share);
-            }
-        }
+        let convergence = self.dynamics.compliance(&self.topo, &self.settings, self.step_index, &force, &mut motion);
+        let moved = self.share_nodes(shares).map(|(node, weight)| motion[node] * weight).sum();
+        (self.compliance_force, self.compliance_motion) = (force, motion);
         (moved, convergence.residual)
+    }
+
+    /// The grid nodes the vertices `shares` (vertex, weight) are embedded in, with each
+    /// vertex's weight times its trilinear weight there.
+    fn share_nodes<'a>(&'a self, shares: &'a [(u32, f64)]) -> impl Iterator<Item = (usize, f64)> + 'a {
+        shares.iter().flat_map(move |&(v, share)| {
+            let element = self.topo.voxel_element[self.surface.voxel[v as usize] as usize] as usize;
+            self.topo.elements.nodes[element].iter().zip(self.surface.weights[v as usize]).map(move |(&node, w)| (node as usize, share * w))
+        })
     }
 
     /// Tool `i`'s patch vertices and their positions (world), as the step and its cuts
@@ -142,10 +138,5 @@ impl BranchedGrid {
             patch.positions.push(self.frame.to_world(&self.surface.position(&self.topo, v as usize)));
         }
         self.patch_scratch = near;
-    }
-
-    /// A live surface vertex's element and trilinear weights in it.
-    fn vertex_embedding(&self, v: usize) -> (usize, [f64; 8]) {
-        (self.topo.voxel_element[self.surface.voxel[v] as usize] as usize, self.surface.weights[v])
     }
 }
