@@ -113,8 +113,9 @@ fn tokio_stream_once<T: Send + 'static>(item: T) -> impl futures_util::Stream<It
     futures_util::stream::iter(std::iter::once(item))
 }
 
-/// `"fidelity": "auto"`: the session reports the level its calibration chose, and its
-/// recording pins that level so that a replay builds the same grid.
+/// `"fidelity": "auto"`: the session reports the level (and, under a multirate schedule,
+/// the deformation rate) its calibration chose, and its recording pins them so that a
+/// replay builds the same grid.
 #[tokio::test]
 async fn an_auto_fidelity_session_reports_and_records_its_level() {
     let server = Server::start();
@@ -141,6 +142,24 @@ async fn an_auto_fidelity_session_reports_and_records_its_level() {
     let header: serde_json::Value = serde_json::from_str(recording.lines().next().unwrap()).unwrap();
     let grid = &header["scene"]["model"]["branched-grid"];
     assert_eq!((grid["fidelity"].as_str(), grid["level"].as_u64()), (Some("fixed"), Some(u64::from(level))), "the recording pins the level: {header}");
+    // Under a multirate schedule the deformation's rate is chosen too (at most every 20
+    // haptic steps here), reported, and pinned beside the level.
+    let multirate = text.replace("\"level\": 3,", r#""level": 1, "fidelity": "auto", "solver": { "preconditioner": "multigrid" }, "schedule": { "multirate": { "deformation_every_steps": 20 } },"#);
+    let created = client
+        .create_session(operator(pb::CreateSessionRequest { scene: Some(pb::create_session_request::Scene::SceneJson(multirate)), mode: pb::SessionMode::Lockstep as i32, label: String::new() }))
+        .await
+        .unwrap()
+        .into_inner();
+    let info = created.session.unwrap();
+    assert!(info.fidelity.contains("haptic steps, the shortest period this level fits"), "{}", info.fidelity);
+    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", info.id))).unwrap();
+    let header: serde_json::Value = serde_json::from_str(recording.lines().next().unwrap()).unwrap();
+    let grid = &header["scene"]["model"]["branched-grid"];
+    let every = grid["schedule"]["multirate"]["deformation_every_steps"].as_u64().unwrap_or_else(|| panic!("no rate pinned: {header}"));
+    assert!((2..=20).contains(&every), "{header}");
+    assert_eq!(grid["fidelity"].as_str(), Some("fixed"), "{header}");
+    assert!(info.fidelity.contains(&format!("deformation every {every} haptic steps")), "{}", info.fidelity);
+    assert!((f64::from(info.deformation_rate_hz) - 1e3 / every as f64).abs() < 0.01, "{} Hz, every {every} steps", info.deformation_rate_hz);
     // A fixed scene reports nothing.
     let fixed = create(&server, "u-tube", pb::SessionMode::Lockstep).await;
     assert_eq!(fixed.info.fidelity, "");

@@ -53,8 +53,8 @@ fn try_run(args: &RunArgs, scene_dirs: &[PathBuf]) -> Result<RunReport, String> 
     let scene_path = resolve_scene_path(&scene_name, scene_dirs).map_err(|e| e.to_string())?;
     let scene = Scene::load(&scene_path).map_err(|e| e.to_string())?;
     let mut tissue = cutsim_sim::build_tissue(&scene).map_err(|e| e.to_string())?;
-    if let Some((_, summary)) = tissue.fidelity() {
-        eprintln!("{summary}");
+    if let Some(chosen) = tissue.fidelity() {
+        eprintln!("{}", chosen.summary);
     }
     let compiled = match (&script, &args.script) {
         (Some(s), Some(path)) => Some(

@@ -7,6 +7,18 @@
 use crate::surface::{SurfaceSnapshot, TopologyDelta};
 use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 
+/// What `"fidelity": "auto"` chose on this machine at load: the scene with these pinned
+/// (`grid::fidelity::pin_level`) builds the same model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChosenFidelity {
+    /// The branched grid's level.
+    pub level: u32,
+    /// Under a multirate schedule: haptic steps per deformation step.
+    pub deformation_every_steps: Option<u32>,
+    /// One line for logs and session info: what was tried, what fits, the error class.
+    pub summary: String,
+}
+
 /// Running totals a model keeps, for reports and the viewer's panel.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default)]
@@ -72,9 +84,9 @@ pub trait Tissue: Send {
     /// "msm" or "branched-grid".
     fn model_name(&self) -> &'static str;
 
-    /// A level chosen at load by `"fidelity": "auto"`, and the report of the choice
-    /// (None: the scene's own settings). A recording must pin that level to replay.
-    fn fidelity(&self) -> Option<(u32, String)> {
+    /// What `"fidelity": "auto"` chose at load (None: the scene's own settings). A
+    /// recording must pin it to replay.
+    fn fidelity(&self) -> Option<ChosenFidelity> {
         None
     }
 

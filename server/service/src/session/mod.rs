@@ -484,14 +484,14 @@ impl Registry {
         slot.built();
 
         let id = random_id();
-        // A level chosen by "fidelity": "auto" depends on this machine: the recording
+        // A level (and deformation rate) chosen by "fidelity": "auto" depends on this machine: the recording
         // pins it, so that a replay builds the same grid.
         let fidelity = tissue.fidelity();
         let (scene, scene_json) = match &fidelity {
-            Some((level, summary)) => {
-                use cutsim_sim::grid::fidelity::{pin_level, pin_scene};
-                tracing::info!(session = %id, "{summary}");
-                (pin_scene(&scene, *level), scene_json.map(|j| pin_level(&j, *level)).transpose().map_err(ApiError::Internal)?)
+            Some(chosen) => {
+                use cutsim_sim::grid::fidelity::{pin_choice, pin_scene};
+                tracing::info!(session = %id, "{}", chosen.summary);
+                (pin_scene(&scene, chosen), scene_json.map(|j| pin_choice(&j, chosen)).transpose().map_err(ApiError::Internal)?)
             }
             None => (scene, scene_json),
         };
@@ -575,7 +575,7 @@ impl Registry {
             label,
             scene_name: scene.name.clone(),
             model,
-            fidelity: fidelity.map(|(_, summary)| summary).unwrap_or_default(),
+            fidelity: fidelity.map(|chosen| chosen.summary).unwrap_or_default(),
             mode,
             rate_hz,
             deformation_rate_hz,

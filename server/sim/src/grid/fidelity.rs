@@ -3,9 +3,12 @@
 //! a report of the choice and of its error class (measured by the speed–accuracy study,
 //! docs/accuracy-speed.json).
 //!
-//! The choice depends on the machine, so a recording must pin it: [`pin_level`] rewrites
-//! a scene's JSON to the chosen level with `"fidelity": "fixed"`, and replays of that
-//! recording build the same grid.
+//! Under a multirate schedule the level is fitted to the deformation's period, and the
+//! period then shortened as far as that level allows ([`build_auto_multirate`]).
+//!
+//! The choice depends on the machine, so a recording must pin it: [`pin_choice`] rewrites
+//! a scene's JSON to the chosen level (and deformation rate) with `"fidelity": "fixed"`,
+//! and replays of that recording build the same grid.
 
 use std::time::Instant;
 
@@ -15,6 +18,7 @@ use crate::accuracy::report::{ErrorTable, error_class};
 use crate::math::{Pose, Quat, Vec3};
 use crate::scene::{BranchedGridSpec, Scene, SceneError};
 use crate::stats::LatencyHistogram;
+use crate::tissue::ChosenFidelity;
 use crate::tool::{ToolCommand, ToolFeedback};
 
 /// The coarsest level the calibration tries.
@@ -36,6 +40,20 @@ pub struct FidelityChoice {
     pub over_budget: bool,
     /// The study's static error for this scene at this level, and its reference.
     pub error: Option<(f64, String)>,
+    /// Under a multirate schedule: the deformation rate fitted to the chosen level.
+    pub rate: Option<RateChoice>,
+}
+
+/// The deformation rate `"fidelity": "auto"` fitted under a multirate schedule.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RateChoice {
+    /// Haptic steps per deformation step, chosen.
+    pub every: u32,
+    /// The scene's `deformation_every_steps`: the longest period allowed.
+    pub longest: u32,
+    /// Per period tried, the longest first: its haptic steps and the chosen level's p99
+    /// deformation step, µs (None: the grid could not be built with that step).
+    pub tried: Vec<(u32, Option<f64>)>,
 }
 
 impl FidelityChoice {
@@ -54,8 +72,22 @@ impl FidelityChoice {
             Some((e, reference)) => format!("error class {}: {:.1} % static displacement error at this level against {reference}", error_class(*e), 100.0 * e),
             None => "error class not measured for this scene (docs/accuracy-speed.md measures the bundled scenes)".to_string(),
         };
+        let rate = match &self.rate {
+            Some(rate) => {
+                let tried: Vec<String> = rate
+                    .tried
+                    .iter()
+                    .map(|(every, p99)| match p99 {
+                        Some(p99) => format!("every {every} steps p99 {p99:.0} µs"),
+                        None => format!("every {every} steps refused at load"),
+                    })
+                    .collect();
+                format!("; deformation every {} haptic steps, the shortest period this level fits with the margin, at most the scene's {} (tried {})", rate.every, rate.longest, tried.join(", "))
+            }
+            None => String::new(),
+        };
         format!(
-            "fidelity auto: level {} ({fit} a p99 budget of {:.0} µs with {:.0} % margin; tried {}); {error}",
+            "fidelity auto: level {} ({fit} a p99 budget of {:.0} µs with {:.0} % margin; tried {}){rate}; {error}",
             self.level,
             self.budget_us,
             BUDGET_MARGIN * 100.0,
@@ -132,18 +164,72 @@ pub fn build_auto(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid
     build_auto_with(scene, spec, &mut |grid| time_probe(grid, 30, CALIBRATION_STEPS, Some(budget_us)).p99_us)
 }
 
-/// [`build_auto`] for a multirate schedule's deformation (the scene's `time_step_s` is
-/// the deformation's step): the budget is `budget_ms` (the deformation period), and a
-/// step is timed as a deformation job takes it (its patch compliance included).
-pub fn build_auto_deformation(scene: &Scene, spec: &BranchedGridSpec, budget_ms: f64) -> Result<BranchedGrid, SceneError> {
-    let mut spec = spec.clone();
-    spec.step_budget_ms = crate::quantity::StepBudgetMs::new(budget_ms).map_err(|e| SceneError::new(&scene.origin, "model.branched-grid.schedule", e))?;
-    let budget_us = budget_ms * 1e3;
+/// `"fidelity": "auto"` under a multirate schedule of at most `longest` haptic steps
+/// (the scene's `time_step_s`) per deformation step: the finest level whose deformation
+/// step, timed as a deformation job takes it (its contact patches' compliance
+/// included), fits that period less the margin; then the shortest period, down to 2
+/// haptic steps, that this level still fits, so that the deformation (and the patches
+/// the haptic loop renders against) is as fresh as the machine allows. Returns the grid,
+/// built with that step, and its haptic steps per deformation step; the grid's
+/// [`FidelityChoice`] reports both choices.
+pub fn build_auto_multirate(scene: &Scene, spec: &BranchedGridSpec, longest: u32) -> Result<(BranchedGrid, u32), SceneError> {
     let mut patches = vec![crate::multirate::patch::ContactPatch::default(); crate::tool::tool_shapes(scene).len()];
-    build_auto_with(scene, &spec, &mut |grid| {
-        let margin_m = crate::multirate::patch_margin_m(grid, scene.time_step_s.get());
-        time_probe_with(grid, 10, CALIBRATION_STEPS / 3, Some(budget_us), &mut |grid, commands, feedback| grid.deformation_step(commands, &[], &mut patches, margin_m, feedback)).p99_us
+    build_auto_multirate_with(scene, spec, longest, &mut |grid, period_s| {
+        let margin_m = crate::multirate::patch_margin_m(grid, period_s);
+        let step = &mut |grid: &mut BranchedGrid, commands: &[ToolCommand], feedback: &mut [ToolFeedback]| grid.deformation_step(commands, &[], &mut patches, margin_m, feedback);
+        time_probe_with(grid, 10, CALIBRATION_STEPS / 3, Some(period_s * 1e6), step).p99_us
     })
+}
+
+/// [`build_auto_multirate`] with each candidate's p99 deformation step, µs, measured by
+/// `p99_us(grid, deformation step in s)` on a copy of the candidate.
+pub fn build_auto_multirate_with(scene: &Scene, spec: &BranchedGridSpec, longest: u32, p99_us: &mut dyn FnMut(&mut BranchedGrid, f64) -> f64) -> Result<(BranchedGrid, u32), SceneError> {
+    let field = "model.branched-grid.schedule.multirate.deformation_every_steps";
+    let haptic_dt = scene.time_step_s.get();
+    let period_s = |every: u32| haptic_dt * f64::from(every);
+    let usable_us = |every: u32| period_s(every) * 1e6 * (1.0 - BUDGET_MARGIN);
+    // The fewest haptic steps whose period fits a step of `p99` µs.
+    let needed = |p99: f64| ((p99 / usable_us(1)).ceil() as u32).clamp(2, longest);
+    let deformation_scene = |every: u32| -> Result<Scene, SceneError> {
+        let mut deformation = scene.clone();
+        deformation.time_step_s = crate::quantity::TimeStepS::new(period_s(every)).map_err(|e| SceneError::new(&scene.origin, field, e))?;
+        Ok(deformation)
+    };
+
+    let mut at_longest = spec.clone();
+    at_longest.step_budget_ms = crate::quantity::StepBudgetMs::new(period_s(longest) * 1e3).map_err(|e| SceneError::new(&scene.origin, field, e))?;
+    let mut grid = build_auto_with(&deformation_scene(longest)?, &at_longest, &mut |grid| p99_us(grid, period_s(longest)))?;
+    let mut choice = grid.fidelity_choice().cloned().expect("build_auto_with reports its choice");
+    let p99_longest = choice.tried.iter().find(|(level, _)| *level == choice.level).and_then(|(_, p99)| *p99).unwrap_or(f64::INFINITY);
+    let mut rate = RateChoice { every: longest, longest, tried: vec![(longest, Some(p99_longest))] };
+    if !choice.over_budget {
+        let mut at_level = spec.clone();
+        at_level.level = crate::quantity::GridLevel::new(choice.level).map_err(|e| SceneError::new(&scene.origin, "model.branched-grid.level", e))?;
+        let mut every = needed(p99_longest);
+        // A shorter step is cheaper (fewer CG iterations) but not by a known amount:
+        // each candidate is built and timed; three tries at most.
+        for _ in 0..3 {
+            if every >= longest {
+                break;
+            }
+            let Ok(candidate) = build_fixed(&deformation_scene(every)?, &at_level) else {
+                rate.tried.push((every, None));
+                break;
+            };
+            let p99 = p99_us(&mut candidate.clone(), period_s(every));
+            rate.tried.push((every, Some(p99)));
+            if p99 <= usable_us(every) {
+                grid = candidate;
+                rate.every = every;
+                break;
+            }
+            every = needed(p99).max(every + 1);
+        }
+    }
+    let every = rate.every;
+    choice.rate = Some(rate);
+    grid.set_fidelity(choice);
+    Ok((grid, every))
 }
 
 /// [`build_auto`] with each candidate's p99 step time, µs, measured by `p99_us` (on a
@@ -183,26 +269,35 @@ pub fn build_auto_with(scene: &Scene, spec: &BranchedGridSpec, p99_us: &mut dyn 
         return Err(last_error.unwrap_or_else(|| SceneError::new(&scene.origin, "model.branched-grid.fidelity", "no level could be built")));
     };
     let error = error_table().lookup(&scene.name, level).map(|(e, reference)| (e, reference.to_string()));
-    grid.set_fidelity(FidelityChoice { level, budget_us, tried, over_budget, error });
+    grid.set_fidelity(FidelityChoice { level, budget_us, tried, over_budget, error, rate: None });
     Ok(grid)
 }
 
-/// A scene's JSON with the branched grid's level pinned to `level` and its fidelity
-/// "fixed" (what a recording of an auto session must hold to replay the same grid).
-pub fn pin_level(scene_json: &str, level: u32) -> Result<String, String> {
+/// A scene's JSON with what `"fidelity": "auto"` chose pinned: the branched grid's
+/// level, its fidelity "fixed" and, under a multirate schedule, the haptic steps per
+/// deformation step (what a recording of an auto session must hold to replay the same
+/// grid).
+pub fn pin_choice(scene_json: &str, chosen: &ChosenFidelity) -> Result<String, String> {
     let mut value: serde_json::Value = serde_json::from_str(scene_json).map_err(|e| format!("the scene is not JSON: {e}"))?;
     let grid = value.pointer_mut("/model/branched-grid").and_then(|g| g.as_object_mut()).ok_or("not a branched-grid scene")?;
-    grid.insert("level".into(), level.into());
+    grid.insert("level".into(), chosen.level.into());
     grid.insert("fidelity".into(), "fixed".into());
+    if let Some(every) = chosen.deformation_every_steps {
+        let multirate = grid.get_mut("schedule").and_then(|s| s.get_mut("multirate")).and_then(|m| m.as_object_mut()).ok_or("the choice has a deformation rate but the scene no multirate schedule")?;
+        multirate.insert("deformation_every_steps".into(), every.into());
+    }
     Ok(value.to_string())
 }
 
-/// The scene with its branched grid pinned to `level`, fidelity "fixed" (what a reset of
-/// an auto session rebuilds, so that it does not calibrate again).
-pub fn pin_scene(scene: &Scene, level: u32) -> Scene {
-    let mut scene = scene.with_grid_level(level);
+/// The scene with what `"fidelity": "auto"` chose pinned, as [`pin_choice`] (what a
+/// reset of an auto session rebuilds, so that it does not calibrate again).
+pub fn pin_scene(scene: &Scene, chosen: &ChosenFidelity) -> Scene {
+    let mut scene = scene.with_grid_level(chosen.level);
     if let crate::scene::ModelSpec::BranchedGrid(spec) = &mut scene.model {
         spec.fidelity = crate::scene::FidelitySpec::Fixed;
+        if let (Some(every), crate::scene::ScheduleSpec::Multirate(multirate)) = (chosen.deformation_every_steps, &mut spec.schedule) {
+            multirate.deformation_every_steps = crate::quantity::DeformationEvery::new(every).unwrap_or_else(|e| panic!("a chosen rate is in range: {e}"));
+        }
     }
     scene
 }

@@ -672,8 +672,8 @@ impl Tissue for BranchedGrid {
         "branched-grid"
     }
 
-    fn fidelity(&self) -> Option<(u32, String)> {
-        self.fidelity.as_ref().map(|f| (f.level, f.summary()))
+    fn fidelity(&self) -> Option<crate::tissue::ChosenFidelity> {
+        self.fidelity.as_ref().map(|f| crate::tissue::ChosenFidelity { level: f.level, deformation_every_steps: f.rate.as_ref().map(|r| r.every), summary: f.summary() })
     }
 
     fn time_step_s(&self) -> f64 {

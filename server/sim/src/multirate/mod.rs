@@ -39,7 +39,7 @@ use crate::quantity::TimeStepS;
 use crate::scene::{FidelitySpec, ModelSpec, MultirateSpec, Scene, SceneError, ScheduleSpec};
 use crate::solver::background::Background;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
-use crate::tissue::{Tissue, TissueCounters};
+use crate::tissue::{ChosenFidelity, Tissue, TissueCounters};
 use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES};
 
@@ -84,7 +84,7 @@ pub struct Multirate {
     /// The haptic loop's own counts: commands whose pose was not finite, forces clamped.
     rejected_poses: u64,
     force_clamps: u64,
-    fidelity: Option<(u32, String)>,
+    fidelity: Option<ChosenFidelity>,
 }
 
 /// A deformation step's inputs, outputs and the model it steps: one box that goes to
@@ -209,8 +209,9 @@ impl Deformer {
 }
 
 /// Builds a branched-grid scene with a multirate schedule: the grid with a step of
-/// `deformation_every_steps` haptic steps (its load-time checks, and `"fidelity":
-/// "auto"`'s timing, run at that step), under the schedule.
+/// `deformation_every_steps` haptic steps (its load-time checks run at that step), under
+/// the schedule. Under `"fidelity": "auto"` that is the longest period allowed: the level
+/// is fitted to it, and the period then shortened as far as the level allows.
 pub fn build_from_scene(scene: &Scene, schedule: &MultirateSpec) -> Result<Multirate, SceneError> {
     let every = schedule.deformation_every_steps.get();
     let dt = scene.time_step_s.get();
@@ -222,10 +223,15 @@ pub fn build_from_scene(scene: &Scene, schedule: &MultirateSpec) -> Result<Multi
     let ModelSpec::BranchedGrid(grid_spec) = &mut deformation.model else { unreachable!("a branched-grid scene") };
     grid_spec.schedule = ScheduleSpec::SingleRate;
     let grid_spec = grid_spec.clone();
-    let grid = match grid_spec.fidelity {
-        // The deformation's level is fitted to its period, not to the haptic step.
-        FidelitySpec::Auto => crate::grid::fidelity::build_auto_deformation(&deformation, &grid_spec, deformation_dt.get() * 1e3)?,
-        FidelitySpec::Fixed => crate::grid::build_from_scene(&deformation, &grid_spec)?,
+    let (grid, every) = match grid_spec.fidelity {
+        // The deformation's level is fitted to its period, not to the haptic step, and
+        // its rate to the level.
+        FidelitySpec::Auto => {
+            let mut haptic = deformation;
+            haptic.time_step_s = scene.time_step_s;
+            crate::grid::fidelity::build_auto_multirate(&haptic, &grid_spec, every)?
+        }
+        FidelitySpec::Fixed => (crate::grid::build_from_scene(&deformation, &grid_spec)?, every),
     };
     Ok(Multirate::new(grid, dt, every, false))
 }
@@ -275,6 +281,11 @@ impl Multirate {
     /// patches' compliance solves, publishing).
     pub fn last_deformation_ns(&self) -> u64 {
         self.published.took_ns
+    }
+
+    /// Haptic steps per deformation step.
+    pub fn deformation_every(&self) -> u32 {
+        self.every as u32
     }
 
     /// Steps that waited for a deformation job past its due step.
@@ -381,9 +392,11 @@ impl Tissue for Multirate {
         "branched-grid"
     }
 
-    fn fidelity(&self) -> Option<(u32, String)> {
-        self.fidelity.as_ref().map(|(level, summary)| {
-            (*level, format!("{summary}; multirate: haptics every {:.1} ms, the deformation at that level every {} steps ({:.0} Hz)", self.dt_s * 1e3, self.every, 1.0 / (self.dt_s * self.every as f64)))
+    fn fidelity(&self) -> Option<ChosenFidelity> {
+        self.fidelity.as_ref().map(|chosen| ChosenFidelity {
+            level: chosen.level,
+            deformation_every_steps: Some(self.every as u32),
+            summary: format!("{}; multirate: haptics every {:.1} ms, the deformation at that level every {} steps ({:.0} Hz)", chosen.summary, self.dt_s * 1e3, self.every, 1.0 / (self.dt_s * self.every as f64)),
         })
     }
 

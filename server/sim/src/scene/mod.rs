@@ -555,7 +555,9 @@ impl ScheduleSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MultirateSpec {
-    /// Haptic steps per deformation step (33 at 1 kHz: deformation at 30 Hz).
+    /// Haptic steps per deformation step (33 at 1 kHz: deformation at 30 Hz). Under
+    /// `"fidelity": "auto"` the longest period allowed: the level is fitted to it, then
+    /// the period shortened as far as that level allows on this machine.
     pub deformation_every_steps: DeformationEvery,
 }
 
