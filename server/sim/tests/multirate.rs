@@ -224,3 +224,18 @@ fn while_pressing_the_force_follows_the_single_rate_model() {
         assert!(worst < allowed * peak, "every {every} ms: {worst:.3} N off");
     }
 }
+
+/// The script that compares the schedules at equal budget (accuracy-speed schedules, the
+/// multirate benchmark) presses the probe in and cuts with the blade under both.
+#[test]
+fn the_schedule_comparison_presses_and_cuts_under_both_schedules() {
+    use cutsim_sim::accuracy::schedule::{Model, Script, run_real_time, scene_at};
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/u-tube.json");
+    for multirate in [None, Some((33, "multigrid", Some(200)))] {
+        let mut model = Model::build(&scene_at(&path, 2, multirate).unwrap()).unwrap_or_else(|e| panic!("{e}"));
+        let run = run_real_time(&mut model, Script { hold_steps: 150, cut_steps: 300 });
+        assert_eq!(run.steps, run.planned, "{multirate:?}: {run:?}");
+        assert!(run.held_force_n > 0.01 && run.removed_elements > 0, "{multirate:?}: the probe pressed and the blade cut: {run:?}");
+        assert_eq!(run.jobs > 0, multirate.is_some(), "deformation jobs only under the multirate schedule: {run:?}");
+    }
+}

@@ -4,6 +4,11 @@
 //! accuracy-speed [--quick] [--out DIR]    sweep the settings on the reference cantilever and
 //!                                         the bundled scenes; write DIR/accuracy-speed.{md,svg,json}
 //!                                         (DIR: docs)
+//! accuracy-speed schedules [--quick] [--out DIR]
+//!                                         single-rate against multirate at equal budget on
+//!                                         the bundled volumetric scenes, in real time; rewrite
+//!                                         that section of DIR/accuracy-speed.md (the sweep
+//!                                         writes it too)
 //! accuracy-speed stability [--reduced] [--out DIR]
 //!                                         the stability sweep (full, or the test's reduced one);
 //!                                         write DIR/stability.md
@@ -22,7 +27,7 @@ use cutsim_sim::quantity::DampingPerS;
 use cutsim_sim::math::Vec3;
 use cutsim_sim::scene::{MassSpec, ModelSpec, Scene, SupportSpec, VolumetricSpec};
 
-const USAGE: &str = "usage: accuracy-speed [--quick] [--out DIR] | accuracy-speed stability [--reduced] [--out DIR] | accuracy-speed supports [--out DIR] | accuracy-speed export-problems DIR";
+const USAGE: &str = "usage: accuracy-speed [--quick] [--out DIR] | accuracy-speed schedules [--quick] [--out DIR] | accuracy-speed stability [--reduced] [--out DIR] | accuracy-speed supports [--out DIR] | accuracy-speed export-problems DIR";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -35,6 +40,7 @@ fn main() -> ExitCode {
             let rest: Vec<String> = args[1..].iter().filter(|a| *a != "--reduced").cloned().collect();
             parse_sweep_args(&rest).and_then(|(_, out)| stability(args.iter().any(|a| a == "--reduced"), &out))
         }
+        Some("schedules") => parse_sweep_args(&args[1..]).and_then(|(quick, out)| schedules(quick, &out)),
         Some("supports") => parse_sweep_args(&args[1..]).and_then(|(_, out)| supports(&out)),
         Some("-h" | "--help") => {
             println!("{USAGE}");
@@ -295,6 +301,67 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
         std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }
+    schedules(quick, out)
+}
+
+/// Single-rate against multirate at equal budget (`cutsim_sim::accuracy::schedule`): each
+/// bundled volumetric scene from its coarsest level finer while either schedule fits;
+/// rewrites that section of `out/accuracy-speed.md`.
+fn schedules(quick: bool, out: &Path) -> Result<(), String> {
+    use cutsim_sim::accuracy::schedule::{Comparison, DEFORMATION_EVERY, Model, Script, markdown, run_real_time, scene_at, splice};
+    // Per scene, its levels from coarse to fine and the multirate deformation's solver
+    // (block Jacobi needs far more iterations than a scene's cap at a 33 ms step): the
+    // multigrid V-cycle where it converges within the cap (the U-tube's thin walls need up
+    // to 153 iterations at 33 ms), the Cholesky factor on the smooth liver's levels 2–3 and
+    // the layered abdomen's stiff layers (there with a larger cap), as measured by `cargo bench -p cutsim-sim --bench multirate`.
+    let plans: [(&str, &[(u32, &str, Option<u32>)]); 4] = [
+        ("liver", &[(3, "multigrid", None), (2, "multigrid", None), (1, "multigrid", None)]),
+        ("liver-smooth", &[(3, "cholesky", None), (2, "cholesky", None), (1, "multigrid", None)]),
+        ("abdomen-layers", &[(3, "cholesky", Some(200)), (2, "cholesky", Some(400))]),
+        ("u-tube", &[(2, "multigrid", Some(200)), (1, "multigrid", Some(200)), (0, "multigrid", Some(200))]),
+    ];
+    let script = if quick { Script::QUICK } else { Script::FULL };
+    // The study's errors as this run's sweep wrote them, else as built in.
+    let errors = std::fs::read_to_string(out.join("accuracy-speed.json")).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_else(cutsim_sim::grid::fidelity::error_table);
+    let total: usize = plans.iter().map(|p| p.1.len()).sum();
+    let mut progress = Progress { done: 0, total, started: std::time::Instant::now() };
+    let mut comparisons = Vec::new();
+    for (name, levels) in plans {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(format!("{name}.json"));
+        for &(level, preconditioner, cap) in levels {
+            let run = |multirate: Option<(u32, &str, Option<u32>)>| scene_at(&path, level, multirate).and_then(|scene| Model::build(&scene)).map(|mut model| run_real_time(&mut model, script));
+            let single_rate = run(None);
+            let multirate = run(Some((DEFORMATION_EVERY, preconditioner, cap)));
+            let fits = |r: &Result<cutsim_sim::accuracy::schedule::RealTime, String>| r.as_ref().is_ok_and(|r| r.fits());
+            let any_fits = fits(&single_rate) || fits(&multirate);
+            progress.tick(&format!(
+                "{name} L{level}: single-rate p99 {}, multirate haptic p99 {}",
+                single_rate.as_ref().map_or("refused".to_string(), |r| format!("{:.3} ms", r.step_p99_ms)),
+                multirate.as_ref().map_or("refused".to_string(), |r| format!("{:.3} ms ({} late jobs)", r.step_p99_ms, r.late_jobs)),
+            ));
+            comparisons.push(Comparison {
+                scene: name.to_string(),
+                level,
+                static_error: errors.lookup(name, level).map(|(e, _)| e),
+                multirate_solver: match cap {
+                    Some(cap) => format!("{preconditioner}, CG ≤ {cap}"),
+                    None => preconditioner.to_string(),
+                },
+                single_rate,
+                multirate,
+            });
+            // Finer levels are slower still.
+            if !any_fits {
+                break;
+            }
+        }
+    }
+    let command = format!("cargo run --release -p cutsim-sim --bin accuracy-speed -- schedules{}", if quick { " --quick" } else { "" });
+    let machine = format!("{} logical CPUs", std::thread::available_parallelism().map_or(0, |n| n.get()));
+    let path = out.join("accuracy-speed.md");
+    let document = std::fs::read_to_string(&path).unwrap_or_default();
+    std::fs::write(&path, splice(&document, &markdown(&comparisons, &command, &machine, script))).map_err(|e| format!("{}: {e}", path.display()))?;
+    eprintln!("wrote the schedules' section of {}", path.display());
     Ok(())
 }
 
