@@ -165,8 +165,18 @@ async fn idle_sessions_expire_and_watched_ones_do_not() {
     let left = ids().await;
     assert_eq!(left.len(), 2, "the watched session and the command line's stay: {left:?}");
     assert!(left.contains(&watched.id));
-    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", idle.id))).unwrap();
-    assert!(recording.lines().last().unwrap().contains("\"reason\":\"expired\""), "{recording}");
+    // The expiry unlists the session, then ends its recording (a Close call returns
+    // once it has ended; the expiry has no caller to wait): give the end a moment.
+    let path = server.recordings.0.join(format!("{}.jsonl", idle.id));
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let recording = std::fs::read_to_string(&path).unwrap();
+        if recording.lines().last().unwrap().contains("\"reason\":\"expired\"") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the expired session's recording ends: {recording}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     // Once its viewer leaves, the watched one expires too.
     drop(viewer);
     let deadline = Instant::now() + Duration::from_secs(15);
