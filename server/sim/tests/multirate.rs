@@ -1,7 +1,8 @@
 //! The multirate schedule (crate::multirate): contact every millisecond against the
 //! patch a branched grid stepped every N milliseconds publishes. A held probe settles
 //! to the single-rate model's force; the force has no step when a new patch arrives;
-//! while pressing it follows the single-rate force closely; the state hash is the same
+//! while pressing it follows the single-rate force closely; dragged over a surface with
+//! friction it is held back as the single-rate probe is while stuck; the state hash is the same
 //! whether the deformation runs on its thread or inline, and a copy goes on alike;
 //! a schedule whose deformation step is out of range is refused naming the field.
 
@@ -237,5 +238,62 @@ fn the_schedule_comparison_presses_and_cuts_under_both_schedules() {
         assert_eq!(run.steps, run.planned, "{multirate:?}: {run:?}");
         assert!(run.held_force_n > 0.01 && run.removed_elements > 0, "{multirate:?}: the probe pressed and the blade cut: {run:?}");
         assert_eq!(run.jobs > 0, multirate.is_some(), "deformation jobs only under the multirate schedule: {run:?}");
+    }
+}
+
+/// The block with Coulomb friction (μs 0.5, μd 0.4) on its material.
+fn with_friction(json: &str) -> String {
+    let out = json.replace(r#""density_kg_per_m3": 1000 }"#, r#""density_kg_per_m3": 1000, "friction": { "static_coefficient": 0.5, "dynamic_coefficient": 0.4 } }"#);
+    assert_ne!(out, json, "the block's material changed shape");
+    out
+}
+
+/// Presses the probe 2 mm in (10 mm/s), holds it 100 ms, then drags it 4 mm along +x at
+/// 10 mm/s; each step's force on the probe.
+fn press_and_drag(tissue: &mut dyn Tissue) -> Vec<Vec3> {
+    let mut forces = press_and_hold(tissue, 0.002, 100);
+    let mut feedback = vec![ToolFeedback::default(); 2];
+    for step in 1..=400 {
+        tissue.step(&probe_at(probe_depth(0.002) + Vec3::new(1e-5 * step as f64, 0.0, 0.0)), &mut feedback);
+        forces.push(feedback[1].force_n);
+    }
+    forces
+}
+
+/// The mean x force over steps `range` (the drag starts at step 351).
+fn mean_x(forces: &[Vec3], range: std::ops::Range<usize>) -> f64 {
+    let n = range.len() as f64;
+    forces[range].iter().map(|f| f.x).sum::<f64>() / n
+}
+
+#[test]
+fn a_probe_dragged_over_the_surface_feels_its_friction_between_deformation_steps() {
+    // Single-rate, the drag meets the tissue's friction (against +x): stuck for the first
+    // ~1.5 mm, then sliding. The multirate haptic loop renders it every step from the
+    // anchors the deformation published, moved as its vertices slide: it follows the
+    // single-rate force while stuck; sliding, it follows its deformation model, whose
+    // friction is decided once per deformation step (a vertex dragged 0.1-0.33 mm in a
+    // step slides where at 1 ms it would stick again), lower than the 1 ms model's. Its
+    // force changes no faster than the haptic bridge's limit (0.1 N a step).
+    let single = press_and_drag(&mut build_grid(&with_friction(&block(1e-3))));
+    let frictionless = press_and_drag(&mut build_grid(&block(1e-3)));
+    let (stuck, sliding) = (400..500, 550..750);
+    let normal = single[500].z;
+    println!("single-rate: drag {:.4} N stuck, {:.4} N sliding (frictionless {:.4} N), normal {normal:.4} N", mean_x(&single, stuck.clone()), mean_x(&single, sliding.clone()), mean_x(&frictionless, sliding.clone()));
+    assert!(mean_x(&single, sliding.clone()) < -0.25 * normal && mean_x(&frictionless, sliding.clone()).abs() < 0.02 * normal);
+    for every in [10, 33] {
+        let mut model = Multirate::new(build_grid(&with_friction(&block(1e-3 * f64::from(every)))), 1e-3, every, false);
+        let forces = press_and_drag(&mut model);
+        let largest = forces.windows(2).map(|w| (w[1] - w[0]).norm()).fold(0.0, f64::max);
+        let (drag_stuck, drag_sliding) = (mean_x(&forces, stuck.clone()), mean_x(&forces, sliding.clone()));
+        let off_stuck = drag_stuck / mean_x(&single, stuck.clone()) - 1.0;
+        println!(
+            "multirate every {every} ms: drag {drag_stuck:.4} N stuck ({:+.1} % off single-rate), {drag_sliding:.4} N sliding ({:+.1} %); largest change in a step {largest:.4} N",
+            100.0 * off_stuck,
+            100.0 * (drag_sliding / mean_x(&single, sliding.clone()) - 1.0)
+        );
+        assert!(off_stuck.abs() < 0.15, "every {every} ms: stuck, the drag is {:.1} % off the single-rate one", 100.0 * off_stuck);
+        assert!(drag_sliding < -0.25 * normal, "every {every} ms: sliding, the drag is resisted: {drag_sliding} N");
+        assert!(largest < 0.1, "every {every} ms: the force changed by {largest} N in one step");
     }
 }

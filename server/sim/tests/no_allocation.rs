@@ -122,12 +122,17 @@ fn blade_in_the_skin_between_cut_updates_allocates_nothing() {
 /// with `extra`, a probe pressed 2 mm into it over 100 steps; then the allocations of
 /// 200 steps with the probe held there, and the last force on it.
 fn grid_allocations_with_a_probe_held(extra: &str) -> (u64, f64) {
+    grid_allocations_with_a_probe_held_in("", extra)
+}
+
+/// [`grid_allocations_with_a_probe_held`] with `material` added to the block's material.
+fn grid_allocations_with_a_probe_held_in(material: &str, extra: &str) -> (u64, f64) {
     let text = format!(
         r#"{{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
         "model": {{ "branched-grid": {{
             "volume": {{ "box": {{ "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 }} }},
             "centre": true,
-            "materials": [ {{ "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 }} ],
+            "materials": [ {{ "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 {material} }} ],
             "level": 1,
             "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
             {extra} }} }},
@@ -157,12 +162,15 @@ fn grid_steps_with_a_probe_allocate_nothing_with_every_preconditioner() {
 }
 
 /// Under a multirate schedule the session's thread runs the haptic loop and swaps the
-/// deformation's results in: neither allocates (the deformation thread may).
+/// deformation's results in: neither allocates (the deformation thread may), with or
+/// without friction's anchors to carry.
 #[test]
 fn multirate_haptic_steps_allocate_nothing() {
-    let (allocations, force) = grid_allocations_with_a_probe_held(r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#);
-    assert!(force > 0.0, "the probe presses the block");
-    assert_eq!(allocations, 0, "multirate haptic steps allocated");
+    for material in ["", r#", "friction": { "static_coefficient": 0.5, "dynamic_coefficient": 0.4 }"#] {
+        let (allocations, force) = grid_allocations_with_a_probe_held_in(material, r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#);
+        assert!(force > 0.0, "the probe presses the block");
+        assert_eq!(allocations, 0, "multirate haptic steps allocated (material {material:?})");
+    }
 }
 
 /// A step that must wait for a background result (a slow worker, a loaded machine)

@@ -256,7 +256,9 @@ impl Multirate {
             published: published.clone(),
             margin_m,
         });
-        let patches = (0..count).map(|_| ContactPatch { vertices: Vec::with_capacity(MAX_PATCH_VERTICES), positions: Vec::with_capacity(MAX_PATCH_VERTICES), ..ContactPatch::default() }).collect();
+        let patches = (0..count)
+            .map(|_| ContactPatch { vertices: Vec::with_capacity(MAX_PATCH_VERTICES), positions: Vec::with_capacity(MAX_PATCH_VERTICES), anchors: Vec::with_capacity(MAX_PATCH_VERTICES), ..ContactPatch::default() })
+            .collect();
         Multirate {
             dt_s,
             every,
@@ -319,7 +321,15 @@ impl Multirate {
                 self.cut_feedback[i] = (fb.cutting, fb.resistance_n);
                 // The old patch (now in `job`) against the new, at this step's pose.
                 let (old, new) = match capsule(&self.tools[i], command) {
-                    Some(tool) => (job.patches[i].solve(&tool), self.patches[i].solve(&tool)),
+                    Some(tool) => {
+                        // The new patch's friction anchors are the deformation's, on the
+                        // tool as it was N steps ago: brought to this step's pose first
+                        // (those stretched past the static cone slide), so that the force
+                        // faded from is the one rendered from now on.
+                        let relaxed = self.patches[i].solve(&tool);
+                        self.patches[i].commit(&tool, &relaxed);
+                        (job.patches[i].solve(&tool), self.patches[i].solve(&tool))
+                    }
                     None => Default::default(),
                 };
                 // The last difference has faded out by now: it fades over the N steps
@@ -347,8 +357,13 @@ impl Multirate {
             if command.active && !command.pose.is_finite() {
                 self.rejected_poses += 1;
             }
-            let Some(tool) = capsule(&self.tools[i], command) else { continue };
+            let Some(tool) = capsule(&self.tools[i], command) else {
+                // Lifted away: nothing stays stuck to it.
+                self.patches[i].anchors.iter_mut().for_each(|a| *a = None);
+                continue;
+            };
             let contact = self.patches[i].solve(&tool);
+            self.patches[i].commit(&tool, &contact);
             let (force, torque) = self.fading[i];
             fb.force_n = contact.force_n + force * fade;
             fb.torque_nm = contact.torque_nm + torque * fade;

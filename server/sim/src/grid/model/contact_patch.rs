@@ -126,17 +126,22 @@ impl BranchedGrid {
         })
     }
 
-    /// Tool `i`'s patch vertices and their positions (world), as the step and its cuts
-    /// left the surface.
+    /// Tool `i`'s patch vertices, their positions (world) and their friction anchors on
+    /// the tool as this step left them (where a cut cleared the anchors, none), as the
+    /// step and its cuts left the surface.
     pub(super) fn patch_vertices(&mut self, i: usize, command: &ToolCommand, margin_m: f64, patch: &mut ContactPatch) {
         let mut near = std::mem::take(&mut self.patch_scratch);
         self.near_vertices(i, command, margin_m, &mut near);
         patch.vertices.clear();
         patch.positions.clear();
+        patch.anchors.clear();
         for &(v, _) in &near {
             patch.vertices.push(v);
             patch.positions.push(self.frame.to_world(&self.surface.position(&self.topo, v as usize)));
+            let anchor = self.anchors.get(v as usize).copied().flatten().filter(|a| a.tool == i && a.step == self.step_index);
+            patch.anchors.push(anchor.map(|a| self.frame.rotation * a.from_tip));
         }
+        patch.friction = near.first().map_or_else(Default::default, |&(v, _)| self.friction_at(v as usize));
         self.patch_scratch = near;
     }
 }
