@@ -159,7 +159,7 @@ async fn an_auto_fidelity_session_reports_and_records_its_level() {
     assert!((2..=20).contains(&every), "{header}");
     assert_eq!(grid["fidelity"].as_str(), Some("fixed"), "{header}");
     assert!(info.fidelity.contains(&format!("deformation every {every} haptic steps")), "{}", info.fidelity);
-    assert!((f64::from(info.deformation_rate_hz) - 1e3 / every as f64).abs() < 0.01, "{} Hz, every {every} steps", info.deformation_rate_hz);
+    assert!((info.deformation_rate_hz - 1e3 / every as f64).abs() < 0.01, "{} Hz, every {every} steps", info.deformation_rate_hz);
     // A fixed scene reports nothing.
     let fixed = create(&server, "u-tube", pb::SessionMode::Lockstep).await;
     assert_eq!(fixed.info.fidelity, "");

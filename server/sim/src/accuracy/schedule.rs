@@ -190,7 +190,7 @@ pub fn run_real_time(model: &mut Model, script: Script) -> RealTime {
         }
         match model {
             Model::Multirate(m) => {
-                if step > 0 && step as u64 % u64::from(every.unwrap_or(1)) == 0 {
+                if step > 0 && (step as u64).is_multiple_of(u64::from(every.unwrap_or(1))) {
                     deformation.record_ns(m.last_deformation_ns());
                 }
                 if m.deformation_waits() >= 10 {
@@ -259,7 +259,7 @@ pub fn markdown(comparisons: &[Comparison], command: &str, machine: &str, script
     for c in comparisons {
         let error = match c.static_error {
             None => "not measured".to_string(),
-            Some(e) if e == 0.0 => "the reference".to_string(),
+            Some(0.0) => "the reference".to_string(),
             Some(e) => format!("{:.1} %", 100.0 * e),
         };
         let (single, single_fits) = match &c.single_rate {
@@ -285,7 +285,7 @@ pub fn markdown(comparisons: &[Comparison], command: &str, machine: &str, script
     for scene in scenes {
         let finest = |fits: &dyn Fn(&Comparison) -> bool| {
             comparisons.iter().filter(|c| c.scene == scene && fits(c)).min_by_key(|c| c.level).map_or("none".to_string(), |c| match c.static_error {
-                Some(e) if e == 0.0 => format!("L{}: the reference", c.level),
+                Some(0.0) => format!("L{}: the reference", c.level),
                 Some(e) => format!("L{}: {:.1} %", c.level, 100.0 * e),
                 None => format!("L{} (error not measured)", c.level),
             })

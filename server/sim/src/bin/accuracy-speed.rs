@@ -304,6 +304,10 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     schedules(quick, out)
 }
 
+/// A level of a scene in the schedules' comparison: the level, the multirate deformation's
+/// preconditioner and its CG cap (None: the scene's).
+type LevelPlan = (u32, &'static str, Option<u32>);
+
 /// Single-rate against multirate at equal budget (`cutsim_sim::accuracy::schedule`): each
 /// bundled volumetric scene from its coarsest level finer while either schedule fits;
 /// rewrites that section of `out/accuracy-speed.md`.
@@ -314,7 +318,7 @@ fn schedules(quick: bool, out: &Path) -> Result<(), String> {
     // multigrid V-cycle where it converges within the cap (the U-tube's thin walls need up
     // to 153 iterations at 33 ms), the Cholesky factor on the smooth liver's levels 2–3 and
     // the layered abdomen's stiff layers (there with a larger cap), as measured by `cargo bench -p cutsim-sim --bench multirate`.
-    let plans: [(&str, &[(u32, &str, Option<u32>)]); 4] = [
+    let plans: [(&str, &[LevelPlan]); 4] = [
         ("liver", &[(3, "multigrid", None), (2, "multigrid", None), (1, "multigrid", None)]),
         ("liver-smooth", &[(3, "cholesky", None), (2, "cholesky", None), (1, "multigrid", None)]),
         ("abdomen-layers", &[(3, "cholesky", Some(200)), (2, "cholesky", Some(400))]),
