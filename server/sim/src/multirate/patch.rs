@@ -122,7 +122,8 @@ impl ContactPatch {
     /// direction), and full steps can cycle between pieces without converging.
     fn newton(&self, tool: &Capsule, sliding: &Sliding) -> Vec3 {
         // G(u) = u − C (F(u) − F_applied); dF/du = −K (K = Σ k n nᵀ over the touching,
-        // and k (I − n nᵀ) over those that stick).
+        // less the directions' turning near the solution (`normal_force`), and
+        // k (I − n nᵀ) over those that stick).
         let residual_at = |u: &Vec3, exact: bool| {
             let (force, stiffness) = self.forces(tool, u, sliding, exact);
             (u - self.compliance * (force - self.applied), stiffness)
