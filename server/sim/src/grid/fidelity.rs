@@ -59,41 +59,40 @@ pub struct RateChoice {
 impl FidelityChoice {
     /// One line for logs and session info.
     pub fn summary(&self) -> String {
-        let tried: Vec<String> = self
-            .tried
-            .iter()
-            .map(|(l, p99)| match p99 {
-                Some(p99) => format!("L{l} p99 {p99:.0} µs"),
-                None => format!("L{l} refused at load"),
-            })
-            .collect();
+        let tried = tried_list(&self.tried, |level| format!("L{level}"));
         let fit = if self.over_budget { "no level fits" } else { "fits" };
         let error = match &self.error {
             Some((e, reference)) => format!("error class {}: {:.1} % static displacement error at this level against {reference}", error_class(*e), 100.0 * e),
             None => "error class not measured for this scene (docs/accuracy-speed.md measures the bundled scenes)".to_string(),
         };
         let rate = match &self.rate {
-            Some(rate) => {
-                let tried: Vec<String> = rate
-                    .tried
-                    .iter()
-                    .map(|(every, p99)| match p99 {
-                        Some(p99) => format!("every {every} steps p99 {p99:.0} µs"),
-                        None => format!("every {every} steps refused at load"),
-                    })
-                    .collect();
-                format!("; deformation every {} haptic steps, the shortest period this level fits with the margin, at most the scene's {} (tried {})", rate.every, rate.longest, tried.join(", "))
-            }
+            Some(rate) => format!(
+                "; deformation every {} haptic steps, the shortest period this level fits with the margin, at most the scene's {} (tried {})",
+                rate.every,
+                rate.longest,
+                tried_list(&rate.tried, |every| format!("every {every} steps"))
+            ),
             None => String::new(),
         };
         format!(
-            "fidelity auto: level {} ({fit} a p99 budget of {:.0} µs with {:.0} % margin; tried {}){rate}; {error}",
+            "fidelity auto: level {} ({fit} a p99 budget of {:.0} µs with {:.0} % margin; tried {tried}){rate}; {error}",
             self.level,
             self.budget_us,
             BUDGET_MARGIN * 100.0,
-            tried.join(", ")
         )
     }
+}
+
+/// "L4 p99 95 µs, L3 refused at load, …": what a calibration timed, each named by `name`.
+fn tried_list(tried: &[(u32, Option<f64>)], name: impl Fn(u32) -> String) -> String {
+    let tried: Vec<String> = tried
+        .iter()
+        .map(|&(what, p99)| match p99 {
+            Some(p99) => format!("{} p99 {p99:.0} µs", name(what)),
+            None => format!("{} refused at load", name(what)),
+        })
+        .collect();
+    tried.join(", ")
 }
 
 /// Step-time quantiles, µs, and the mean CG iterations per step.

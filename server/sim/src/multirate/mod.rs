@@ -41,7 +41,7 @@ use crate::solver::background::Background;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{ChosenFidelity, Tissue, TissueCounters};
 use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
-use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES};
+use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES, PatchContact};
 
 /// The fastest a tool is assumed to move, m/s: a patch reaches this far beyond the
 /// tool's radius for the two deformation periods it is used over after it was chosen.
@@ -319,8 +319,10 @@ impl Multirate {
             self.deltas.append(&mut self.published.deltas);
             for (i, (fb, command)) in job.feedback.iter().zip(commands).enumerate() {
                 self.cut_feedback[i] = (fb.cutting, fb.resistance_n);
-                // The old patch (now in `job`) against the new, at this step's pose.
-                let (old, new) = match capsule(&self.tools[i], command) {
+                // The old patch (now in `job`) at this step's pose; `render` takes the new
+                // one's force off it (the step's own solve), and the difference fades out
+                // over the N steps to the next arrival (the last one has faded by now).
+                let old = match capsule(&self.tools[i], command) {
                     Some(tool) => {
                         // The new patch's friction anchors are the deformation's, on the
                         // tool as it was N steps ago: brought to this step's pose first
@@ -328,13 +330,11 @@ impl Multirate {
                         // faded from is the one rendered from now on.
                         let relaxed = self.patches[i].solve(&tool);
                         self.patches[i].commit(&tool, &relaxed);
-                        (job.patches[i].solve(&tool), self.patches[i].solve(&tool))
+                        job.patches[i].solve(&tool)
                     }
-                    None => Default::default(),
+                    None => PatchContact::default(),
                 };
-                // The last difference has faded out by now: it fades over the N steps
-                // between two arrivals.
-                self.fading[i] = (old.force_n - new.force_n, old.torque_nm - new.torque_nm);
+                self.fading[i] = (old.force_n, old.torque_nm);
             }
             self.fade_left = self.every;
         }
@@ -364,6 +364,12 @@ impl Multirate {
             };
             let contact = self.patches[i].solve(&tool);
             self.patches[i].commit(&tool, &contact);
+            if self.fade_left == self.every {
+                // A new patch arrived this step: the fading term is the old patch's force
+                // until its difference from this one's is taken.
+                let (old_force, old_torque) = self.fading[i];
+                self.fading[i] = (old_force - contact.force_n, old_torque - contact.torque_nm);
+            }
             let (force, torque) = self.fading[i];
             fb.force_n = contact.force_n + force * fade;
             fb.torque_nm = contact.torque_nm + torque * fade;
