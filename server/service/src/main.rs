@@ -17,6 +17,7 @@ mod grpc;
 mod headless;
 mod http;
 mod metrics;
+mod priority;
 mod rate;
 mod serve;
 mod session;
@@ -187,7 +188,15 @@ fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
     }
     let first = (!args.no_session).then_some(args.scene);
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("a tokio runtime");
-    match runtime.block_on(serve::serve(config, first)) {
+    // The HTTP side (viewers, REST, the viewer's files) on a runtime of its own, below the
+    // haptic path (see `priority`).
+    let http_runtime = tokio::runtime::Builder::new_multi_thread()
+        .thread_name("http")
+        .on_thread_start(priority::below_haptics)
+        .enable_all()
+        .build()
+        .expect("a tokio runtime for HTTP");
+    match runtime.block_on(serve::serve(config, first, http_runtime.handle().clone())) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");

@@ -14,8 +14,10 @@ use crate::http::{self, AppState};
 use crate::metrics::Metrics;
 use crate::session::{Creator, Mode, Registry, SceneSource, SessionHealth};
 
-/// Runs the servers until SIGINT or SIGTERM; `first_scene` opens a session at start.
-pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow::Result<()> {
+/// Runs the servers until SIGINT or SIGTERM — gRPC on the calling runtime, HTTP on
+/// `http_runtime` (whose threads run below the haptic path); `first_scene` opens a
+/// session at start.
+pub async fn serve(config: ServerConfig, first_scene: Option<String>, http_runtime: tokio::runtime::Handle) -> anyhow::Result<()> {
     config.check_development_mode().map_err(|e| anyhow::anyhow!(e))?;
     let mut operator_tokens = config.operator_token_list();
     let made_up = operator_tokens.is_empty().then(|| crate::auth::Token::generate().as_str().to_owned());
@@ -28,7 +30,13 @@ pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow:
     let metrics = Arc::new(Metrics::default());
 
     let grpc_listener = TcpListener::bind(config.grpc_addr).await.with_context(|| format!("cannot listen for gRPC on {}", config.grpc_addr))?;
-    let http_listener = TcpListener::bind(config.http_addr).await.with_context(|| format!("cannot listen for HTTP on {}", config.http_addr))?;
+    // Bound here, registered with the HTTP runtime: its connections are served there.
+    let http_listener = std::net::TcpListener::bind(config.http_addr).with_context(|| format!("cannot listen for HTTP on {}", config.http_addr))?;
+    http_listener.set_nonblocking(true)?;
+    let http_listener = {
+        let _inside = http_runtime.enter();
+        TcpListener::from_std(http_listener)?
+    };
     let grpc_addr = grpc_listener.local_addr()?;
     let http_addr = http_listener.local_addr()?;
 
@@ -145,7 +153,7 @@ pub async fn serve(config: ServerConfig, first_scene: Option<String>) -> anyhow:
     let _ = std::io::stdout().flush();
 
     let grpc_task = tokio::spawn(grpc);
-    let http_task = tokio::spawn(http_server);
+    let http_task = http_runtime.spawn(http_server);
     tokio::spawn(housekeeping(registry.clone()));
     shutdown.await;
     tracing::info!("shutting down: closing sessions");

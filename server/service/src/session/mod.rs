@@ -543,7 +543,7 @@ impl Registry {
                 // Lockstep scripts and replays run as fast as they can; only a real-time
                 // session has deadlines, so the others take the CPU time it leaves.
                 if mode != Mode::Realtime {
-                    physics::yield_to_real_time();
+                    crate::priority::yield_to_real_time();
                 }
                 let run = {
                     let session = session.clone();

@@ -155,7 +155,7 @@ impl Physics {
 
     /// The thread's body: runs until the session closes.
     pub fn run(mut self) {
-        precise_timers();
+        crate::priority::precise_timers();
         let period = Duration::from_secs_f64(self.tissue.time_step_s());
         let mut next = Instant::now();
         let mut last_start = next;
@@ -414,7 +414,7 @@ impl Physics {
         // a frame for viewers; it is not part of the timed step.
         let run = move || {
             if realtime {
-                yield_to_real_time();
+                crate::priority::yield_to_real_time();
             }
             runner::run_with_hook(
                 tissue,
@@ -585,62 +585,5 @@ fn park_until(deadline: Instant) {
             return;
         }
         std::thread::park_timeout(deadline - now);
-    }
-}
-
-/// Niceness of the threads that run as fast as they can (lockstep scripts, replays), kept
-/// where the kernel refuses `SCHED_IDLE` (a sandbox that filters sched_setscheduler).
-const BACKGROUND_NICE: libc::c_int = 19;
-
-/// Puts this thread (Linux schedules threads, not processes) in the `SCHED_IDLE` class:
-/// a real-time session's physics thread waking for its deadline preempts it at once and
-/// it runs on the CPU time real-time sessions leave, so a bot's script beside them costs
-/// them little. It still runs when real-time sessions saturate the cores, only slowly.
-pub(super) fn yield_to_real_time() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: pid 0 is the calling thread, so sched_setscheduler changes only it and
-    // `param` outlives the call; gettid has no arguments and setpriority on our own
-    // thread id changes only it.
-    unsafe {
-        let param = libc::sched_param { sched_priority: 0 };
-        if libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) != 0 {
-            let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-            libc::setpriority(libc::PRIO_PROCESS, tid, BACKGROUND_NICE);
-        }
-    }
-}
-
-/// Asks Linux to wake this thread when its timers expire rather than up to 50 µs later
-/// (the default timer slack): deadlines of a 1 kHz loop need it.
-fn precise_timers() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: PR_SET_TIMERSLACK takes an integer and affects only the calling thread.
-    unsafe {
-        libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
-    }
-}
-
-#[cfg(all(test, target_os = "linux"))]
-mod tests {
-    use super::yield_to_real_time;
-
-    #[test]
-    fn a_background_thread_leaves_the_cores_to_real_time_ones() {
-        // SAFETY: pid 0 queries the calling thread.
-        let before = unsafe { libc::sched_getscheduler(0) };
-        let (policy, nice) = std::thread::spawn(|| {
-            yield_to_real_time();
-            // SAFETY: pid 0 and PRIO_PROCESS with tid query this thread only.
-            unsafe {
-                let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-                (libc::sched_getscheduler(0), libc::getpriority(libc::PRIO_PROCESS, tid))
-            }
-        })
-        .join()
-        .unwrap();
-        assert!(policy == libc::SCHED_IDLE || nice == 19, "policy {policy}, niceness {nice}");
-        // SAFETY: as above, for the test's own thread, which must be left as it was.
-        let here = unsafe { libc::sched_getscheduler(0) };
-        assert_eq!(here, before, "only the calling thread changes");
     }
 }
