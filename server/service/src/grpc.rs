@@ -337,21 +337,22 @@ impl Scripts for Api {
             let e = session.failed_error().unwrap_or_else(|| ApiError::Unavailable(format!("session {} stopped before the script's report", session.id)));
             Err::<pb::ScriptEvent, Status>(e.into())
         });
-        let mut reported = false;
-        let events = events
-            .map(move |e| {
-                reported |= matches!(&e, Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(_)) }) | Err(_));
-                (e, reported)
+        // Events pass through; the stream ends right after the one that ends the run (a
+        // report or an error), without waiting on `ended`, which comes only when nothing
+        // ended the run. (Polling on past the report made every script's stream wait for
+        // `settled` to give up: a second after each report.)
+        let mut events = Box::pin(events.chain(ended));
+        let mut done = false;
+        let events = futures_util::stream::poll_fn(move |cx| {
+            if done {
+                return std::task::Poll::Ready(None);
+            }
+            events.as_mut().poll_next(cx).map(|event| {
+                let event = event?;
+                done = matches!(&event, Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(_)) }) | Err(_));
+                Some(event)
             })
-            .chain(ended.map(|e| (e, false)))
-            .scan(false, |done, (event, reported)| {
-                // Pass events through; the closing error only when nothing ended the run.
-                if *done {
-                    return std::future::ready(None);
-                }
-                *done = reported;
-                std::future::ready(Some(event))
-            });
+        });
         Ok(Response::new(Box::pin(events)))
     }
 }
