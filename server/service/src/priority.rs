@@ -29,6 +29,38 @@ pub fn precise_timers() {
     }
 }
 
+/// The time slice the physics thread asks for, ns (the kernel's floor is 0.1 ms).
+const PHYSICS_SLICE_NS: u64 = 100_000;
+
+/// Asks Linux's EEVDF scheduler (6.12 and later) for short time slices for this thread:
+/// waking for its step, a thread with a shorter slice than the one running preempts it
+/// at once, where otherwise it may wait out the other's slice (3 ms by default: a
+/// deformation worker or an encoder that just woke takes a whole one). Needs no
+/// privilege; false where the kernel refused (older kernels run as before).
+pub fn short_slices() -> bool {
+    #[cfg(target_os = "linux")]
+    // SAFETY: getpriority and gettid query the calling thread; sched_setattr with pid 0
+    // changes only the calling thread and reads `attr`, which outlives the call and whose
+    // `size` says how much of it the kernel may read.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        let attr = libc::sched_attr {
+            size: std::mem::size_of::<libc::sched_attr>() as u32,
+            sched_policy: libc::SCHED_OTHER as u32,
+            sched_flags: 0,
+            // The niceness it has (raising it back to 0 would need privilege).
+            sched_nice: libc::getpriority(libc::PRIO_PROCESS, tid),
+            sched_priority: 0,
+            sched_runtime: PHYSICS_SLICE_NS,
+            sched_deadline: 0,
+            sched_period: 0,
+        };
+        libc::syscall(libc::SYS_sched_setattr, 0, &attr as *const libc::sched_attr, 0) == 0
+    }
+    #[cfg(not(target_os = "linux"))]
+    false
+}
+
 /// Lowers this thread below the haptic path: for the HTTP runtime's threads.
 pub fn below_haptics() {
     set_own_niceness(HTTP_NICE);
@@ -62,7 +94,7 @@ fn set_own_niceness(nice: libc::c_int) {
 
 #[cfg(all(test, target_os = "linux"))]
 mod tests {
-    use super::{HTTP_NICE, below_haptics, yield_to_real_time};
+    use super::{HTTP_NICE, PHYSICS_SLICE_NS, below_haptics, short_slices, yield_to_real_time};
 
     /// This thread's scheduling policy and niceness.
     fn own_scheduling() -> (libc::c_int, libc::c_int) {
@@ -97,6 +129,30 @@ mod tests {
         .unwrap();
         assert_eq!(policy, libc::SCHED_OTHER, "still scheduled with everyone else");
         assert!(nice >= HTTP_NICE, "niceness {nice}");
+        assert_eq!(own_scheduling(), before, "only the calling thread changes");
+    }
+
+    #[test]
+    fn a_physics_thread_asks_for_short_slices_and_keeps_its_class() {
+        let before = own_scheduling();
+        let (granted, attr, scheduling) = std::thread::spawn(|| {
+            let granted = short_slices();
+            // SAFETY: an all-zero sched_attr is valid; sched_getattr with pid 0 writes at
+            // most `size` bytes of it for the calling thread.
+            let attr = unsafe {
+                let mut attr: libc::sched_attr = std::mem::zeroed();
+                let size = std::mem::size_of::<libc::sched_attr>() as libc::c_uint;
+                assert_eq!(libc::syscall(libc::SYS_sched_getattr, 0, &mut attr as *mut libc::sched_attr, size, 0), 0);
+                attr
+            };
+            (granted, attr, own_scheduling())
+        })
+        .join()
+        .unwrap();
+        assert_eq!(scheduling, before, "same class and niceness as the thread that started it");
+        if granted {
+            assert_eq!(attr.sched_runtime, PHYSICS_SLICE_NS, "the slice asked for");
+        }
         assert_eq!(own_scheduling(), before, "only the calling thread changes");
     }
 }

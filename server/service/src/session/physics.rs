@@ -1,10 +1,11 @@
 //! The physics thread of one session.
 //!
 //! Real-time sessions step once per period of the scene's rate (1 kHz by default),
-//! against absolute deadlines: a step may start as early as its period begins, and
-//! starts at once when a fresh haptic command arrives (so a device's round trip does not
-//! wait for a whole period), or at the latest when the rest of the period just holds a
-//! step. Inputs and outputs cross to networking through lock-free slots; topology deltas
+//! against absolute deadlines. With a haptic device attached a step starts at once when
+//! the device's fresh command arrives (so its round trip does not wait for a period
+//! boundary), as early as half a period before its period begins, or at the latest when
+//! the rest of its period just holds a step; the periods follow the device's clock. Inputs
+//! and outputs cross to networking through lock-free slots; topology deltas
 //! go to the hub through a channel; frames through a lock-free cell; recording through a
 //! lock-free ring. Nothing here waits for a network task, logs per step or allocates per
 //! step (cuts and frames after a cut grew the surface excepted).
@@ -35,10 +36,6 @@ use super::{CloseReason, Control, Mode, ScriptEvent, Session, Status};
 const FRAME_RATE_HZ: f64 = 250.0;
 /// Margin kept before a period's end when waiting for a haptic command.
 const START_MARGIN: Duration = Duration::from_micros(150);
-/// The physics thread wakes this long before a device's command may start a step…
-const SPIN_LEAD: Duration = Duration::from_micros(60);
-/// …and watches for it this long after, before parking again.
-const SPIN_WINDOW: Duration = Duration::from_micros(150);
 /// Step-time statistics are recomputed this often (quantiles walk the histogram).
 const STATS_EVERY_STEPS: u64 = 100;
 
@@ -156,9 +153,10 @@ impl Physics {
     /// The thread's body: runs until the session closes.
     pub fn run(mut self) {
         crate::priority::precise_timers();
+        crate::priority::short_slices();
         let period = Duration::from_secs_f64(self.tissue.time_step_s());
+        // The beginning of the next step's period.
         let mut next = Instant::now();
-        let mut last_start = next;
         self.out.publish_frame(self.tissue.as_ref());
         loop {
             while let Ok(message) = self.control.try_recv() {
@@ -176,17 +174,26 @@ impl Physics {
             }
             let haptic = self.out.session.subscribers.count() > 0;
             if haptic {
-                self.wait_for_device(next, period, last_start);
+                self.wait_for_device(next, period);
             } else {
                 park_until(next);
             }
-            last_start = Instant::now();
+            let started = Instant::now();
+            let fresh = self.fresh_command();
             self.read_commands();
-            self.lift_stale_tools(last_start);
+            self.lift_stale_tools(started);
             self.step_realtime();
-            // A step that started early for a device's command re-anchors the periods
-            // there (the device's clock leads); otherwise the deadlines stay absolute.
-            next = if last_start < next { last_start + period } else { next + period };
+            if fresh {
+                // The periods follow the device's clock, a tenth of a period a step at
+                // most (a client cannot drive the physics more than 11 % above the
+                // scene's rate): its commands then arrive as their periods begin, which
+                // leaves them the most room either side.
+                let arrival = self.newest_arrival();
+                let limit = period / 10;
+                next = if arrival > next { next + period + (arrival - next).min(limit) } else { next + period - (next - arrival).min(limit) };
+            } else {
+                next += period;
+            }
             self.publish_frame_if_room(next);
             let end = Instant::now();
             if end > next {
@@ -201,29 +208,31 @@ impl Physics {
     }
 
     /// With a haptic device attached, steps follow its commands, which it sends once per
-    /// period by its own clock: a step starts as soon as a fresh command arrives, but not
-    /// before 90 % of a period after the last step (so a client can never drive the
-    /// physics more than 11 % above the scene's rate); without a fresh command it starts
-    /// at the period's end minus the time a step takes, at the latest. A device's command
-    /// thus never waits for a period boundary, and its round trip is the transport plus
-    /// one step.
-    fn wait_for_device(&self, next: Instant, period: Duration, last_start: Instant) {
-        let earliest = last_start + period * 9 / 10;
-        let latest = (next + period.saturating_sub(self.estimated_step + START_MARGIN)).max(earliest);
+    /// period by its own clock: a step starts as soon as a fresh command arrives, from
+    /// half a period before its own period begins; without one it starts at the end of its
+    /// period minus the time a step takes, at the latest (and never before its period
+    /// begins). A device's command thus never waits for a period boundary, and its round
+    /// trip is the transport plus one step. The periods are the wall clock's, nudged
+    /// towards the device's (see `run`), not counted from the last step: a command that
+    /// came late (its step went without it) starts the next step as soon as it arrives,
+    /// and the commands after it do not wait.
+    fn wait_for_device(&self, period_begins: Instant, period: Duration) {
+        let earliest = period_begins - period / 2;
+        // (A slow step, say one that waited for a deformation job, raises the estimate for
+        // a while: steps without a command still wait for their period.)
+        let latest = (period_begins + period.saturating_sub(self.estimated_step + START_MARGIN)).max(period_begins);
         loop {
             let now = Instant::now();
-            if now >= latest || (now >= earliest && self.fresh_command()) {
+            let fresh = self.fresh_command();
+            if now >= latest || (now >= earliest && fresh) {
                 return;
             }
-            if now + SPIN_LEAD < earliest {
-                std::thread::park_timeout(earliest - SPIN_LEAD - now);
-            } else if now < earliest + SPIN_WINDOW {
-                // The device's command is due about now, and a parked thread takes tens of
-                // microseconds to run again: watch the slots for a short while instead.
-                std::hint::spin_loop();
-            } else {
-                std::thread::park_timeout(latest - now);
-            }
+            // Parked: a command's arrival unparks (Session::submit); one that came too
+            // early waits for its earliest start. (Spinning for the command instead of
+            // parking was tried: on two cores with a deformation thread busy, the spinning
+            // thread kept the command's network thread from running, delaying the very
+            // command it watched for.)
+            std::thread::park_timeout(if fresh { earliest - now } else { latest - now });
         }
     }
 
@@ -261,6 +270,12 @@ impl Physics {
         let mut s = tissue.snapshot();
         s.version += self.out.epoch_version;
         s
+    }
+
+    /// When the newest of the tools' commands arrived (on the session's clock).
+    fn newest_arrival(&self) -> Instant {
+        let newest = self.stamped.iter().map(|s| s.received_ns).max().unwrap_or(0);
+        self.out.session.created + Duration::from_nanos(newest)
     }
 
     fn fresh_command(&self) -> bool {
