@@ -1,9 +1,10 @@
 //! The whole haptic loop through the real server over loopback: a client sends a pose
 //! every millisecond for 10 s and measures the round trip to the force that answers it
 //! (transport, the wait for the step, the physics step itself), with 0, 1 and 20 viewers
-//! attached, on the default scene; with 20 viewers on the CT liver at level 2 under a
-//! multirate schedule (deformation every 33 ms; needs the shared data); then the
-//! lockstep script throughput.
+//! attached, on the default scene; with 0 and 20 viewers on the CT liver at level 2 under
+//! a multirate schedule (deformation every 33 ms; needs the shared data); then the
+//! lockstep script throughput. The client paces its poses like the haptic bridge's servo
+//! loop and prints that pacing (the interval between poses, p1 and p99).
 //!
 //! Run: `cargo bench -p cutsim-server --bench roundtrip` (add `-- --quick` for 2 s runs).
 
@@ -262,7 +263,11 @@ fn main() {
             round_trips(&grpc, &http, &skin, viewers, seconds, browsers.handle()).await;
         }
         match &liver {
-            Some(liver) => { round_trips(&grpc, &http, liver, 0, seconds, browsers.handle()).await; round_trips(&grpc, &http, liver, 20, seconds, browsers.handle()).await }
+            Some(liver) => {
+                for viewers in [0, 20] {
+                    round_trips(&grpc, &http, liver, viewers, seconds, browsers.handle()).await;
+                }
+            }
             None => println!("liver (multirate): skipped, the shared data is not there"),
         }
         script_throughput(&grpc).await;
