@@ -187,6 +187,9 @@ fn serve(args: ServeArgs, dirs: Vec<PathBuf>, dirs_given: bool) -> ExitCode {
         config.development_mode = true;
     }
     let first = (!args.no_session).then_some(args.scene);
+    // The models' worker threads (a multirate deformation step, a preconditioner rebuilt
+    // after a cut) run below everything with a deadline (see `priority`).
+    cutsim_sim::solver::background::set_worker_setup(priority::yield_to_real_time);
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("a tokio runtime");
     // The HTTP side (viewers, REST, the viewer's files) on a runtime of its own, below the
     // haptic path (see `priority`).

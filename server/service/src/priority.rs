@@ -2,13 +2,16 @@
 //!
 //! A real-time session's physics thread must start its step within a few tens of
 //! microseconds of a device's command, and the command and its answer must cross the
-//! gRPC runtime as fast: those run at the default priority. Everything else a server
-//! does can wait a millisecond without anyone noticing, and is told so: the HTTP side
-//! (viewers' WebSockets, the REST API, the viewer's files) runs on a runtime of its own
-//! whose threads are niced, and lockstep scripts and replays, which run as fast as they
-//! can, take only the CPU real-time sessions leave. Linux schedules threads, not
-//! processes, so each of these applies to the calling thread only; lowering one's own
-//! priority needs no privilege, so they work in a container as they do on a desk.
+//! gRPC runtime as fast: those run at the default priority, the physics thread with short
+//! time slices. Everything else a server does can wait a millisecond without anyone
+//! noticing, and is told so: the HTTP side (viewers' WebSockets, the REST API, the
+//! viewer's files) runs on a runtime of its own whose threads are niced; lockstep scripts
+//! and replays, which run as fast as they can, and the models' worker threads (a
+//! multirate deformation step, a preconditioner rebuilt after a cut: results due tens of
+//! steps later) run in the idle class, which any other thread preempts the moment it
+//! wakes. Linux schedules threads, not processes, so each of these applies to the calling
+//! thread only; lowering one's own priority needs no privilege, so they work in a
+//! container as they do on a desk.
 
 /// Niceness of the HTTP runtime's threads: a viewer's frame is encoded after the
 /// haptic work that is ready, not instead of it. (Nice 10 weighs a tenth of nice 0:

@@ -541,8 +541,11 @@ impl Registry {
             .spawn(move || {
                 let Ok(session) = start_rx.recv() else { return };
                 // Lockstep scripts and replays run as fast as they can; only a real-time
-                // session has deadlines, so the others take the CPU time it leaves.
-                if mode != Mode::Realtime {
+                // session has deadlines, so the others take the CPU time it leaves, and a
+                // real-time one preempts bulk work as soon as it wakes.
+                if mode == Mode::Realtime {
+                    crate::priority::short_slices();
+                } else {
                     crate::priority::yield_to_real_time();
                 }
                 let run = {

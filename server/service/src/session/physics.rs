@@ -153,7 +153,6 @@ impl Physics {
     /// The thread's body: runs until the session closes.
     pub fn run(mut self) {
         crate::priority::precise_timers();
-        crate::priority::short_slices();
         let period = Duration::from_secs_f64(self.tissue.time_step_s());
         // The beginning of the next step's period.
         let mut next = Instant::now();

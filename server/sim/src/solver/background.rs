@@ -10,8 +10,20 @@
 //! on it: a blocking receive registers the thread with the channel, which allocates on
 //! a thread's first wait (found by tests/no_allocation.rs on a loaded machine).
 
+use std::sync::OnceLock;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::time::{Duration, Instant};
+
+/// What every worker thread runs first, set once per process by whoever knows how its
+/// threads should be scheduled (the server puts them below its real-time threads).
+static WORKER_SETUP: OnceLock<fn()> = OnceLock::new();
+
+/// Sets what every worker thread started from now on runs first (once per process; a
+/// second call is ignored and returns false). The server uses it to put work that can
+/// wait in a scheduling class that any thread with deadlines preempts at once.
+pub fn set_worker_setup(setup: fn()) -> bool {
+    WORKER_SETUP.set(setup).is_ok()
+}
 
 /// A worker thread running `work` on the jobs it is given, one at a time.
 pub struct Background<I: Send + 'static, O: Send + 'static> {
@@ -30,6 +42,9 @@ impl<I: Send + 'static, O: Send + 'static> Background<I, O> {
         let (jobs, job_rx) = sync_channel::<I>(1);
         let (result_tx, results) = sync_channel::<O>(1);
         let thread = std::thread::Builder::new().name(name.into()).spawn(move || {
+            if let Some(setup) = WORKER_SETUP.get() {
+                setup();
+            }
             while let Ok(job) = job_rx.recv() {
                 if result_tx.send(work(job)).is_err() {
                     break;
@@ -153,5 +168,26 @@ mod tests {
         std::thread::sleep(Duration::from_millis(60));
         assert_eq!(worker.take_if_due(7), Some(2));
         assert_eq!(worker.waits, 1, "a finished job is taken without a wait");
+    }
+
+    #[test]
+    fn every_worker_thread_runs_the_process_setup_first() {
+        use std::sync::atomic::{AtomicU64, Ordering};
+        thread_local! {
+            static SET_UP: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+        }
+        static SETUPS: AtomicU64 = AtomicU64::new(0);
+        fn setup() {
+            SET_UP.with(|s| s.set(true));
+            SETUPS.fetch_add(1, Ordering::Relaxed);
+        }
+        assert!(set_worker_setup(setup), "the first setup is taken");
+        assert!(!set_worker_setup(|| {}), "a second one is ignored");
+        // The job runs on the worker thread, after the setup ran there.
+        let mut worker = Background::new("setup-test", |_: ()| SET_UP.with(|s| s.get())).unwrap();
+        worker.submit((), 1).unwrap();
+        assert_eq!(worker.take_if_due(1), Some(true));
+        assert!(SETUPS.load(Ordering::Relaxed) >= 1);
+        assert!(!SET_UP.with(|s| s.get()), "not on the thread that started the worker");
     }
 }
