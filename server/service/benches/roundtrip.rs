@@ -166,6 +166,7 @@ async fn round_trips(grpc: &str, http: &str, target: &Target, viewers: usize, se
         .await
         .unwrap()
         .into_inner();
+    let waits = info.counters.as_ref().map_or(0, |c| c.solver_waits);
     let stats = info.stats.unwrap();
     SessionsClient::new(channel).close_session(authed(pb::CloseSessionRequest { session_id: id }, &created.control_token)).await.unwrap();
     let mut viewer_bytes = 0;
@@ -174,7 +175,7 @@ async fn round_trips(grpc: &str, http: &str, target: &Target, viewers: usize, se
     }
     let us = |ns: u64| ns as f64 / 1e3;
     println!(
-        "{}, {viewers:>2} viewers: {sent} poses (interval p1 {:.0} µs, p99 {:.0} µs), {} answered | round trip p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs | server part p50 {:.0} µs, p99 {:.0} µs | step p50 {:.0} µs, p99 {:.0} µs, missed deadlines {} of {} | {:.0} Hz | viewers received {:.1} MB",
+        "{}, {viewers:>2} viewers: {sent} poses (interval p1 {:.0} µs, p99 {:.0} µs), {} answered | round trip p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs | server part p50 {:.0} µs, p99 {:.0} µs | step p50 {:.0} µs, p99 {:.0} µs, missed deadlines {} of {}, steps that waited for background work {waits} | {:.0} Hz | viewers received {:.1} MB",
         target.name,
         us(pacing.quantile_ns(0.01)),
         us(pacing.quantile_ns(0.99)),
