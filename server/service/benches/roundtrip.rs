@@ -19,6 +19,12 @@ use cutsim_sim::stats::LatencyHistogram;
 use futures_util::StreamExt;
 use std::io::BufRead;
 
+/// The server's thread-scheduling helpers (the client paces and reads as the server's own
+/// threads are told to).
+#[path = "../src/priority.rs"]
+#[allow(dead_code, unused_imports)]
+mod priority;
+
 fn start_server() -> (std::process::Child, String, String) {
     let recordings = std::env::temp_dir().join(format!("cutsim-bench-{}", std::process::id()));
     let mut child = Command::new(env!("CARGO_BIN_EXE_cutsim-server"))
@@ -114,7 +120,7 @@ async fn round_trips(grpc: &str, http: &str, target: &Target, viewers: usize, se
     // thread of its own with precise timers against absolute 1 ms deadlines, not a
     // runtime's timer wheel (whose millisecond ticks come in pairs and gaps).
     let sender = std::thread::spawn(move || {
-        precise_timers();
+        priority::precise_timers();
         let period = Duration::from_millis(1);
         let end = Instant::now() + Duration::from_secs_f64(seconds);
         let mut pacing = LatencyHistogram::new();
@@ -227,35 +233,15 @@ async fn script_throughput(grpc: &str) {
     );
 }
 
-/// Asks Linux to wake this thread when its sleeps end rather than up to 50 µs later (the
-/// default timer slack), as the bridge's servo loop does.
-fn precise_timers() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: PR_SET_TIMERSLACK takes an integer and affects only the calling thread.
-    unsafe {
-        libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
-    }
-}
-
-/// Puts the calling thread at niceness 19.
-fn lowest_priority() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: gettid has no arguments; setpriority on our own thread id changes only it.
-    unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        libc::setpriority(libc::PRIO_PROCESS, tid, 19);
-    }
-}
-
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     let seconds = if quick { 2.0 } else { 10.0 };
     let (mut child, grpc, http) = start_server();
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     // The viewers stand in for browsers on other machines: their reading runs on a thread
-    // of its own at the lowest priority, taking only the CPU the server and the device
-    // leave (on their own machines it would take none of it).
-    let browsers = tokio::runtime::Builder::new_multi_thread().worker_threads(1).on_thread_start(lowest_priority).enable_all().build().unwrap();
+    // of its own in the idle class, taking only the CPU the server and the device leave
+    // (on their own machines it would take none of it).
+    let browsers = tokio::runtime::Builder::new_multi_thread().worker_threads(1).on_thread_start(priority::yield_to_real_time).enable_all().build().unwrap();
     println!("haptic round trip through cutsim-server over loopback, 1 kHz poses for {seconds} s (release)");
     let skin = skin_patch();
     let liver = liver_multirate();

@@ -337,24 +337,32 @@ impl Scripts for Api {
             let e = session.failed_error().unwrap_or_else(|| ApiError::Unavailable(format!("session {} stopped before the script's report", session.id)));
             Err::<pb::ScriptEvent, Status>(e.into())
         });
-        // Events pass through; the stream ends right after the one that ends the run (a
-        // report or an error), without waiting on `ended`, which comes only when nothing
-        // ended the run. (Polling on past the report made every script's stream wait for
-        // `settled` to give up: a second after each report.)
-        let mut events = Box::pin(events.chain(ended));
-        let mut done = false;
-        let events = futures_util::stream::poll_fn(move |cx| {
-            if done {
-                return std::task::Poll::Ready(None);
-            }
-            events.as_mut().poll_next(cx).map(|event| {
-                let event = event?;
-                done = matches!(&event, Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(_)) }) | Err(_));
-                Some(event)
-            })
-        });
+        let events = until_the_run_ends(events, ended);
         Ok(Response::new(Box::pin(events)))
     }
+}
+
+/// A script's events, then `ended` only if none of them ended the run: the stream ends
+/// right after the event that does (a report or an error) without polling on. (Polling on
+/// past the report made every script's stream wait for `ended`, whose wait for the session
+/// to settle gives up after a second.)
+fn until_the_run_ends<E, F>(events: E, ended: F) -> impl Stream<Item = Result<pb::ScriptEvent, Status>> + Send
+where
+    E: Stream<Item = Result<pb::ScriptEvent, Status>> + Send + 'static,
+    F: Stream<Item = Result<pb::ScriptEvent, Status>> + Send + 'static,
+{
+    let mut events = Box::pin(events.chain(ended));
+    let mut done = false;
+    futures_util::stream::poll_fn(move |cx| {
+        if done {
+            return Poll::Ready(None);
+        }
+        events.as_mut().poll_next(cx).map(|event| {
+            let event = event?;
+            done = matches!(&event, Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(_)) }) | Err(_));
+            Some(event)
+        })
+    })
 }
 
 /// A script that cannot be used: the JSON path of what is wrong, as a field violation.
@@ -365,4 +373,51 @@ fn script_error(e: cutsim_sim::scene::SceneError) -> ApiError {
 /// An unbounded receiver as a stream.
 fn tokio_stream_from<T: Send + 'static>(mut rx: tokio::sync::mpsc::UnboundedReceiver<T>) -> impl Stream<Item = T> + Send {
     futures_util::stream::poll_fn(move |cx| rx.poll_recv(cx))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use futures_util::FutureExt;
+
+    fn progress() -> Result<pb::ScriptEvent, Status> {
+        Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Progress(pb::ScriptProgress::default())) })
+    }
+
+    fn report() -> Result<pb::ScriptEvent, Status> {
+        Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(pb::ScriptReport::default())) })
+    }
+
+    /// A fallback that never comes (a session that never settles).
+    fn never() -> impl Stream<Item = Result<pb::ScriptEvent, Status>> + Send {
+        futures_util::stream::pending()
+    }
+
+    #[test]
+    fn a_script_stream_ends_with_its_report_without_waiting_for_the_fallback() {
+        // The event channel stays open after the report, and the fallback never comes:
+        // the stream still ends at once.
+        let events = futures_util::stream::iter([progress(), report()]).chain(futures_util::stream::pending());
+        let mut stream = Box::pin(until_the_run_ends(events, never()));
+        assert!(matches!(stream.next().now_or_never(), Some(Some(Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Progress(_)) })))));
+        assert!(matches!(stream.next().now_or_never(), Some(Some(Ok(pb::ScriptEvent { event: Some(pb::script_event::Event::Report(_)) })))));
+        assert!(matches!(stream.next().now_or_never(), Some(None)), "ended right after the report");
+    }
+
+    #[test]
+    fn a_script_stream_ends_with_an_error_or_else_with_the_fallback() {
+        let failed = futures_util::stream::iter([progress(), Err(Status::unavailable("stopped"))]);
+        let mut stream = Box::pin(until_the_run_ends(failed, never()));
+        assert!(matches!(stream.next().now_or_never(), Some(Some(Ok(_)))));
+        assert!(matches!(stream.next().now_or_never(), Some(Some(Err(_)))));
+        assert!(matches!(stream.next().now_or_never(), Some(None)), "ended right after the error");
+
+        // Events that end without a report: the fallback's error closes the stream.
+        let cut_short = futures_util::stream::iter([progress()]);
+        let fallback = futures_util::stream::iter([Err(Status::internal("the physics stopped"))]);
+        let mut stream = Box::pin(until_the_run_ends(cut_short, fallback));
+        assert!(matches!(stream.next().now_or_never(), Some(Some(Ok(_)))));
+        assert!(matches!(stream.next().now_or_never(), Some(Some(Err(e))) if e.code() == tonic::Code::Internal));
+        assert!(matches!(stream.next().now_or_never(), Some(None)));
+    }
 }

@@ -108,37 +108,38 @@ mod tests {
         }
     }
 
+    /// Runs `f` on a new thread and returns what it returns, checking that the calling
+    /// thread's scheduling is left as it was (each helper changes its own thread only).
+    fn on_a_new_thread<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+        let before = own_scheduling();
+        let out = std::thread::spawn(f).join().unwrap();
+        assert_eq!(own_scheduling(), before, "only the calling thread changes");
+        out
+    }
+
     #[test]
     fn a_background_thread_leaves_the_cores_to_real_time_ones() {
-        let before = own_scheduling();
-        let (policy, nice) = std::thread::spawn(|| {
+        let (policy, nice) = on_a_new_thread(|| {
             yield_to_real_time();
             own_scheduling()
-        })
-        .join()
-        .unwrap();
+        });
         assert!(policy == libc::SCHED_IDLE || nice == 19, "policy {policy}, niceness {nice}");
-        assert_eq!(own_scheduling(), before, "only the calling thread changes");
     }
 
     #[test]
     fn an_http_thread_runs_below_the_haptic_path_and_alone() {
-        let before = own_scheduling();
-        let (policy, nice) = std::thread::spawn(|| {
+        let (policy, nice) = on_a_new_thread(|| {
             below_haptics();
             own_scheduling()
-        })
-        .join()
-        .unwrap();
+        });
         assert_eq!(policy, libc::SCHED_OTHER, "still scheduled with everyone else");
         assert!(nice >= HTTP_NICE, "niceness {nice}");
-        assert_eq!(own_scheduling(), before, "only the calling thread changes");
     }
 
     #[test]
     fn a_physics_thread_asks_for_short_slices_and_keeps_its_class() {
         let before = own_scheduling();
-        let (granted, attr, scheduling) = std::thread::spawn(|| {
+        let (granted, attr, scheduling) = on_a_new_thread(|| {
             let granted = short_slices();
             // SAFETY: an all-zero sched_attr is valid; sched_getattr with pid 0 writes at
             // most `size` bytes of it for the calling thread.
@@ -149,13 +150,10 @@ mod tests {
                 attr
             };
             (granted, attr, own_scheduling())
-        })
-        .join()
-        .unwrap();
+        });
         assert_eq!(scheduling, before, "same class and niceness as the thread that started it");
         if granted {
             assert_eq!(attr.sched_runtime, PHYSICS_SLICE_NS, "the slice asked for");
         }
-        assert_eq!(own_scheduling(), before, "only the calling thread changes");
     }
 }

@@ -178,8 +178,7 @@ impl Physics {
                 park_until(next);
             }
             let started = Instant::now();
-            let fresh = self.fresh_command();
-            self.read_commands();
+            let fresh = self.read_commands();
             self.lift_stale_tools(started);
             self.step_realtime();
             if fresh {
@@ -282,13 +281,15 @@ impl Physics {
     }
 
     /// Takes the newest command of every tool (keeping the previous one if a writer is
-    /// caught mid-write: the physics never waits for networking).
-    fn read_commands(&mut self) {
+    /// caught mid-write: the physics never waits for networking); whether any was fresh.
+    fn read_commands(&mut self) -> bool {
+        let mut fresh = false;
         for (tool, slot) in self.out.session.commands.iter().enumerate() {
             if let Some((words, version)) = slot.try_read(16) {
                 if version != self.seen_versions[tool] {
                     self.fresh_at[tool] = Instant::now();
                     self.lifted[tool] = false;
+                    fresh = true;
                 }
                 self.seen_versions[tool] = version;
                 if version != 0 && !self.lifted[tool] {
@@ -297,6 +298,7 @@ impl Physics {
                 }
             }
         }
+        fresh
     }
 
     /// The stale-command watchdog: a tool whose client has sent nothing for
