@@ -4,6 +4,7 @@
 
 use cutsim_sim::accuracy::problems::{problems, sample_displacements};
 use cutsim_sim::accuracy::reference::{Weighting, field_error, load_reference, solve_linear};
+use cutsim_sim::math::Vec3;
 use cutsim_sim::scene::VolumetricSpec;
 
 /// Same mesh, same trilinear elements: only round-off and the solvers' tolerances differ
@@ -91,4 +92,65 @@ fn coarse_levels_approach_the_reference_and_condensation_beats_fill_ratio_where_
             previous = condensed.rms;
         }
     }
+}
+
+/// A label map's organs need not touch the held region: a piece joined to no hold has no
+/// static equilibrium under gravity. The accuracy study's static problems leave it
+/// unloaded (it stays at rest) and solve the held body as if the piece were not there.
+#[test]
+fn a_free_piece_carries_no_load_and_the_held_body_solves_as_if_alone() {
+    use cutsim_sim::accuracy::problems::{Load, Problem, held_samples, with_gravity_down};
+    use cutsim_sim::grid::support::held_pieces;
+    use cutsim_sim::volume::{LabelVolume, nifti};
+    let dir = std::env::temp_dir().join(format!("cutsim-free-piece-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    // A 6 × 4 × 4 block held at its −x side, and (in one of the two maps) a 4 × 4 × 4
+    // block beyond a two-voxel gap.
+    let problem = |with_free_piece: bool| {
+        let mut volume = LabelVolume::new([12, 4, 4], [0.002; 3], Vec3::zeros());
+        for (i, j, k) in (0..12).flat_map(|i| (0..4).flat_map(move |j| (0..4).map(move |k| (i, j, k)))) {
+            if i < 6 || (with_free_piece && i >= 8) {
+                volume.set(i, j, k, 1);
+            }
+        }
+        let path = dir.join(format!("pieces-{with_free_piece}.nii"));
+        nifti::write_nifti(&volume, &path).unwrap();
+        let json = format!(
+            r#"{{ "name": "pieces", "time_step_s": 0.001,
+            "model": {{ "branched-grid": {{
+                "volume": {{ "nifti": {{ "path": "{}" }} }},
+                "materials": [ {{ "label": 1, "young_pa": 20000, "poisson": 0.4, "density_kg_per_m3": 1000 }} ],
+                "level": 0,
+                "fixed": [ {{ "side": {{ "side": "-x" }} }} ] }} }} }}"#,
+            path.display()
+        );
+        let scene = cutsim_sim::scene::Scene::from_json_str(&json, "two pieces", None).expect("the scene is valid");
+        Problem { name: "pieces", summary: "", scene: with_gravity_down(&scene, 9.81), load: Load::Gravity, frequency: false, quadratic: false, mixed: false, sample_stride: 1 }
+    };
+    let (both, alone) = (problem(true), problem(false));
+    let (parts, iterations, residual) = solve_linear(&both, 0, Weighting::Condensed, 1e-10).expect("the problem builds");
+    let (alone_parts, _, _) = solve_linear(&alone, 0, Weighting::Condensed, 1e-10).expect("the problem builds");
+    std::fs::remove_dir_all(&dir).ok();
+    assert!(residual <= 1e-10, "CG stopped at residual {residual:e} after {iterations} iterations");
+    let topo = &parts.topo;
+    let held = held_pieces(topo);
+    let alive = (0..topo.nodes.len()).filter(|&n| topo.nodes.alive[n]).count();
+    assert_eq!((held.iter().filter(|&&h| h).count(), alive), (7 * 5 * 5, 7 * 5 * 5 + 5 * 5 * 5), "the held block's nodes, of both blocks'");
+    let displacement = |topo: &cutsim_sim::grid::topology::Topology, n: usize| topo.nodes.x[n] - topo.nodes.rest[n];
+    let mut largest = 0.0f64;
+    for n in (0..topo.nodes.len()).filter(|&n| topo.nodes.alive[n]) {
+        if !held[n] {
+            assert_eq!(displacement(topo, n), Vec3::zeros(), "the free piece stays at rest");
+            continue;
+        }
+        let twin = (0..alone_parts.topo.nodes.len()).find(|&m| (alone_parts.topo.nodes.rest[m] - topo.nodes.rest[n]).norm() < 1e-9).expect("the held node exists alone too");
+        let (u, alone_u) = (displacement(topo, n), displacement(&alone_parts.topo, twin));
+        assert!((u - alone_u).norm() <= 1e-8 * alone_u.norm().max(1e-9), "node {n}: {u:?} beside the free piece, {alone_u:?} alone");
+        largest = largest.max(u.norm());
+    }
+    assert!(largest > 1e-6, "gravity bends the held block ({largest:e} m)");
+    // Only the held block's sample points are compared.
+    let samples = both.samples(&parts);
+    let kept = held_samples(topo, &samples);
+    assert_eq!((kept.len(), samples.len()), (7 * 5 * 5, 7 * 5 * 5 + 5 * 5 * 5), "a sample per node: the held block's kept");
 }

@@ -8,6 +8,7 @@ use serde::Deserialize;
 use super::problems::Problem;
 use crate::grid::GridParts;
 use crate::grid::solver::solve_static;
+use crate::grid::support::held_pieces;
 use crate::math::Vec3;
 use crate::scene::SceneError;
 
@@ -118,13 +119,20 @@ pub enum Weighting {
 }
 
 /// The linear (small-strain) static solution of a problem at a level: K u = f by a
-/// Jacobi-preconditioned conjugate gradient in double precision, to `tolerance`.
+/// Jacobi-preconditioned conjugate gradient in double precision, to `tolerance`. A free
+/// piece (one not connected to a hold, [`held_pieces`]) has no equilibrium under a load:
+/// it carries none here and stays at rest, and the held pieces' solution is unchanged.
 pub fn solve_linear(problem: &Problem, level: u32, weighting: Weighting, tolerance: f64) -> Result<(GridParts, u32, f64), String> {
     let mut parts = problem.parts(level).map_err(|e| e.to_string())?;
     if weighting == Weighting::FillRatio {
         super::problems::apply_fill_ratio_weighting(&mut parts);
     }
-    let loads = problem.loads(&parts);
+    let mut loads = problem.loads(&parts);
+    for (load, held) in loads.iter_mut().zip(held_pieces(&parts.topo)) {
+        if !held {
+            *load = Vec3::zeros();
+        }
+    }
     let (iterations, residual) = solve_static(&mut parts.topo, &loads, tolerance, 200_000);
     Ok((parts, iterations, residual))
 }

@@ -90,7 +90,7 @@ pub const SESSION_LOAD_DISPLACEMENT_FRACTION: f64 = 0.005;
 /// the problem's gravity — scaled down to the small-displacement range
 /// ([`SESSION_LOAD_DISPLACEMENT_FRACTION`]) — by its own dynamics (the mass damping set
 /// to 30/s, near critical for soft organs; Rayleigh damping does not move the
-/// equilibrium) until no node moves faster than 10 µm/s times that scale or
+/// equilibrium) until no node of a held piece moves faster than 10 µm/s times that scale or
 /// `max_duration_s` has passed; its displacements scaled back up, against `reference`
 /// at the sample points (relative rms). Returns the error and the load scale.
 pub fn session_error(problem: &Problem, setting: &Setting, samples: &[(usize, usize)], reference: &[Vec3], max_duration_s: f64) -> Result<(f64, f64), String> {
@@ -111,6 +111,8 @@ pub fn session_error(problem: &Problem, setting: &Setting, samples: &[(usize, us
         }
     }
     let mut grid = build_grid(&scene)?;
+    // A free piece falls for ever; settled means the held pieces are.
+    let held = crate::grid::support::held_pieces(grid.topology());
     let n = crate::tissue::Tissue::tools(&grid).len();
     let (commands, mut feedback) = (vec![Default::default(); n], vec![Default::default(); n]);
     let steps = (max_duration_s / setting.dt_s).round() as usize;
@@ -119,7 +121,7 @@ pub fn session_error(problem: &Problem, setting: &Setting, samples: &[(usize, us
         grid.step(&commands, &mut feedback);
         if step % check_every == 0 && step as f64 * setting.dt_s >= 0.5 {
             let topo = grid.topology();
-            let fastest = (0..topo.nodes.len()).filter(|&i| topo.nodes.alive[i]).map(|i| topo.nodes.v[i].norm()).fold(0.0, f64::max);
+            let fastest = (0..topo.nodes.len()).filter(|&i| held[i]).map(|i| topo.nodes.v[i].norm()).fold(0.0, f64::max);
             if fastest < 1e-5 * scale {
                 break;
             }

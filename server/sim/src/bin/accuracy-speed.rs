@@ -12,6 +12,8 @@
 //! accuracy-speed stability [--reduced] [--out DIR]
 //!                                         the stability sweep (full, or the test's reduced one);
 //!                                         write DIR/stability.md
+//! accuracy-speed static SCENE             a bundled scene's reference and the linear static
+//!                                         error of each level against it, printed
 //! accuracy-speed export-problems DIR      write the reference problems' meshes for tools/reference
 //! ```
 //! Run it in release: `cargo run --release -p cutsim-sim --bin accuracy-speed`.
@@ -19,15 +21,17 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use cutsim_sim::accuracy::problems::{G, Load, Problem, problems, sample_displacements, with_gravity_down};
+use cutsim_sim::accuracy::problems::{G, Load, Problem, held_samples, problems, sample_displacements, with_gravity_down};
 use cutsim_sim::accuracy::reference::{Weighting, field_error, load_reference, solve_linear};
 use cutsim_sim::accuracy::report::{ErrorTable, LoadRow, Measured, MembraneStudy, Row, SceneStudy, markdown, svg};
 use cutsim_sim::accuracy::sweep::{Setting, build_grid, cantilever_frequency, own_reference, session_error, static_error, time_probe, tip_nodes};
 use cutsim_sim::quantity::DampingPerS;
+use cutsim_sim::grid::support::held_pieces;
+use cutsim_sim::grid::topology::NONE;
 use cutsim_sim::math::Vec3;
 use cutsim_sim::scene::{MassSpec, ModelSpec, Scene, SupportSpec, VolumetricSpec};
 
-const USAGE: &str = "usage: accuracy-speed [--quick] [--out DIR] | accuracy-speed schedules [--quick] [--out DIR] | accuracy-speed stability [--reduced] [--out DIR] | accuracy-speed supports [--out DIR] | accuracy-speed export-problems DIR";
+const USAGE: &str = "usage: accuracy-speed [--quick] [--out DIR] | accuracy-speed schedules [--quick] [--out DIR] | accuracy-speed stability [--reduced] [--out DIR] | accuracy-speed supports [--out DIR] | accuracy-speed static SCENE | accuracy-speed export-problems DIR";
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -42,6 +46,10 @@ fn main() -> ExitCode {
         }
         Some("schedules") => parse_sweep_args(&args[1..]).and_then(|(quick, out)| schedules(quick, &out)),
         Some("supports") => parse_sweep_args(&args[1..]).and_then(|(_, out)| supports(&out)),
+        Some("static") => match args.get(1) {
+            Some(scene) => static_errors(scene),
+            None => Err("static needs a bundled scene's name (server/scenes/NAME.json)".to_string()),
+        },
         Some("-h" | "--help") => {
             println!("{USAGE}");
             Ok(())
@@ -109,7 +117,7 @@ struct SceneReference {
 }
 
 /// The scikit-fem reference where there is one (its finest solution), else our linear
-/// static solution at level 0 (level 1 above 60,000 voxels).
+/// static solution at level 0 (level 1 above 200,000 voxels).
 fn scene_reference(problem: &Problem) -> Result<SceneReference, String> {
     if let Ok(reference) = load_reference(problem) {
         let (label, finest) = reference.finest();
@@ -122,19 +130,57 @@ fn scene_reference(problem: &Problem) -> Result<SceneReference, String> {
     }
     let level0 = problem.parts(0).map_err(|e| e.to_string())?;
     let voxels = level0.topo.material.iter().filter(|&&m| m != 0).count();
-    let level = if voxels <= 60_000 { 0 } else { 1 };
-    let samples = problem.samples(&if level == 0 { level0 } else { problem.parts(1).map_err(|e| e.to_string())? });
+    // Level 1 merges layers thinner than its elements (the abdomen's skin, 1–2 voxels,
+    // 50 times stiffer than the fat beneath: its level 1 is 49 % off its level 0), so it is
+    // no reference for them: level 0 up to 200,000 voxels (a few minutes' solve).
+    let level = if voxels <= 200_000 { 0 } else { 1 };
+    let parts = if level == 0 { level0 } else { problem.parts(1).map_err(|e| e.to_string())? };
+    // Pieces not connected to a hold have no static answer: left out (and said so).
+    let held = held_pieces(&parts.topo);
+    let free_voxels = (0..parts.topo.material.len())
+        .filter(|&v| parts.topo.material[v] != 0 && parts.topo.voxel_element[v] != NONE)
+        .filter(|&v| !held[parts.topo.elements.nodes[parts.topo.voxel_element[v] as usize][0] as usize])
+        .count();
+    let samples = held_samples(&parts.topo, &problem.samples(&parts));
+    let free = if free_voxels == 0 {
+        String::new()
+    } else {
+        format!(
+            "; {free_voxels} of the {voxels} voxels ({:.1} %) lie in pieces that touch no held region (organs the label map does not join to the held body), which have no static equilibrium under gravity: they carry no load in the static problems, and the errors are over the {} sample points of the held pieces",
+            100.0 * free_voxels as f64 / voxels as f64,
+            samples.len()
+        )
+    };
     let (field, label) = match own_reference(problem, level, &samples) {
         Ok(field) => (
             Some(field),
             format!(
-                "our linear static solution at level {level} ({}), the finest solved here; level 0 equals scikit-fem Hex1–P0 on the reference problems to 1e-11",
-                if level == 0 { format!("{voxels} voxels") } else { format!("{voxels} voxels are too many for a quick level-0 solve") }
+                "our linear static solution at level {level} ({}), the finest solved here; level 0 equals scikit-fem Hex1–P0 on the reference problems to 1e-11{free}",
+                if level == 0 { format!("{voxels} voxels") } else { format!("{voxels} voxels are too many for a level-0 solve here") }
             ),
         ),
-        Err(e) => (None, format!("none: the static problem has no solution ({e}); parts of the body are not held, and a free piece has no equilibrium under gravity")),
+        Err(e) => (None, format!("none: the static problem of the held pieces has no solution here ({e}){free}")),
     };
     Ok(SceneReference { samples, field, label, frequency_hz: None })
+}
+
+/// One scene's reference and the static error of each of its levels from 1 (no timing,
+/// no session), printed.
+fn static_errors(name: &str) -> Result<(), String> {
+    let scenes = ["liver", "liver-smooth", "abdomen-layers", "u-tube"];
+    let name = *scenes.iter().find(|s| **s == name).ok_or_else(|| format!("{name:?} is not a bundled volumetric scene; one of {}", scenes.join(", ")))?;
+    let problem = bundled_problem(name)?;
+    let started = std::time::Instant::now();
+    let SceneReference { samples, field, label, .. } = scene_reference(&problem)?;
+    println!("{name}: reference {label} ({} samples, {:.1} s)", samples.len(), started.elapsed().as_secs_f64());
+    let field = field.ok_or("no reference: no errors to measure")?;
+    for level in 1..=4 {
+        match static_error(&problem, level, Weighting::Condensed, &samples, &field) {
+            Ok(e) => println!("level {level}: static error {:.2} % ({:.1} s)", 100.0 * e, started.elapsed().as_secs_f64()),
+            Err(e) => println!("level {level}: {e}"),
+        }
+    }
+    Ok(())
 }
 
 struct Progress {

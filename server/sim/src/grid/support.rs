@@ -35,8 +35,6 @@ use crate::scene::{BranchedGridSpec, GridFixedSpec, Scene, SceneError, SupportSp
 /// The spring of an embedded point against the stiffness of one voxel (E × its mean
 /// side): stiff enough that the held point moves about 1 % of what the body around it
 /// does, soft enough that the conjugate gradient's iterations barely change.
-/// An embedded point's spring against the stiffness of one voxel (E × its mean side):
-/// the held point moves about 1 % of what the body around it does.
 pub const SUPPORT_STIFFNESS_PER_VOXEL: f64 = 100.0;
 
 /// A level-0 point of a support inside a coarse element, held by a spring.
@@ -277,4 +275,28 @@ fn hold_embedded(spec: &BranchedGridSpec, topo: &mut Topology, frame: &Frame) ->
 /// accuracy report calls held nodes).
 pub fn held_count(topo: &Topology) -> usize {
     (0..topo.nodes.len()).filter(|&n| topo.nodes.alive[n] && topo.nodes.fixed[n]).count() + topo.supports.live(topo).count()
+}
+
+/// Which nodes belong to a held piece: a set of live elements connected through shared
+/// nodes that contains a fixed node or an embedded point's element. A label map's
+/// organs need not touch the held region (nothing between them is labelled), and such a
+/// free piece has no static equilibrium under a load: the accuracy study leaves it out
+/// of the static problem and of the error.
+pub fn held_pieces(topo: &Topology) -> Vec<bool> {
+    let n = topo.nodes.len();
+    let mut pieces = crate::union_find::UnionFind::new(n);
+    for e in (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]) {
+        let nodes = &topo.elements.nodes[e];
+        for k in 1..8 {
+            pieces.union(nodes[0] as usize, nodes[k] as usize);
+        }
+    }
+    let mut held_root = vec![false; n];
+    for i in (0..n).filter(|&i| topo.nodes.alive[i] && topo.nodes.fixed[i]) {
+        held_root[pieces.find(i)] = true;
+    }
+    for (e, _) in topo.supports.live(topo) {
+        held_root[pieces.find(topo.elements.nodes[e][0] as usize)] = true;
+    }
+    (0..n).map(|i| topo.nodes.alive[i] && held_root[pieces.find(i)]).collect()
 }
