@@ -22,6 +22,15 @@ const PLAN_COLOUR = 0x30e070;
 // Warnings listed under the metrics.
 const WARNINGS_SHOWN = 4;
 
+/** Puts forceps' two jaw meshes either side of the axis, open or closed. */
+function placeJaws(jaws, closed) {
+  const offset = closed ? jaws.closed : jaws.open;
+  jaws.meshes.forEach((mesh, k) => {
+    const sign = k === 0 ? -1 : 1;
+    mesh.position.set(jaws.alongX ? 0 : -sign * offset, jaws.alongX ? sign * offset : 0, 0);
+  });
+}
+
 export class SessionPanel {
   /**
    * @param {HTMLElement} container where the panel goes
@@ -361,7 +370,14 @@ export class SessionPanel {
     this.toolGroup.clear();
     this.toolMeshes = s.tools.map((t) => {
       let geometry;
-      if (t.width_m > 0) {
+      let jaws = null;
+      if (t.jaw_opening_m > 0) {
+        // Forceps: two jaws, each a plate, either side of the axis across their flats
+        // (the tool frame's y for an edge along x); placed open or closed in updateTools.
+        const alongX = Math.abs(t.edge?.x ?? 1) > 0.5;
+        geometry = new THREE.BoxGeometry(alongX ? t.width_m : t.thickness_m, alongX ? t.thickness_m : t.width_m, t.length_m);
+        jaws = { alongX, open: t.jaw_opening_m / 2 + t.thickness_m / 2, closed: t.thickness_m / 2 };
+      } else if (t.width_m > 0) {
         // A blade's plate: its width along its edge's direction (the tool frame's x or y).
         const alongX = Math.abs(t.edge?.x ?? 1) > 0.5;
         geometry = new THREE.BoxGeometry(alongX ? t.width_m : t.thickness_m, alongX ? t.thickness_m : t.width_m, t.length_m);
@@ -375,12 +391,22 @@ export class SessionPanel {
         geometry.rotateX(Math.PI / 2); // three.js cylinders stand on y; our tools point along +z
       }
       geometry.translate(0, 0, t.length_m / 2); // from the tip upwards
-      const mesh = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial({ color: t.can_cut ? 0xc0c8d0 : 0x4a7bd0, metalness: 0.6, roughness: 0.3 }));
+      const material = new THREE.MeshStandardMaterial({ color: t.can_cut ? 0xc0c8d0 : 0x4a7bd0, metalness: 0.6, roughness: 0.3 });
+      let mesh;
+      if (jaws) {
+        mesh = new THREE.Group();
+        mesh.material = material;
+        jaws.meshes = [new THREE.Mesh(geometry, material), new THREE.Mesh(geometry, material)];
+        mesh.add(...jaws.meshes);
+        placeJaws(jaws, false);
+      } else {
+        mesh = new THREE.Mesh(geometry, material);
+      }
       mesh.visible = false;
       const arrow = new THREE.ArrowHelper(new THREE.Vector3(0, 0, 1), new THREE.Vector3(), 0.01, 0xffd030);
       arrow.visible = false;
       this.toolGroup.add(mesh, arrow);
-      return { mesh, arrow, info: t };
+      return { mesh, arrow, info: t, jaws };
     });
   }
 
@@ -479,7 +505,12 @@ export class SessionPanel {
       const q = state.pose.orientation;
       tool.mesh.position.set(p.x, p.y, p.z);
       tool.mesh.quaternion.set(q.x, q.y, q.z, q.w);
-      tool.mesh.material.emissive.setHex(state.cutting || state.cut ? 0x600000 : 0x000000);
+      if (tool.jaws) {
+        // The button closes forceps' jaws; it cuts nothing.
+        placeJaws(tool.jaws, !!state.cut);
+      } else {
+        tool.mesh.material.emissive.setHex(state.cutting || state.cut ? 0x600000 : 0x000000);
+      }
       const f = state.force_n;
       const magnitude = f ? Math.hypot(f.x, f.y, f.z) : 0;
       if (magnitude > 1e-6) {

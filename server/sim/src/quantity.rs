@@ -137,6 +137,8 @@ bounded!(/// The width of a scalpel blade's plate, across its axis along its edg
     BladeWidthM: f64, "number", what = "blade width", unit = "m", range = [1e-4, 0.05]);
 bounded!(/// The thickness of a scalpel blade's plate, across its flat.
     BladeThicknessM: f64, "number", what = "blade thickness", unit = "m", range = [1e-5, 0.005]);
+bounded!(/// The gap between a forceps' open jaws, across their flats.
+    JawOpeningM: f64, "number", what = "jaw opening", unit = "m", range = [1e-4, 0.03]);
 bounded!(/// A tool length.
     ToolLengthM: f64, "number", what = "tool length", unit = "m", range = [1e-4, 1.0]);
 bounded!(/// Penalty contact stiffness between a tool and the tissue nodes.

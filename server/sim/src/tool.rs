@@ -6,7 +6,7 @@ use crate::scene::{ModelSpec, TipSpec, ToolShapeSpec};
 
 /// A tool: the segment from its tip along its local +z axis, with a cross-section (a
 /// disc: a probe or a blade idealised as a cylinder; a rectangle: a scalpel blade's
-/// plate). Built once from the scene.
+/// plate; two rectangles: forceps' jaws). Built once from the scene.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ToolShape {
     pub name: String,
@@ -49,6 +49,9 @@ pub enum Section {
     /// A rectangle: `half_width_m` along the edge's direction, `half_thickness_m` across
     /// the flat (its normal: axis × edge).
     Plate { half_width_m: f64, half_thickness_m: f64 },
+    /// Forceps' jaws: two such rectangles on either side of the axis across the flat,
+    /// their inner flats `2 half_gap_m` apart when open (closed: touching).
+    Jaws { half_width_m: f64, half_thickness_m: f64, half_gap_m: f64 },
 }
 
 impl Section {
@@ -58,7 +61,7 @@ impl Section {
     fn width_m(self, radius_m: f64) -> f64 {
         match self {
             Section::Round => 2.0 * radius_m,
-            Section::Plate { half_width_m, .. } => 2.0 * half_width_m,
+            Section::Plate { half_width_m, .. } | Section::Jaws { half_width_m, .. } => 2.0 * half_width_m,
         }
     }
 }
@@ -74,7 +77,7 @@ impl ToolShape {
     pub fn cut_half_width_m(&self) -> f64 {
         match self.section {
             Section::Round => self.radius_m,
-            Section::Plate { half_thickness_m, .. } => half_thickness_m,
+            Section::Plate { half_thickness_m, .. } | Section::Jaws { half_thickness_m, .. } => half_thickness_m,
         }
     }
 
@@ -176,13 +179,15 @@ impl PlacedTool {
             }
             Section::Plate { half_width_m, half_thickness_m } => {
                 let normal = self.flat_normal();
+                plate_exit(offset.dot(&self.edge), offset.dot(&normal), half_width_m, half_thickness_m, &self.edge, &normal)
+            }
+            Section::Jaws { half_width_m, half_thickness_m, half_gap_m } => {
+                // The open jaws (the mass-spring skin takes each jaw as a plate of its
+                // own: `msm::bodies`): the jaw on the point's side of the axis.
+                let normal = self.flat_normal();
                 let (a, b) = (offset.dot(&self.edge), offset.dot(&normal));
-                if a.abs() >= half_width_m || b.abs() >= half_thickness_m {
-                    return None;
-                }
-                let sign = |c: f64| if c < 0.0 { -1.0 } else { 1.0 };
-                let (through_flat, through_side) = (half_thickness_m - b.abs(), half_width_m - a.abs());
-                Some(if through_flat <= through_side { (through_flat, normal * sign(b)) } else { (through_side, self.edge * sign(a)) })
+                let centre = (half_gap_m + half_thickness_m) * if b < 0.0 { -1.0 } else { 1.0 };
+                plate_exit(a, b - centre, half_width_m, half_thickness_m, &self.edge, &normal)
             }
         }
     }
@@ -212,6 +217,18 @@ impl PlacedTool {
     }
 }
 
+/// A point at `a` along `edge` and `b` along `normal` from a plate's centre line (across
+/// the axis): how deep it lies inside the plate and the way out through the nearer of
+/// its flats (±`normal`) or its sides (±`edge`); None outside.
+fn plate_exit(a: f64, b: f64, half_width_m: f64, half_thickness_m: f64, edge: &Vec3, normal: &Vec3) -> Option<(f64, Vec3)> {
+    if a.abs() >= half_width_m || b.abs() >= half_thickness_m {
+        return None;
+    }
+    let sign = |c: f64| if c < 0.0 { -1.0 } else { 1.0 };
+    let (through_flat, through_side) = (half_thickness_m - b.abs(), half_width_m - a.abs());
+    Some(if through_flat <= through_side { (through_flat, normal * sign(b)) } else { (through_side, edge * sign(a)) })
+}
+
 /// `direction` made square to the unit `axis` and unit (any perpendicular if it lies
 /// along the axis).
 fn across(axis: &Vec3, direction: &Vec3) -> Vec3 {
@@ -229,6 +246,11 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                 ToolShapeSpec::Blade { width_m, thickness_m, .. } => {
                     let (half_width_m, half_thickness_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get());
                     (half_width_m.hypot(half_thickness_m), Section::Plate { half_width_m, half_thickness_m })
+                }
+                ToolShapeSpec::Forceps { width_m, thickness_m, opening_m, .. } => {
+                    let (half_width_m, half_thickness_m, half_gap_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get(), 0.5 * opening_m.get());
+                    // Bounded by the open jaws' outer corners.
+                    (half_width_m.hypot(half_gap_m + 2.0 * half_thickness_m), Section::Jaws { half_width_m, half_thickness_m, half_gap_m })
                 }
             };
             // The branched grid's tools are capsules (its scenes refuse a flat tip).
@@ -248,7 +270,7 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                 // Validated at load: a cutting shape is a cylinder.
                 cutting_shape: t.cutting_shape.as_ref().and_then(|inner| match inner {
                     ToolShapeSpec::Cylinder { radius_m, length_m, .. } => Some((radius_m.get(), length_m.get())),
-                    ToolShapeSpec::Blade { .. } => None,
+                    ToolShapeSpec::Blade { .. } | ToolShapeSpec::Forceps { .. } => None,
                 }),
                 edge_local: t.edge.local(),
                 tip_shape,

@@ -60,6 +60,19 @@ fn run(model: &mut MassSpring, commands: &[ToolCommand], feedback: &mut [ToolFee
     }
 }
 
+/// Tool 1 (the skin patch's probe) lowered onto the skin, tip first, 2 mm deep: the
+/// commands that hold it there and the last feedback.
+fn lower_tool_1(m: &mut MassSpring) -> (Vec<ToolCommand>, Vec<ToolFeedback>) {
+    let mut commands = vec![ToolCommand::default(); 2];
+    let mut fb = vec![ToolFeedback::default(); 2];
+    for k in 0..=100 {
+        let z = 0.0005 - 0.0025 * f64::from(k) / 100.0;
+        commands[1] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false };
+        run(m, &commands, &mut fb, 1);
+    }
+    (commands, fb)
+}
+
 #[test]
 fn steps_with_contact_allocate_nothing() {
     for integrator in ["", "implicit"] {
@@ -71,14 +84,7 @@ fn steps_with_contact_allocate_nothing() {
             scene = cutsim_sim::scene::Scene::from_json_str(&text, "implicit", None).unwrap();
         }
         let mut m = build(&scene);
-        // The probe (tool 1) lowered onto the skin, tip first, 2 mm deep.
-        let mut commands = vec![ToolCommand::default(); 2];
-        let mut fb = vec![ToolFeedback::default(); 2];
-        for k in 0..=100 {
-            let z = 0.0005 - 0.0025 * f64::from(k) / 100.0;
-            commands[1] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false };
-            run(&mut m, &commands, &mut fb, 1);
-        }
+        let (commands, mut fb) = lower_tool_1(&mut m);
         let count = allocations_during(|| run(&mut m, &commands, &mut fb, 200));
         assert_eq!(count, 0, "{integrator} steps with contact allocated {count} times");
         // The skin pushes the probe back up, mostly straight up (on its foundation the skin
@@ -87,6 +93,26 @@ fn steps_with_contact_allocate_nothing() {
         assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "{integrator}: the probe is pushed back: {:?}", fb[1]);
         assert!(fb[1].force_n.xy().norm() < 0.2 * fb[1].force_n.z, "{:?}", fb[1]);
     }
+}
+
+/// Forceps (the probe replaced) pressed into the skin, their jaws closed and opened:
+/// splitting a forceps into its jaws and summing their feedback allocates nothing.
+#[test]
+fn forceps_pressing_closing_and_opening_allocate_nothing() {
+    let text = std::fs::read_to_string(scenes_dir().join("skin-patch.json"))
+        .unwrap()
+        .replace(r#"{ "cylinder": { "radius_m": 0.003, "length_m": 0.08, "tip": "round" } }"#, r#"{ "forceps": { "width_m": 0.002, "thickness_m": 0.001, "length_m": 0.08, "opening_m": 0.008 } }"#);
+    assert!(text.contains("forceps"), "the probe's shape in skin-patch.json changed");
+    let mut m = build(&cutsim_sim::scene::Scene::from_json_str(&text, "forceps", None).unwrap());
+    let (mut commands, mut fb) = lower_tool_1(&mut m);
+    let count = allocations_during(|| {
+        for closed in [true, false] {
+            commands[1].cut = closed;
+            run(&mut m, &commands, &mut fb, 100);
+        }
+    });
+    assert_eq!(count, 0, "forceps steps allocated {count} times");
+    assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "the jaws are pushed back: {:?}", fb[1]);
 }
 
 #[test]

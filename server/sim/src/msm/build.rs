@@ -164,6 +164,9 @@ impl MassSpring {
                 }
             }
         }
+        // The skin meets bodies: the tools, forceps as their two jaws.
+        let (scene_tools, (tools, bodies)) = (tools.clone(), super::bodies::expand(&tools));
+        let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], super::bodies::Bodies::twins);
         let foundation = params.foundation.map(|f| Foundation::new(f, &nodes, &topo));
         // A tool's contact and the foundation's spring may act on one node together.
         let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max)
@@ -219,7 +222,10 @@ impl MassSpring {
             blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),
             contacts: Vec::with_capacity(2 * n),
+            scene_tools,
             tools,
+            bodies,
+            twins,
             nodes,
             springs,
             topo,

@@ -12,6 +12,7 @@
 //! cut allocates.
 
 mod apply_cut;
+mod bodies;
 mod build;
 pub mod calibration;
 pub mod contact;
@@ -110,7 +111,15 @@ pub struct MassSpring {
     pub(crate) springs: SpringSet,
     pub(crate) topo: Topology,
     grid: PointGrid,
+    /// The scene's tools (what commands and feedback are per).
+    scene_tools: Vec<ToolShape>,
+    /// The solids the skin meets, each with its own state below: the scene's tools, with
+    /// forceps as their two jaws ([`bodies`]).
     tools: Vec<ToolShape>,
+    /// The split between tools and bodies where they differ (forceps).
+    bodies: Option<bodies::Bodies>,
+    /// Per body, the body whose state it takes when it comes back ([`bodies::Bodies::twins`]).
+    twins: Vec<Option<usize>>,
     placed: Vec<Option<PlacedTool>>,
     /// Where each tool was last step (the blade's velocity through the skin).
     previous_placed: Vec<Option<PlacedTool>>,
@@ -154,8 +163,22 @@ pub struct MassSpring {
 impl MassSpring {
     /// Advances one step of `time_step_s`; see the module documentation for the stages.
     pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
-        debug_assert_eq!(commands.len(), self.tools.len());
-        debug_assert_eq!(feedback.len(), self.tools.len());
+        debug_assert_eq!(commands.len(), self.scene_tools.len());
+        debug_assert_eq!(feedback.len(), self.scene_tools.len());
+        // Taken out for the step and put back: no allocation.
+        match self.bodies.take() {
+            None => self.step_bodies(commands, feedback),
+            Some(mut bodies) => {
+                bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
+                self.step_bodies(&bodies.commands, &mut bodies.feedback);
+                bodies.gather(&self.scene_tools, feedback);
+                self.bodies = Some(bodies);
+            }
+        }
+    }
+
+    /// One step with a command and a feedback per body ([`bodies`]).
+    fn step_bodies(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
         self.place_tools(commands, feedback);
 
         let finite_check = match &self.integrator {
@@ -239,6 +262,8 @@ impl MassSpring {
                 (None, _) => false,
                 // A tool that appears below the skin is through it; the skin is not
                 // dragged to its tip.
+                // A forceps' jaw that reopens is as its twin was.
+                (Some(_), None) if self.twins[i].is_some_and(|t| self.placed[t].is_some()) => self.twins[i].is_some_and(|t| self.pierced[t]),
                 (Some(tool), None) => self.holder.first_crossing(&tool, &self.nodes, &self.topo, &self.grid, self.max_edge_m).is_some(),
                 (Some(_), Some(_)) => self.pierced[i],
             };
@@ -714,7 +739,7 @@ impl Tissue for MassSpring {
     }
 
     fn tools(&self) -> &[ToolShape] {
-        &self.tools
+        &self.scene_tools
     }
 
     fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {

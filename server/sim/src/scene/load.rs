@@ -109,6 +109,13 @@ impl Scene {
                     format!("a blade is a plate thinner than it is wide: thickness {} m, width {} m", thickness_m.get(), width_m.get()),
                 ));
             }
+            if matches!(tool.shape, super::ToolShapeSpec::Forceps { .. }) && tool.can_cut {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].can_cut"),
+                    "forceps are blunt: their jaws press and rub but do not cut (their button closes them); set can_cut to false, or use a blade to cut",
+                ));
+            }
             if let Some(j) = self.tools[..i].iter().position(|t| t.name == tool.name) {
                 return Err(SceneError::new(
                     origin,
@@ -206,7 +213,7 @@ impl Scene {
                 return Err(SceneError::new(
                     origin,
                     format!("tools[{i}].shape"),
-                    "the branched grid's tools are cylinders (capsules against its voxels); a blade plate is built for the mass-spring skin only",
+                    "the branched grid's tools are cylinders (capsules against its voxels); a blade's plate and forceps' jaws are built for the mass-spring skin only",
                 ));
             };
             if *tip == Some(super::TipSpec::Flat) {

@@ -464,13 +464,20 @@ pub enum ToolShapeSpec {
     /// side facing `edge`; its tip is a flat end (a pointed tip is not modelled). The
     /// mass-spring skin only.
     Blade { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM },
+    /// Forceps: two jaws, each a plate like a blade's (`width_m` along the tool's `edge`
+    /// direction, `thickness_m` across its flat, `length_m` from the tip along the +z
+    /// axis), on either side of the axis with their inner flats `opening_m` apart; the
+    /// command's button (`cut`, the jaw) closes them, inner flats touching. Blunt: they
+    /// press and rub, never cut (`can_cut` must be false); grasping is not modelled. The
+    /// mass-spring skin only.
+    Forceps { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM, opening_m: JawOpeningM },
 }
 
 impl ToolShapeSpec {
     /// The shape's length along the tool's axis, m.
     pub fn length_m(&self) -> f64 {
         match self {
-            ToolShapeSpec::Cylinder { length_m, .. } | ToolShapeSpec::Blade { length_m, .. } => length_m.get(),
+            ToolShapeSpec::Cylinder { length_m, .. } | ToolShapeSpec::Blade { length_m, .. } | ToolShapeSpec::Forceps { length_m, .. } => length_m.get(),
         }
     }
 }

@@ -1,0 +1,238 @@
+//! Forceps' jaws as bodies of their own.
+//!
+//! The skin's contact, tip-face hold, sweep between poses and puncture test work on one
+//! solid per tool: a disc or a plate around its axis. Forceps have two jaws with a gap
+//! between them, where the skin may rise. So the skin takes each jaw as a body of its
+//! own, a plate on its side of the forceps' axis, its inner flat half the opening from
+//! the axis; while the button closes them the first jaw is the two as one plate on the
+//! axis and the second is away (two touching plates would leave a seam where the skin
+//! slips in between). A forceps' command is split into its jaws' commands, and the jaws'
+//! feedback is summed back into the forceps' (the torque taken about the forceps' tip),
+//! clamped at its limit. Every other tool is one body, passed through as it is.
+//!
+//! Nothing here allocates after the model is built: the split and the sum reuse the
+//! buffers made at build time.
+
+use crate::math::Vec3;
+use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
+
+/// How fast a jaw moves across its flat as the forceps open or close, m/s: the device's
+/// jaw is a button, and real forceps open over tens of milliseconds (4 mm in 40 ms here).
+/// A jaw that jumped its whole travel in one step would land under the skin beside it
+/// instead of pushing it aside.
+pub const JAW_SPEED_M_PER_S: f64 = 0.1;
+
+/// One of a forceps' jaws as a body.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Jaw {
+    /// 0 or 1: the jaw on the −normal or the +normal side (the flat's normal: axis × edge).
+    side: usize,
+    half_width_m: f64,
+    half_thickness_m: f64,
+}
+
+impl Jaw {
+    /// This jaw's plate and its centre's offset along the flat's normal, m, with the
+    /// jaws' inner flats `2 half_gap_m` apart; None for the second jaw of closed forceps
+    /// (`half_gap_m` 0): closed, the first jaw is the two as one plate (the seam between
+    /// two touching plates would let the skin in between them).
+    fn placed(&self, half_gap_m: f64) -> Option<(Section, f64)> {
+        let Jaw { side, half_width_m, half_thickness_m } = *self;
+        if half_gap_m > 0.0 {
+            let offset = (half_gap_m + half_thickness_m) * if side == 0 { -1.0 } else { 1.0 };
+            Some((Section::Plate { half_width_m, half_thickness_m }, offset))
+        } else {
+            (side == 0).then_some((Section::Plate { half_width_m, half_thickness_m: 2.0 * half_thickness_m }, 0.0))
+        }
+    }
+}
+
+/// A body: its tool, and for a jaw which one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Body {
+    tool: usize,
+    jaw: Option<Jaw>,
+}
+
+/// The bodies of a model whose tools include forceps.
+#[derive(Debug, Clone)]
+pub(crate) struct Bodies {
+    of: Vec<Body>,
+    /// Per tool: its jaws' half gap now and open, m (0, 0 for a tool without jaws).
+    half_gap_m: Vec<(f64, f64)>,
+    /// Per body: its centre's offset from its tool's tip this step (world frame); None
+    /// while it is away (the second jaw of closed forceps).
+    arm: Vec<Option<Vec3>>,
+    pub commands: Vec<ToolCommand>,
+    pub feedback: Vec<ToolFeedback>,
+}
+
+/// The bodies of `tools` (a forceps' two jaws, every other tool as itself): their
+/// shapes (a jaw's section is set each step by [`Bodies::split`]), and the split between
+/// them; None where no tool has jaws (the bodies are the tools). Forceps start open.
+pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
+    if !tools.iter().any(|t| matches!(t.section, Section::Jaws { .. })) {
+        return (tools.to_vec(), None);
+    }
+    let (mut shapes, mut of, mut half_gap_m) = (Vec::new(), Vec::new(), Vec::new());
+    for (tool, shape) in tools.iter().enumerate() {
+        let Section::Jaws { half_width_m, half_thickness_m, half_gap_m: open } = shape.section else {
+            shapes.push(shape.clone());
+            of.push(Body { tool, jaw: None });
+            half_gap_m.push((0.0, 0.0));
+            continue;
+        };
+        half_gap_m.push((open, open));
+        for side in 0..2 {
+            let jaw = Jaw { side, half_width_m, half_thickness_m };
+            let (section, _) = jaw.placed(open).expect("an open jaw is placed");
+            // Bounds the jaw open and the closed plate.
+            shapes.push(ToolShape { radius_m: half_width_m.hypot(2.0 * half_thickness_m), section, ..shape.clone() });
+            of.push(Body { tool, jaw: Some(jaw) });
+        }
+    }
+    let n = of.len();
+    (shapes, Some(Bodies { of, half_gap_m, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
+}
+
+impl Bodies {
+    /// The bodies' commands from the tools' (`tools`: the scene's shapes) for a step of
+    /// `dt_s`, and the jaws' sections in `shapes` (the bodies' shapes): a forceps' jaws
+    /// move towards closed while its button is held, else towards open, at
+    /// [`JAW_SPEED_M_PER_S`].
+    pub fn split(&mut self, commands: &[ToolCommand], tools: &[ToolShape], shapes: &mut [ToolShape], dt_s: f64) {
+        for (command, (now, open)) in commands.iter().zip(self.half_gap_m.iter_mut()) {
+            let target = if command.cut { 0.0 } else { *open };
+            let travel = JAW_SPEED_M_PER_S * dt_s;
+            // Snapped to the target within a nanometre (steps of the travel do not sum
+            // exactly to it).
+            *now = if (target - *now).abs() <= travel + 1e-9 { target } else { *now + travel.copysign(target - *now) };
+        }
+        for (k, body) in self.of.iter().enumerate() {
+            let command = &commands[body.tool];
+            let out = &mut self.commands[k];
+            *out = *command;
+            self.arm[k] = match body.jaw {
+                None => Some(Vec3::zeros()),
+                Some(jaw) => jaw.placed(self.half_gap_m[body.tool].0).map(|(section, along_normal)| {
+                    shapes[k].section = section;
+                    let normal_local = Vec3::z().cross(&tools[body.tool].edge_local);
+                    command.pose.orientation * (normal_local * along_normal)
+                }),
+            };
+            match self.arm[k] {
+                Some(arm) => out.pose.position_m += arm,
+                None => out.active = false,
+            }
+            // A jaw cuts nothing; its tool's button closes the jaws.
+            if body.jaw.is_some() {
+                out.cut = false;
+            }
+        }
+    }
+
+    /// The tools' feedback from the bodies': forces, resistance and contacts summed, the
+    /// torque about the tool's tip, clamped at the tool's limit.
+    pub fn gather(&self, tools: &[ToolShape], feedback: &mut [ToolFeedback]) {
+        for fb in feedback.iter_mut() {
+            *fb = ToolFeedback::default();
+        }
+        for ((body, part), arm) in self.of.iter().zip(&self.feedback).zip(&self.arm) {
+            let Some(arm) = arm else { continue };
+            let fb = &mut feedback[body.tool];
+            fb.force_n += part.force_n;
+            fb.torque_nm += part.torque_nm + arm.cross(&part.force_n);
+            fb.resistance_n += part.resistance_n;
+            fb.contacts += part.contacts;
+            fb.cutting |= part.cutting;
+            fb.force_clamped |= part.force_clamped;
+        }
+        for (fb, tool) in feedback.iter_mut().zip(tools) {
+            fb.clamp_force(tool.max_force_n);
+        }
+    }
+
+    /// Per body, the body whose state it takes when it comes back into the scene: the
+    /// second jaw of forceps reopening takes the first's (through the skin or holding it,
+    /// as the closed jaws were).
+    pub fn twins(&self) -> Vec<Option<usize>> {
+        self.of.iter().enumerate().map(|(k, b)| b.jaw.filter(|j| j.side == 1).map(|_| k - 1)).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::{Pose, Quat};
+    use crate::tool::{Section, TipShape};
+
+    fn forceps() -> ToolShape {
+        ToolShape {
+            name: "forceps".into(),
+            radius_m: 1e-3_f64.hypot(4e-3 + 1e-3),
+            length_m: 0.08,
+            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3 },
+            contact_stiffness_n_per_m: 300.0,
+            can_cut: false,
+            max_force_n: 3.0,
+            cutting_shape: None,
+            edge_local: Vec3::x(),
+            tip_shape: TipShape::Flat,
+        }
+    }
+
+    #[test]
+    fn forceps_are_two_plates_either_side_of_the_axis_that_close_on_the_button() {
+        let probe = ToolShape { name: "probe".into(), section: Section::Round, radius_m: 3e-3, ..forceps() };
+        let tools = [probe.clone(), forceps()];
+        let (mut shapes, bodies) = expand(&tools);
+        let mut bodies = bodies.expect("forceps make bodies");
+        assert_eq!(shapes.len(), 3);
+        assert_eq!(shapes[0], probe);
+        assert_eq!(shapes[1].section, Section::Plate { half_width_m: 1e-3, half_thickness_m: 5e-4 });
+        // Turned a quarter about its axis, the edge faces +y and the flats' normal −x.
+        let pose = Pose::new(Vec3::new(0.01, 0.0, 0.0), Quat::from_axis_angle(&Vec3::z_axis(), std::f64::consts::FRAC_PI_2));
+        let mut commands = [ToolCommand::default(), ToolCommand { pose, active: true, cut: false }];
+        let jaw_x = |b: &Bodies, k: usize| b.commands[k].pose.position_m.x;
+        bodies.split(&commands, &tools, &mut shapes, 1e-3);
+        assert!((jaw_x(&bodies, 1) - 0.0145).abs() < 1e-12 && (jaw_x(&bodies, 2) - 0.0055).abs() < 1e-12, "open: 4.5 mm either side");
+        assert!(bodies.commands[1].active && bodies.commands[2].active);
+        assert_eq!(bodies.commands[0], commands[0], "the probe as it is");
+        // Closing: 0.1 mm a step per jaw, so 40 steps from 4 mm.
+        commands[1].cut = true;
+        bodies.split(&commands, &tools, &mut shapes, 1e-3);
+        assert!((jaw_x(&bodies, 1) - 0.0144).abs() < 1e-12, "{}", jaw_x(&bodies, 1));
+        assert!(!bodies.commands[1].cut, "the button closes the jaws, it does not cut");
+        for _ in 0..39 {
+            bodies.split(&commands, &tools, &mut shapes, 1e-3);
+        }
+        assert!((jaw_x(&bodies, 1) - 0.01).abs() < 1e-12 && !bodies.commands[2].active, "closed: one plate on the axis");
+        assert_eq!(shapes[1].section, Section::Plate { half_width_m: 1e-3, half_thickness_m: 1e-3 });
+        assert_eq!(bodies.twins(), vec![None, None, Some(1)]);
+        // Reopening: both jaws beside the axis from the first step.
+        commands[1].cut = false;
+        bodies.split(&commands, &tools, &mut shapes, 1e-3);
+        assert_eq!(shapes[1].section, Section::Plate { half_width_m: 1e-3, half_thickness_m: 5e-4 });
+        assert!(bodies.commands[2].active && (jaw_x(&bodies, 2) - 0.0094).abs() < 1e-12, "{}", jaw_x(&bodies, 2));
+    }
+
+    #[test]
+    fn the_jaws_feedback_sums_with_its_torque_about_the_forceps_tip_and_is_clamped() {
+        let tools = [forceps()];
+        let (mut shapes, bodies) = expand(&tools);
+        let mut bodies = bodies.unwrap();
+        let commands = [ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: false }];
+        bodies.split(&commands, &tools, &mut shapes, 1e-3);
+        // The jaws at y = −4.5 and +4.5 mm pushed up by 1 N and 0.5 N.
+        bodies.feedback[0] = ToolFeedback { force_n: Vec3::new(0.0, 0.0, 1.0), contacts: 2, ..Default::default() };
+        bodies.feedback[1] = ToolFeedback { force_n: Vec3::new(0.0, 0.0, 0.5), contacts: 1, ..Default::default() };
+        let mut feedback = [ToolFeedback::default()];
+        bodies.gather(&tools, &mut feedback);
+        assert_eq!((feedback[0].force_n, feedback[0].contacts), (Vec3::new(0.0, 0.0, 1.5), 3));
+        // r × F: (0, −4.5 mm, 0) × 1 N z + (0, 4.5 mm, 0) × 0.5 N z = −2.25e-3 N·m about x.
+        assert!((feedback[0].torque_nm - Vec3::new(-2.25e-3, 0.0, 0.0)).norm() < 1e-15, "{:?}", feedback[0].torque_nm);
+        bodies.feedback[1].force_n.z = 2.5;
+        bodies.gather(&tools, &mut feedback);
+        assert!((feedback[0].force_n.z - 3.0).abs() < 1e-12 && feedback[0].force_clamped, "3.5 N clamped at the forceps' 3 N");
+    }
+}
