@@ -460,8 +460,8 @@ fn supports(out: &Path) -> Result<(), String> {
                 let springs = parts.topo.supports.live(&parts.topo).count();
                 let held = cutsim_sim::grid::support::held_count(&parts.topo);
                 cells.push(if rule == SupportSpec::Embedded { format!("{} + {springs}", held - springs) } else { held.to_string() });
-                // A piece held at one point or along a line can still turn about it: the
-                // static problem has no solution, and the CG's answer is no error.
+                // The static problem may have no solution (a piece held at one point or
+                // along a line, say, can turn about it); then the CG's answer is no error.
                 cells.push(if residual > 1e-8 {
                     format!("no solution (CG stopped at residual {residual:.1e} after {iterations} iterations)")
                 } else {
