@@ -345,6 +345,24 @@ mod tests {
     }
 
     #[test]
+    fn open_jaws_are_two_plates_and_the_gap_between_them_is_outside() {
+        // Jaws 2 mm wide (along the edge, x) and 1 mm thick, inner flats 8 mm apart.
+        let jaws = PlacedTool { section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3 }, ..blade(0.0) };
+        assert_eq!(jaws.flat_normal(), Vec3::y());
+        assert!(jaws.section_exit(&Vec3::zeros()).is_none() && jaws.section_exit(&Vec3::new(0.0, 3.9e-3, 0.0)).is_none(), "the gap is outside");
+        // In the +y jaw near its inner flat: out towards the axis; near its outer flat:
+        // away from it; on the −y side the same, mirrored.
+        let (depth, out) = jaws.section_exit(&Vec3::new(0.0, 4.1e-3, 0.0)).unwrap();
+        assert!((depth - 1e-4).abs() < 1e-15 && out == -Vec3::y(), "{depth} {out:?}");
+        let (depth, out) = jaws.section_exit(&Vec3::new(0.0, -4.9e-3, 0.0)).unwrap();
+        assert!((depth - 1e-4).abs() < 1e-15 && out == -Vec3::y(), "{depth} {out:?}");
+        // Near a jaw's side: out through it, along the edge.
+        assert_eq!(jaws.section_exit(&Vec3::new(9.5e-4, 4.5e-3, 0.0)).unwrap().1, Vec3::x());
+        assert!(jaws.section_exit(&Vec3::new(0.0, 5.1e-3, 0.0)).is_none() && jaws.section_exit(&Vec3::new(1.1e-3, 4.5e-3, 0.0)).is_none());
+        assert_eq!(jaws.width_m(), 2e-3);
+    }
+
+    #[test]
     fn a_round_tool_is_left_radially() {
         let rod = PlacedTool::round(Vec3::zeros(), Vec3::z(), 1e-3, 0.1);
         let (depth, out) = rod.section_exit(&Vec3::new(0.0, 9e-4, 0.0)).unwrap();
