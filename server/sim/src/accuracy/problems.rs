@@ -309,11 +309,17 @@ pub fn embedding(topo: &Topology, v: usize, corner: usize) -> impl Iterator<Item
     (0..8).filter(move |&k| weights[k] != 0.0).map(move |k| (topo.elements.nodes[e][k] as usize, weights[k]))
 }
 
+/// Whether voxel `v` (one with an element) lies in a held piece, `held` being
+/// [`crate::grid::support::held_pieces`] of `topo`.
+pub fn in_held_piece(topo: &Topology, held: &[bool], v: usize) -> bool {
+    held[topo.elements.nodes[topo.voxel_element[v] as usize][0] as usize]
+}
+
 /// The samples that lie in a held piece of `topo` ([`crate::grid::support::held_pieces`]):
 /// a free piece has no static answer to compare.
 pub fn held_samples(topo: &Topology, samples: &[(usize, usize)]) -> Vec<(usize, usize)> {
     let held = crate::grid::support::held_pieces(topo);
-    samples.iter().copied().filter(|&(v, _)| held[topo.elements.nodes[topo.voxel_element[v] as usize][0] as usize]).collect()
+    samples.iter().copied().filter(|&(v, _)| in_held_piece(topo, &held, v)).collect()
 }
 
 /// The displacement (grid frame) at each sample point of the grid `topo` in its current

@@ -21,7 +21,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use cutsim_sim::accuracy::problems::{G, Load, Problem, held_samples, problems, sample_displacements, with_gravity_down};
+use cutsim_sim::accuracy::problems::{G, Load, Problem, held_samples, in_held_piece, problems, sample_displacements, with_gravity_down};
 use cutsim_sim::accuracy::reference::{Weighting, field_error, load_reference, solve_linear};
 use cutsim_sim::accuracy::report::{ErrorTable, LoadRow, Measured, MembraneStudy, Row, SceneStudy, markdown, svg};
 use cutsim_sim::accuracy::sweep::{Setting, build_grid, cantilever_frequency, own_reference, session_error, static_error, time_probe, tip_nodes};
@@ -137,10 +137,7 @@ fn scene_reference(problem: &Problem) -> Result<SceneReference, String> {
     let parts = if level == 0 { level0 } else { problem.parts(1).map_err(|e| e.to_string())? };
     // Pieces not connected to a hold have no static answer: left out (and said so).
     let held = held_pieces(&parts.topo);
-    let free_voxels = (0..parts.topo.material.len())
-        .filter(|&v| parts.topo.material[v] != 0 && parts.topo.voxel_element[v] != NONE)
-        .filter(|&v| !held[parts.topo.elements.nodes[parts.topo.voxel_element[v] as usize][0] as usize])
-        .count();
+    let free_voxels = (0..parts.topo.material.len()).filter(|&v| parts.topo.material[v] != 0 && parts.topo.voxel_element[v] != NONE && !in_held_piece(&parts.topo, &held, v)).count();
     let samples = held_samples(&parts.topo, &problem.samples(&parts));
     let free = if free_voxels == 0 {
         String::new()
@@ -164,15 +161,27 @@ fn scene_reference(problem: &Problem) -> Result<SceneReference, String> {
     Ok(SceneReference { samples, field, label, frequency_hz: None })
 }
 
+/// The bundled volumetric scenes the study covers.
+const STUDIED_SCENES: [&str; 4] = ["liver", "u-tube", "liver-smooth", "abdomen-layers"];
+
+/// The gravity problem the study measures a bundled scene by: the liver's is the
+/// reference problem scikit-fem solved (`liver-gravity`), the others' their scene under
+/// gravity.
+fn study_problem(name: &str) -> Result<Problem, String> {
+    let name = *STUDIED_SCENES.iter().find(|s| **s == name).ok_or_else(|| format!("{name:?} is not a bundled volumetric scene; one of {}", STUDIED_SCENES.join(", ")))?;
+    if name == "liver" {
+        return problems().map_err(|e| e.to_string())?.into_iter().find(|p| p.name == "liver-gravity").ok_or_else(|| "the liver-gravity problem".to_string());
+    }
+    bundled_problem(name)
+}
+
 /// One scene's reference and the static error of each of its levels from 1 (no timing,
-/// no session), printed.
+/// no session), printed: what the sweep measures them against, in minutes.
 fn static_errors(name: &str) -> Result<(), String> {
-    let scenes = ["liver", "liver-smooth", "abdomen-layers", "u-tube"];
-    let name = *scenes.iter().find(|s| **s == name).ok_or_else(|| format!("{name:?} is not a bundled volumetric scene; one of {}", scenes.join(", ")))?;
-    let problem = bundled_problem(name)?;
+    let problem = study_problem(name)?;
     let started = std::time::Instant::now();
     let SceneReference { samples, field, label, .. } = scene_reference(&problem)?;
-    println!("{name}: reference {label} ({} samples, {:.1} s)", samples.len(), started.elapsed().as_secs_f64());
+    println!("{}: reference {label} ({} samples, {:.1} s)", problem.name, samples.len(), started.elapsed().as_secs_f64());
     let field = field.ok_or("no reference: no errors to measure")?;
     for level in 1..=4 {
         match static_error(&problem, level, Weighting::Condensed, &samples, &field) {
@@ -234,7 +243,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     for name in ["u-tube", "liver-smooth", "abdomen-layers"] {
         let levels: &[u32] = if name == "u-tube" { &[0, 1, 2] } else { &[1, 2, 3] };
         let weighting = if name == "u-tube" { vec![1, 2] } else { vec![2, 3] };
-        plans.push((name.into(), bundled_problem(name)?, bundled_scene(name)?, scene_settings(levels, 60), weighting));
+        plans.push((name.into(), study_problem(name)?, bundled_scene(name)?, scene_settings(levels, 60), weighting));
     }
     let mut progress = Progress { done: 0, total: plans.iter().map(|p| p.3.len() + p.4.len() + 1).sum::<usize>() + all.len() + 2, started: std::time::Instant::now() };
 

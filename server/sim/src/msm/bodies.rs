@@ -132,8 +132,10 @@ impl Bodies {
     }
 
     /// The tools' feedback from the bodies': forces, resistance and contacts summed, the
-    /// torque about the tool's tip, clamped at the tool's limit.
-    pub fn gather(&self, tools: &[ToolShape], feedback: &mut [ToolFeedback]) {
+    /// torque about the tool's tip, clamped at the tool's limit. Returns how many tools
+    /// the sum clamped where no body of theirs was (each body's own clamp is counted where
+    /// it is made).
+    pub fn gather(&self, tools: &[ToolShape], feedback: &mut [ToolFeedback]) -> u64 {
         for fb in feedback.iter_mut() {
             *fb = ToolFeedback::default();
         }
@@ -147,9 +149,13 @@ impl Bodies {
             fb.cutting |= part.cutting;
             fb.force_clamped |= part.force_clamped;
         }
+        let mut clamped = 0;
         for (fb, tool) in feedback.iter_mut().zip(tools) {
+            let before = fb.force_clamped;
             fb.clamp_force(tool.max_force_n);
+            clamped += u64::from(fb.force_clamped && !before);
         }
+        clamped
     }
 
     /// Per body, the body whose state it takes when it comes back into the scene: the
@@ -231,8 +237,9 @@ mod tests {
         assert_eq!((feedback[0].force_n, feedback[0].contacts), (Vec3::new(0.0, 0.0, 1.5), 3));
         // r × F: (0, −4.5 mm, 0) × 1 N z + (0, 4.5 mm, 0) × 0.5 N z = −2.25e-3 N·m about x.
         assert!((feedback[0].torque_nm - Vec3::new(-2.25e-3, 0.0, 0.0)).norm() < 1e-15, "{:?}", feedback[0].torque_nm);
+        assert_eq!(bodies.gather(&tools, &mut feedback), 0, "nothing clamped");
         bodies.feedback[1].force_n.z = 2.5;
-        bodies.gather(&tools, &mut feedback);
+        assert_eq!(bodies.gather(&tools, &mut feedback), 1, "the sum clamped, counted");
         assert!((feedback[0].force_n.z - 3.0).abs() < 1e-12 && feedback[0].force_clamped, "3.5 N clamped at the forceps' 3 N");
     }
 }

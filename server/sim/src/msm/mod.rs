@@ -171,7 +171,7 @@ impl MassSpring {
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
                 self.step_bodies(&bodies.commands, &mut bodies.feedback);
-                bodies.gather(&self.scene_tools, feedback);
+                self.counters.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }
         }
@@ -263,7 +263,7 @@ impl MassSpring {
                 // A tool that appears below the skin is through it; the skin is not
                 // dragged to its tip.
                 // A forceps' jaw that reopens is as its twin was.
-                (Some(_), None) if self.twins[i].is_some_and(|t| self.placed[t].is_some()) => self.twins[i].is_some_and(|t| self.pierced[t]),
+                (Some(_), None) if let Some(twin) = self.twins[i].filter(|&t| self.placed[t].is_some()) => self.pierced[twin],
                 (Some(tool), None) => self.holder.first_crossing(&tool, &self.nodes, &self.topo, &self.grid, self.max_edge_m).is_some(),
                 (Some(_), Some(_)) => self.pierced[i],
             };
