@@ -290,40 +290,24 @@ fn the_grid_stays_bounded_at_extreme_settings() {
     }
 }
 
-/// The force a tool's capsule (tip, axis +z, `radius`, contact stiffness `k`) presses
-/// on, computed from the surface's vertices: what the penalty gives at that state.
-fn penalty_on_tool(g: &BranchedGrid, tip: Vec3, length: f64, radius: f64, k: f64) -> Vec3 {
-    let top = tip + Vec3::z() * length;
-    g.snapshot()
-        .vertices
-        .iter()
-        .filter_map(|v| {
-            let p = Vec3::new(f64::from(v.position_m[0]), f64::from(v.position_m[1]), f64::from(v.position_m[2]));
-            let (_, closest) = cutsim_sim::math::closest_point_on_segment(&p, &tip, &top);
-            let offset = p - closest;
-            let d = offset.norm();
-            (d < radius && d > 1e-12).then(|| -offset / d * (k * (radius - d)))
-        })
-        .sum()
-}
-
 #[test]
 fn the_grid_feeds_back_the_contact_force_of_the_solved_state() {
     // The probe (6 mm, 400 N/m) pushed into the block's top at 0.1 m/s: its force is
     // the penalty at the end of each step, as the implicit step solved it, not the
-    // penalty before the step (one step late).
+    // penalty before the step (one step late). The penalty is the grid's own rule
+    // (`penalty_now`: each vertex pushed along the normal it touched the tool with).
     let mut g = build_grid(&block_with_tools());
     let mut feedback = vec![ToolFeedback::default(); 2];
     let mut commands = vec![ToolCommand::default(); 2];
-    let (radius, length, k, speed, dt) = (0.006, 0.05, 400.0, 0.1, 1e-3);
+    let (speed, dt) = (0.1, 1e-3);
     let (mut worst_after, mut worst_before, mut contact_steps) = (0.0f64, 0.0f64, 0);
     // The capsule's rounded end first touches the top (z = 8 mm) from 14 mm.
     for step in 0..80 {
         let tip = Vec3::new(0.0011, 0.0013, 0.0145 - speed * dt * f64::from(step));
-        let before = penalty_on_tool(&g, tip, length, radius, k);
         commands[1] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
+        let before = g.penalty_now(1, &commands[1]);
         g.step(&commands, &mut feedback);
-        let after = penalty_on_tool(&g, tip, length, radius, k);
+        let after = g.penalty_now(1, &commands[1]);
         if after.z < 0.3 {
             continue;
         }

@@ -6,6 +6,7 @@ pub mod cut_resistance;
 pub mod factorization;
 pub mod fidelity;
 pub mod friction;
+pub mod hold;
 pub mod hierarchy;
 pub mod hex;
 pub mod marching;

@@ -83,6 +83,11 @@ pub struct BranchedGrid {
     /// Per surface vertex: where it stuck to a tool (super::friction); cleared when the
     /// surface changes.
     anchors: Vec<Option<super::friction::Anchor>>,
+    /// Per surface vertex: how it touches a tool (super::hold); kept across cuts (a
+    /// vertex's id is never reused).
+    touches: Vec<Option<super::hold::Touch>>,
+    /// The vertices a tool touches this step (scratch).
+    touching_scratch: Vec<(u32, super::hold::Contact)>,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -177,6 +182,8 @@ impl BranchedGrid {
             contact_vertices: Vec::new(),
             previous_tips: vec![None; tool_count],
             anchors: Vec::new(),
+            touches: Vec::new(),
+            touching_scratch: Vec::new(),
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -333,53 +340,101 @@ impl BranchedGrid {
         }
     }
 
-    /// Penalty contacts of tool `i`'s outer capsule with the surface vertices (their
-    /// count goes into `fb`).
+    /// Penalty contacts of tool `i`'s outer capsule with the surface vertices, each
+    /// pushed out on the side it came in from (super::hold); their count goes into `fb`.
     fn add_tool_contacts(&mut self, i: usize, command: &ToolCommand, fb: &mut ToolFeedback) {
-        let tool = &self.tools[i];
-        let tip = self.frame.to_local(&command.pose.position_m);
-        let axis = self.frame.rotation.transpose() * command.pose.axis();
-        let top = tip + axis * tool.length_m;
-        let (radius, k) = (tool.radius_m, tool.contact_stiffness_n_per_m);
-        let tool_velocity = self.previous_tips[i].map_or(Vec3::zeros(), |before| (tip - before) / self.dt_s);
+        use super::hold::Touch;
         if self.anchors.len() != self.surface.voxel.len() {
             // After a cut (which cleared them): the same capacity, as long as the surface.
             self.anchors.clear();
             self.anchors.resize(self.surface.voxel.len(), None);
         }
-        let (lo, hi) = (tip.inf(&top) - Vec3::repeat(radius), tip.sup(&top) + Vec3::repeat(radius));
-        let mut count = 0u32;
+        if self.touches.len() < self.surface.voxel.len() {
+            self.touches.resize(self.surface.voxel.len(), None);
+        }
+        let mut touching = std::mem::take(&mut self.touching_scratch);
+        let (tip, tool_to_grid, tool_velocity) = self.touching(i, command, &mut touching);
+        let k = self.tools[i].contact_stiffness_n_per_m;
+        let holding = !self.cutting(i, command);
+        for &(v, super::hold::Contact { normal, depth, entry }) in &touching {
+            let v = v as usize;
+            let p = self.surface.position(&self.topo, v);
+            if holding {
+                self.touches[v] = Some(Touch { tool: i, normal_in_tool: tool_to_grid.transpose() * entry, step: self.step_index });
+            }
+            let friction = self.friction_at(v);
+            let (stick_stiffness, stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * depth, friction);
+            let element = self.topo.voxel_element[self.surface.voxel[v] as usize];
+            self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force, tool_velocity });
+            self.contact_levers.push(p - tip);
+            self.contact_vertices.push(v as u32);
+        }
+        // The force the tool feels is the contacts' after the solve (solved_contact_forces).
+        fb.contacts = touching.len() as u32;
+        self.touching_scratch = touching;
+    }
+
+    /// The surface vertices tool `i` at `command`'s pose touches, each with the normal it
+    /// is pushed out along and how far (super::hold), into `out`; and the tool's tip,
+    /// orientation and velocity (grid frame).
+    fn touching(&self, i: usize, command: &ToolCommand, out: &mut Vec<(u32, super::hold::Contact)>) -> (Vec3, Matrix3<f64>, Vec3) {
+        use super::hold::{Capsule, contact};
+        out.clear();
+        let tool = &self.tools[i];
+        let tip = self.frame.to_local(&command.pose.position_m);
+        let tool_to_grid = super::hold::tool_to_grid(&self.frame.rotation, command.pose.orientation.to_rotation_matrix().matrix());
+        let top = tip + tool_to_grid * Vec3::z() * tool.length_m;
+        let capsule = Capsule { a: tip, b: top, radius: tool.radius_m };
+        let max_depth = tool.max_force_n / tool.contact_stiffness_n_per_m;
+        let cutting = self.cutting(i, command);
+        // The tool's motion over the step: a new contact came in along it.
+        let moved = self.previous_tips[i].map(|before| tip - before);
+        let tool_velocity = moved.map_or(Vec3::zeros(), |m| m / self.dt_s);
+        // A vertex the tool holds may be outside its capsule, by as much as the tool
+        // moved and up to a radius beside it: search that much further.
+        let reach = 2.0 * tool.radius_m + moved.map_or(0.0, |m| m.norm());
+        let (lo, hi) = (tip.inf(&top) - Vec3::repeat(reach), tip.sup(&top) + Vec3::repeat(reach));
         for cell in 0..self.surface.cell_vertices.len() {
             if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
                 continue;
             }
             for &v in &self.surface.cell_vertices[cell] {
-                let v = v as usize;
-                let p = self.surface.position(&self.topo, v);
-                let (_, closest) = closest_point_on_segment(&p, &tip, &top);
-                let offset = p - closest;
-                let distance = offset.norm();
-                if distance >= radius {
+                if self.topo.voxel_element[self.surface.voxel[v as usize] as usize] == NONE {
                     continue;
                 }
-                // Pushed out radially; a vertex exactly on the axis goes out along any normal.
-                let normal = if distance > 1e-12 { offset / distance } else { axis.cross(&Vec3::x()).try_normalize(1e-9).unwrap_or(Vec3::y()) };
-                let on_tissue = normal * (k * (radius - distance));
-                let voxel = self.surface.voxel[v];
-                let element = self.topo.voxel_element[voxel as usize];
-                if element == NONE {
+                let p = self.surface.position(&self.topo, v as usize);
+                if cutting {
+                    // The cut parts the tissue in front of the blade: it must reach the
+                    // cutting shape, so nothing holds it out (the cut resists through the
+                    // material's toughness instead, super::cut_resistance).
+                    let (normal, depth) = capsule.radial(&p);
+                    if depth > 0.0 {
+                        out.push((v, super::hold::Contact { normal, depth, entry: normal }));
+                    }
                     continue;
                 }
-                let friction = self.friction_at(v);
-                let (stick_stiffness, stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * (radius - distance), friction);
-                self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: on_tissue, stick_stiffness, stick_force, tool_velocity });
-                self.contact_levers.push(p - tip);
-                self.contact_vertices.push(v as u32);
-                count += 1;
+                let remembered = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step + 1 >= self.step_index).map(|t| tool_to_grid * t.normal_in_tool);
+                if let Some(touch) = contact(&capsule, &p, remembered, moved.map(|m| p + m), max_depth) {
+                    out.push((v, touch));
+                }
             }
         }
-        // The force the tool feels is the contacts' after the solve (solved_contact_forces).
-        fb.contacts = count;
+        (tip, tool_to_grid, tool_velocity)
+    }
+
+    /// Whether tool `i` cuts under `command` (a cutting tool with its button held).
+    fn cutting(&self, i: usize, command: &ToolCommand) -> bool {
+        self.tools[i].can_cut && command.active && command.cut && command.pose.is_finite()
+    }
+
+    /// The penalty force tool `i` at `command`'s pose would feel from the surface as it
+    /// is now (each vertex along the normal it touched the tool with last step), world
+    /// frame, N: what the step's fed-back force is checked against.
+    pub fn penalty_now(&self, i: usize, command: &ToolCommand) -> Vec3 {
+        let mut touching = Vec::new();
+        self.touching(i, command, &mut touching);
+        let k = self.tools[i].contact_stiffness_n_per_m;
+        self.frame.rotation * touching.iter().map(|(_, c)| -c.normal * (k * c.depth)).sum::<Vec3>()
     }
 
     /// The friction of surface vertex `v`'s material.
@@ -450,7 +505,7 @@ impl BranchedGrid {
         let half_voxel = self.topo.layout.spacing_m.iter().copied().fold(f64::INFINITY, f64::min) * 0.5;
         let tools = self.tools.len();
         for (i, command) in commands.iter().enumerate() {
-            let cutting = |c: &ToolCommand| self.tools[i].can_cut && c.active && c.cut && c.pose.is_finite();
+            let cutting = |c: &ToolCommand| self.cutting(i, c);
             if !cutting(command) {
                 self.strokes[i] = Stroke::default();
                 continue;

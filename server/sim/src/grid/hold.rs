@@ -1,0 +1,244 @@
+//! Contact that holds: a surface vertex touching a tool is pushed out of the tool on the
+//! side it came in from, not radially from the tool's axis.
+//!
+//! A radial penalty (each vertex inside the capsule pushed away from the nearest point
+//! of its axis) lets a probe through the tissue: pressed deeper than the ball's centre,
+//! the vertices under it are pushed sideways and then up, and the probe slips between
+//! them (a 6 mm probe went through a 30 kPa block at 0.97 N). Here each vertex in
+//! contact remembers the capsule's outward normal where it came in, in the tool's own
+//! frame (so it turns with the tool), and while it stays in contact it is pushed along
+//! that normal by as far as the tool lies across the ray from it along the normal: the
+//! ray's exit from the capsule. A vertex under the probe's ball is pushed down until it
+//! is below the ball, however deep the probe goes; a vertex the tool has passed over is
+//! pushed back out the side it came from. The contact lets go when the ray misses the
+//! tool (the vertex has come out, or the tool has moved off it). A new contact's normal
+//! is where its path relative to the tool over the step (the tool's motion) entered the
+//! capsule, so a vertex the tool reached in one long step is not pushed out the far side;
+//! one that came in through the tip's ball is held along the tool's axis (the tip a face
+//! that pushes along the tool), since along the ball's inclined normal it would still
+//! be pushed out sideways once the tool was a radius in. Near the tool's surface a vertex
+//! is pushed along the surface's normal there, so a tool slides over the tissue as a
+//! frictionless one does (see [`contact`]).
+
+use crate::math::{Matrix3, Vec3, closest_point_on_segment};
+
+/// A surface vertex in contact with a tool.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Touch {
+    pub tool: usize,
+    /// The capsule's outward unit normal where the vertex came in (kept while the
+    /// contact lasts), in the tool's frame.
+    pub normal_in_tool: Vec3,
+    /// The step it was last in contact.
+    pub step: u64,
+}
+
+/// A capsule: the segment `a`–`b` swept by a ball of radius `radius`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Capsule {
+    pub a: Vec3,
+    pub b: Vec3,
+    pub radius: f64,
+}
+
+impl Capsule {
+    /// Where the line `p + t n` (n a unit vector) lies in the capsule: its interval of t,
+    /// or None if it misses. The capsule is convex, so the interval is one: the hull of
+    /// the intervals of its two balls and of its cylinder between them.
+    pub fn interval(&self, p: &Vec3, n: &Vec3) -> Option<(f64, f64)> {
+        let mut hull: Option<(f64, f64)> = None;
+        let mut take = |lo: f64, hi: f64| {
+            if lo <= hi {
+                hull = Some(hull.map_or((lo, hi), |(l, h)| (l.min(lo), h.max(hi))));
+            }
+        };
+        for centre in [self.a, self.b] {
+            if let Some((lo, hi)) = quadratic_interval(1.0, (p - centre).dot(n), (p - centre).norm_squared() - self.radius * self.radius) {
+                take(lo, hi);
+            }
+        }
+        let axis = self.b - self.a;
+        let length = axis.norm();
+        if length > 1e-12 {
+            let w = axis / length;
+            let m = p - self.a;
+            let (m_along, n_along) = (m.dot(&w), n.dot(&w));
+            let (m_across, n_across) = (m - w * m_along, n - w * n_along);
+            // The infinite cylinder's interval, then the slab 0 ≤ along ≤ length.
+            let across = if n_across.norm_squared() < 1e-18 {
+                (m_across.norm_squared() <= self.radius * self.radius).then_some((f64::NEG_INFINITY, f64::INFINITY))
+            } else {
+                quadratic_interval(n_across.norm_squared(), m_across.dot(&n_across), m_across.norm_squared() - self.radius * self.radius)
+            };
+            let slab = if n_along.abs() < 1e-12 {
+                (0.0..=length).contains(&m_along).then_some((f64::NEG_INFINITY, f64::INFINITY))
+            } else {
+                let (t0, t1) = (-m_along / n_along, (length - m_along) / n_along);
+                Some((t0.min(t1), t0.max(t1)))
+            };
+            if let (Some((c0, c1)), Some((s0, s1))) = (across, slab) {
+                take(c0.max(s0), c1.min(s1));
+            }
+        }
+        hull
+    }
+
+    /// How far `p` must move along the unit vector `n` to be clear of the capsule: the
+    /// exit of the ray from `p` along `n`, if the capsule lies across it ahead of `p`
+    /// (or around it).
+    pub fn depth_along(&self, p: &Vec3, n: &Vec3) -> Option<f64> {
+        self.interval(p, n).map(|(_, exit)| exit).filter(|&exit| exit > 0.0)
+    }
+
+    /// The outward normal at the surface point nearest `p` (a point on the axis: any
+    /// normal across it), and how far inside `p` is (negative outside).
+    pub fn radial(&self, p: &Vec3) -> (Vec3, f64) {
+        let (_, closest) = closest_point_on_segment(p, &self.a, &self.b);
+        let offset = p - closest;
+        let distance = offset.norm();
+        let normal = if distance > 1e-12 { offset / distance } else { (self.b - self.a).cross(&Vec3::x()).try_normalize(1e-9).unwrap_or(Vec3::y()) };
+        (normal, self.radius - distance)
+    }
+
+    /// The outward normal where the path from `before` (outside) to `p` (inside) came
+    /// into the capsule; None if `before` is inside too or the path is too short to say.
+    pub fn entry_normal(&self, before: &Vec3, p: &Vec3) -> Option<Vec3> {
+        let path = p - before;
+        let length = path.norm();
+        if length < 1e-12 || self.radial(before).1 >= 0.0 {
+            return None;
+        }
+        let direction = path / length;
+        let (entry, _) = self.interval(before, &direction)?;
+        (0.0..=length).contains(&entry).then(|| self.radial(&(before + direction * entry)).0)
+    }
+}
+
+impl Capsule {
+    /// The normal a vertex that came in at the surface normal `n` is held along: the
+    /// tool's axis out of its tip where it came in through the tip's ball (the tip is a
+    /// face that pushes along the tool, as a probe's end does: a vertex under it stays
+    /// under it however deep the tool goes, where along the ball's inclined normal it
+    /// would be pushed out sideways once the tool was a radius in), `n` elsewhere.
+    pub fn face_normal(&self, n: &Vec3) -> Vec3 {
+        let out_of_tip = (self.a - self.b).try_normalize(1e-12).unwrap_or(*n);
+        if n.dot(&out_of_tip) > 1e-9 { out_of_tip } else { *n }
+    }
+}
+
+/// The roots of `A t² + 2 B t + C = 0` (A > 0) in order, if real.
+fn quadratic_interval(a: f64, b: f64, c: f64) -> Option<(f64, f64)> {
+    let discriminant = b * b - a * c;
+    (discriminant >= 0.0).then(|| {
+        let root = discriminant.sqrt();
+        ((-b - root) / a, (-b + root) / a)
+    })
+}
+
+/// How deep inside the tool (a fraction of its radius) a vertex is pushed out along the
+/// tool's surface normal nearest it, as a frictionless contact is, and slides over it
+/// (the normal turning as it goes); deeper, along the normal it came in with.
+pub const SHALLOW: f64 = 0.25;
+
+/// A vertex's contact with a tool: the normal it is pushed out along, how far, and the
+/// normal it came in with (to remember while the contact lasts).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Contact {
+    pub normal: Vec3,
+    pub depth: f64,
+    pub entry: Vec3,
+}
+
+/// How a vertex at `p` touches `capsule`, given the normal it came in with if it was in
+/// contact last step (`entry`, grid frame) and, for a new contact, where it was
+/// relative to the tool a step before (`before`); None if it does not. Near the tool's
+/// surface (within [`SHALLOW`] of its radius) the normal is the surface's there, so a
+/// tool rolls or slides over the tissue as a frictionless one does; deeper, or once that
+/// normal has turned more than a right angle from the one it came in with, the vertex
+/// is pushed along the normal it came in with, so it cannot be pushed round the tool's
+/// far side. The entry normal is kept for the whole contact, never turned step by step,
+/// so a vertex going in and out of the shallow band cannot ratchet it round.
+///
+/// A contact deeper than `max_depth` lets go: one vertex alone would push on the tool
+/// with more than its rated force there, so the tool has gone through (or the vertex
+/// was flung past it, which must not fling it back harder).
+pub fn contact(capsule: &Capsule, p: &Vec3, entry: Option<Vec3>, before: Option<Vec3>, max_depth: f64) -> Option<Contact> {
+    let (radial, inside) = capsule.radial(p);
+    let entry = match entry {
+        Some(entry) => entry,
+        None if inside > 0.0 => capsule.face_normal(&before.and_then(|before| capsule.entry_normal(&before, p)).unwrap_or(radial)),
+        None => return None,
+    };
+    if inside > 0.0 && inside <= SHALLOW * capsule.radius && radial.dot(&entry) > 0.0 {
+        return Some(Contact { normal: radial, depth: inside, entry });
+    }
+    capsule.depth_along(p, &entry).filter(|&depth| depth <= max_depth).map(|depth| Contact { normal: entry, depth, entry })
+}
+
+/// The tool's orientation in the grid's frame, for its normals' round trip.
+pub fn tool_to_grid(grid_rotation: &Matrix3<f64>, tool_rotation: &Matrix3<f64>) -> Matrix3<f64> {
+    grid_rotation.transpose() * tool_rotation
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A ball-ended rod of radius 3 mm standing on its tip at the origin.
+    fn probe() -> Capsule {
+        Capsule { a: Vec3::new(0.0, 0.0, 0.003), b: Vec3::new(0.0, 0.0, 0.1), radius: 0.003 }
+    }
+
+    #[test]
+    fn a_line_meets_the_ball_the_cylinder_or_misses() {
+        let c = probe();
+        // Down the axis: from the top of the segment's ball to the apex.
+        let (lo, hi) = c.interval(&Vec3::new(0.0, 0.0, 0.2), &-Vec3::z()).unwrap();
+        assert!((lo - (0.2 - 0.103)).abs() < 1e-12 && (hi - 0.2).abs() < 1e-12, "{lo} {hi}");
+        // Across the shaft at 5 cm: its diameter.
+        let (lo, hi) = c.interval(&Vec3::new(-1.0, 0.001, 0.05), &Vec3::x()).unwrap();
+        let half = (0.003f64.powi(2) - 0.001f64.powi(2)).sqrt();
+        assert!((lo - (1.0 - half)).abs() < 1e-12 && (hi - (1.0 + half)).abs() < 1e-12);
+        // Across under the apex: nothing.
+        assert!(c.interval(&Vec3::new(-1.0, 0.0, -0.0001), &Vec3::x()).is_none());
+    }
+
+    #[test]
+    fn a_vertex_that_came_in_under_the_ball_is_pushed_down_below_it_however_deep_the_probe_goes() {
+        let c = probe();
+        let down = -Vec3::z();
+        // 1 mm off the axis, at the height of the ball's centre (radially, it would go
+        // out sideways): along its normal it must go down to the ball's underside.
+        let p = Vec3::new(0.001, 0.0, 0.003);
+        let Contact { normal, depth, .. } = contact(&c, &p, Some(down), None, 1.0).unwrap();
+        let underside = 0.003 - (0.003f64.powi(2) - 0.001f64.powi(2)).sqrt();
+        assert_eq!(normal, down);
+        assert!((depth - (0.003 - underside)).abs() < 1e-12, "{depth}");
+        // Radially it goes sideways by 2 mm.
+        let (radial, inside) = c.radial(&p);
+        assert!((radial - Vec3::x()).norm() < 1e-12 && (inside - 0.002).abs() < 1e-12);
+        // Beside the ball, or below it: the ray misses, the contact lets go.
+        assert!(contact(&c, &Vec3::new(0.004, 0.0, 0.003), Some(down), None, 1.0).is_none());
+        assert!(contact(&c, &Vec3::new(0.0, 0.0, -0.001), Some(down), None, 1.0).is_none());
+        // Deeper than one vertex could be below the tool's rated force: let go.
+        assert!(contact(&c, &p, Some(down), None, 0.001).is_none());
+    }
+
+    #[test]
+    fn a_new_contact_is_pushed_out_where_its_path_came_in() {
+        let c = probe();
+        // The probe came down 3.5 mm in one step onto a vertex 0.5 mm off its axis: the
+        // vertex is now above the ball's centre, beside the shaft; it came in through the
+        // ball's underside, so it is pushed down, not sideways.
+        let p = Vec3::new(0.0005, 0.0, 0.0035);
+        let before = p + Vec3::new(0.0, 0.0, -0.0035);
+        let Contact { normal, depth, .. } = contact(&c, &p, None, Some(before), 1.0).unwrap();
+        assert!(normal.z < -0.9, "{normal:?}");
+        assert!(depth > 0.003, "{depth}");
+        // Without a path, radially.
+        let normal = contact(&c, &p, None, None, 1.0).unwrap().normal;
+        assert!(normal.x > 0.9, "{normal:?}");
+        // Outside: no contact.
+        assert!(contact(&c, &Vec3::new(0.0, 0.0, -0.0001), None, None, 1.0).is_none());
+    }
+}
