@@ -1,6 +1,6 @@
 //! Dynamics of the branched grid: corotational hexahedra, implicit Euler on the assembled
 //! block-sparse system (crate::solver) solved by warm-started preconditioned conjugate
-//! gradient, Rayleigh damping, lumped or consistent mass, fixed nodes, and penalty
+//! gradient (its guess extrapolated from the last steps' solutions), Rayleigh damping, lumped or consistent mass, fixed nodes, and penalty
 //! contacts whose stiffness enters the solve.
 //!
 //! Rotation: per element, the polar rotation of its deformation gradient at the centre
@@ -26,6 +26,7 @@ use crate::math::{Matrix3, Vec3};
 use crate::solver::block_sparse::{BlockMatrix, Pattern, Scatter};
 use crate::solver::kernels::{Planar24, rotate_and_multiply};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
+use crate::solver::predictor::Predictor;
 use crate::solver::multigrid::VCycle;
 use crate::solver::preconditioner::BlockJacobi;
 use super::factorization::Factorization;
@@ -138,8 +139,10 @@ pub struct Dynamics {
     /// Scratch of the V-cycle.
     vcycle_scratch: Vec<Vec3>,
     pcg: Pcg,
-    /// Δv of the last step: the next solve starts from it.
+    /// Δv of the last step; before the next solve, that solve's initial guess.
     pub dv: Vec<Vec3>,
+    /// The guess: Δv extrapolated from the last steps' (crate::solver::predictor).
+    predictor: Predictor,
     /// How the last solve went.
     pub last: Convergence,
 }
@@ -159,6 +162,7 @@ impl Dynamics {
             buffer.resize(n, Vec3::zeros());
         }
         self.active.resize(n, false);
+        self.predictor.resize(n);
         self.rotations.resize(topo.elements.len(), Matrix3::identity());
         self.stale_pattern = true;
         self.multigrid.topology_changed();
@@ -179,6 +183,7 @@ impl Dynamics {
     /// Forgets the warm start (after a contained blow-up).
     pub fn reset_warm_start(&mut self) {
         self.dv.iter_mut().for_each(|v| *v = Vec3::zeros());
+        self.predictor.forget();
     }
 
     /// Updates every element's rotation from its current corners.
@@ -339,6 +344,7 @@ impl Dynamics {
             self.b[i] = if self.active[i] { (self.force[i] - self.q[i] * settings.alpha_per_s) * h } else { Vec3::zeros() };
         }
         let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: VELOCITY_FLOOR };
+        self.predictor.predict(&mut self.dv[..n]);
         self.last = self.solve_b(topo, settings, step, &pcg_settings, Unknown::VelocityChange);
     }
 

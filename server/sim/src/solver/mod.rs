@@ -7,6 +7,7 @@
 //!   is built once per topology and whose values are refreshed every step;
 //! - [`pcg`]: preconditioned conjugate gradient that reports, for every solve, its
 //!   iterations, the residual it reached and whether it hit its cap;
+//! - [`predictor`]: the solve's initial guess, extrapolated from the last steps';
 //! - [`preconditioner`]: none and block Jacobi, the baselines;
 //! - [`multigrid`]: a V-cycle over coarser Galerkin levels, the preconditioner whose
 //!   iteration count does not grow with resolution;
@@ -28,3 +29,4 @@ pub mod kernels;
 pub mod multigrid;
 pub mod pcg;
 pub mod preconditioner;
+pub mod predictor;
