@@ -24,7 +24,7 @@ use super::hex::Mat24;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
 use crate::solver::block_sparse::{BlockMatrix, Pattern, Scatter};
-use crate::solver::kernels::{Planar24, rotate_and_multiply};
+use crate::solver::kernels::{Planar24, rotate_and_multiply, rotated_multiply};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
 use crate::solver::predictor::Predictor;
 use crate::solver::multigrid::VCycle;
@@ -122,6 +122,16 @@ pub struct Dynamics {
     active: Vec<bool>,
     /// `A = (1 + hα) M + (h² + hβ) K_R + h² K_c`, assembled every step.
     system: BlockMatrix<f32>,
+    /// `(h² + hβ) Σ_e K_R(e)`: the elements' part of `system`, kept across steps; element
+    /// e's blocks in it were rotated by `scattered[e]` and are rotated again only once
+    /// its rotation has moved on by more than [`ROTATION_KEPT`] (see `assemble`).
+    stiffness: BlockMatrix<f32>,
+    /// Per element: the rotation its blocks in `stiffness` were made with (None: not in).
+    scattered: Vec<Option<Matrix3<f64>>>,
+    /// Steps since `stiffness` was last made whole from nothing, and the factor it was
+    /// made with.
+    stiffness_age: u32,
+    stiffness_scale: f64,
     /// `system` changed since `diagonal` and `jacobi` were taken from it.
     diagonal_stale: bool,
     /// An element's stiffness in the world frame (scratch).
@@ -203,7 +213,10 @@ impl Dynamics {
         let pattern = system_pattern(topo);
         self.scatter = Scatter::new(&pattern, &topo.elements.nodes, &topo.elements.alive);
         self.first_element = first_elements(topo);
+        self.stiffness = BlockMatrix::zeros(pattern.clone());
         self.system = BlockMatrix::zeros(pattern);
+        self.scattered.clear();
+        self.scattered.resize(topo.elements.len(), None);
         self.stale_pattern = false;
     }
 
@@ -223,12 +236,26 @@ impl Dynamics {
             self.force[i] = Vec3::zeros();
             self.active[i] = topo.nodes.alive[i] && !topo.nodes.fixed[i];
         }
-        self.system.clear();
+        // The elements' blocks are kept from step to step: an element's are taken out
+        // and put back rotated anew only once its rotation has moved by more than
+        // ROTATION_KEPT since they were made (most of a body at rest or moving rigidly
+        // in small steps keeps them), and every STIFFNESS_REMADE steps the whole part is
+        // made again from nothing (the f32 round-off of taking blocks out and putting
+        // them back does not accumulate). The forces always take the rotation of now.
+        let remake = self.stiffness_age >= STIFFNESS_REMADE || self.stiffness_scale != a_stiff;
+        if remake {
+            self.stiffness.clear();
+            self.scattered.iter_mut().for_each(|r| *r = None);
+            self.stiffness_age = 0;
+            self.stiffness_scale = a_stiff;
+        }
+        self.stiffness_age += 1;
         // One pass over the elements: rotations, f_el − (β + h) K_R v, and the element's
-        // blocks of the system.
+        // blocks of the system where they moved.
         let damping = settings.beta_s + h;
         let cell_m = topo.layout.cell_size_m();
         let consistent = settings.mass == MassModel::Consistent;
+        let to_f32 = |r: &Matrix3<f64>| -> [[f32; 3]; 3] { std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32)) };
         for e in 0..topo.elements.len() {
             if !topo.elements.alive[e] {
                 continue;
@@ -240,25 +267,40 @@ impl Dynamics {
             let r = self.rotations[e];
             let k = &topo.elements.stiffness_single[e];
             let d = world_displacement(topo, e, &r, damping);
-            let rf: [[f32; 3]; 3] = std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32));
-            let rotated = &mut *self.rotated;
+            let rf = to_f32(&r);
             let mut f = [0f32; 24];
-            rotate_and_multiply(k, &rf, &d, rotated, &mut f);
+            let blocks = &self.scatter.blocks[e];
+            match self.scattered[e] {
+                Some(before) if (r - before).amax() <= ROTATION_KEPT => rotated_multiply(k, &rf, &d, &mut f),
+                before => {
+                    let rotated = &mut *self.rotated;
+                    if let Some(before) = before {
+                        let mut unused = [0f32; 24];
+                        rotate_and_multiply(k, &to_f32(&before), &d, rotated, &mut unused);
+                        self.stiffness.add_element(blocks, rotated, -(a_stiff as f32));
+                    }
+                    rotate_and_multiply(k, &rf, &d, rotated, &mut f);
+                    self.stiffness.add_element(blocks, rotated, a_stiff as f32);
+                    self.scattered[e] = Some(r);
+                }
+            }
             for c in 0..8 {
                 self.force[nodes[c] as usize] -= Vec3::new(f64::from(f[3 * c]), f64::from(f[3 * c + 1]), f64::from(f[3 * c + 2]));
             }
-            let blocks = &self.scatter.blocks[e];
-            self.system.add_element(blocks, rotated, a_stiff as f32);
-            if consistent {
-                let m = &topo.elements.mass[e];
+        }
+        // The step's system: the elements' part, then the mass, the supports and (later)
+        // the contacts.
+        self.system.values.copy_from_slice(&self.stiffness.values);
+        if consistent {
+            for e in (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]) {
+                let (blocks, m) = (&self.scatter.blocks[e], &topo.elements.mass[e]);
                 for i in 0..8 {
                     for j in 0..8 {
                         self.system.add_diagonal(blocks[8 * i + j] as usize, Vec3::repeat(a_mass * m[(i, j)]));
                     }
                 }
             }
-        }
-        if !consistent {
+        } else {
             for i in 0..n {
                 let at = self.system.pattern.diag[i] as usize;
                 self.system.add_diagonal(at, Vec3::repeat(a_mass * topo.nodes.mass[i]));
@@ -446,6 +488,15 @@ impl Dynamics {
         max_dv
     }
 }
+
+/// How far (largest entry of the difference) an element's rotation may move from the
+/// one its blocks in the system were made with before they are made again: the step's
+/// linearisation already freezes rotations over the step, and 1e-4 rad is a fraction of
+/// what an element turns in a step of a body in motion.
+pub const ROTATION_KEPT: f64 = 1e-4;
+
+/// Steps after which the elements' part of the system is made whole again.
+pub const STIFFNESS_REMADE: u32 = 256;
 
 /// The relative residual a compliance query is solved to (see `Dynamics::compliance`).
 pub const COMPLIANCE_TOLERANCE: f64 = 1e-3;
@@ -745,4 +796,88 @@ pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_ite
         topo.nodes.x[i] = topo.nodes.rest[i] + u[i];
     }
     (iterations, if b_norm2 > 0.0 { (r2 / b_norm2).sqrt() } else { 0.0 })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::condense::{Volumetric, VoxelMatrices};
+    use crate::grid::topology::Layout;
+    use crate::volume::procedural::solid_box;
+
+    /// A 16 × 8 × 8 mm bar of 1 mm voxels at level 1 (2 mm elements), nothing held.
+    fn bar() -> Topology {
+        let volume = solid_box([0.016, 0.008, 0.008], 0.001, 1);
+        let layout = Layout::new(volume.dims, 1, volume.spacing_m);
+        let material = volume.labels.iter().map(|&l| u16::from(l != 0)).collect();
+        Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(1e4, 0.4, 1000.0)], Volumetric::MeanDilatation))
+    }
+
+    fn settings() -> SolverSettings {
+        SolverSettings { dt_s: 1e-3, cg_max_iterations: 100, cg_tolerance: 1e-8, alpha_per_s: 0.0, beta_s: 0.0, mass: MassModel::Lumped, gravity: None, preconditioner: Preconditioning::Jacobi }
+    }
+
+    /// Turns every node rigidly by `angle` about z through the bar's first node.
+    fn turn(topo: &mut Topology, angle: f64) {
+        let r = nalgebra::Rotation3::from_axis_angle(&Vec3::z_axis(), angle);
+        let centre = topo.nodes.rest[0];
+        for i in 0..topo.nodes.len() {
+            topo.nodes.x[i] = centre + r * (topo.nodes.rest[i] - centre);
+        }
+    }
+
+    /// The largest difference between two systems' blocks over their largest entry.
+    fn relative_difference(a: &BlockMatrix<f32>, b: &BlockMatrix<f32>) -> f64 {
+        let largest = a.values.iter().flatten().fold(0f32, |m, v| m.max(v.abs()));
+        let differs = a.values.iter().flatten().zip(b.values.iter().flatten()).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+        f64::from(differs / largest)
+    }
+
+    #[test]
+    fn element_blocks_are_kept_while_their_rotation_stays_within_its_tolerance_and_made_again_after() {
+        let settings = settings();
+        let mut topo = bar();
+        let mut kept = Dynamics::new(&topo);
+        kept.assemble(&mut topo, &settings);
+        // Turned by a third of the tolerance: the blocks are the ones made at rest, a
+        // fresh assembly differs by about the angle, and a rigid turn still feels no
+        // elastic force (the forces take the rotation of now).
+        turn(&mut topo, ROTATION_KEPT / 3.0);
+        let at_rest = kept.system.clone();
+        kept.assemble(&mut topo, &settings);
+        assert_eq!(kept.system, at_rest, "the blocks made at rest are kept");
+        let mut fresh = Dynamics::new(&topo);
+        fresh.assemble(&mut topo, &settings);
+        let off = relative_difference(&kept.system, &fresh.system);
+        assert!(off > 0.0 && off < 2.0 * ROTATION_KEPT, "kept blocks {off:e} off a fresh assembly");
+        let largest_force = kept.force.iter().map(|f| f.amax()).fold(0.0, f64::max);
+        let scale = topo.elements.stiffness[0].amax() * 1e-3;
+        assert!(largest_force < 1e-5 * scale, "a rigid turn makes {largest_force:e} N of elastic force");
+        // Turned by three times the tolerance: every element's blocks are made again, the
+        // same as a fresh assembly's to the single-precision round-off of taking the old
+        // ones out.
+        turn(&mut topo, 3.0 * ROTATION_KEPT);
+        kept.assemble(&mut topo, &settings);
+        let mut fresh = Dynamics::new(&topo);
+        fresh.assemble(&mut topo, &settings);
+        let off = relative_difference(&kept.system, &fresh.system);
+        assert!(off < 1e-6, "blocks made again {off:e} off a fresh assembly");
+    }
+
+    #[test]
+    fn the_kept_elements_part_is_made_whole_again_at_its_appointed_steps() {
+        let settings = settings();
+        let mut topo = bar();
+        let mut kept = Dynamics::new(&topo);
+        // Turning a little further every step, by more than the tolerance each time:
+        // taken out and put back every step, then remade from nothing.
+        for step in 0..STIFFNESS_REMADE + 1 {
+            turn(&mut topo, 2.0 * ROTATION_KEPT * f64::from(step));
+            kept.assemble(&mut topo, &settings);
+        }
+        assert_eq!(kept.stiffness_age, 1, "remade at the last step");
+        let mut fresh = Dynamics::new(&topo);
+        fresh.assemble(&mut topo, &settings);
+        assert_eq!(kept.system, fresh.system, "made from nothing, as a fresh assembly");
+    }
 }

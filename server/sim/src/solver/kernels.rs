@@ -132,6 +132,42 @@ dispatch! {
 }
 
 dispatch! {
+    /// `f = (I₈ ⊗ R) K (I₈ ⊗ Rᵀ) d` without forming the rotated matrix (d and f corner-
+    /// major, K in planar layout): for an element whose blocks in the system are kept
+    /// from an earlier step (see `grid::solver`), a fifth of [`rotate_and_multiply`]'s
+    /// work. K is symmetric, so `K u` sums K's rows as its columns, eight lanes at a time.
+    pub fn rotated_multiply(k: &Planar24, r: &[[f32; 3]; 3], d: &[f32; 24], f: &mut [f32; 24]) {
+        // u = (I ⊗ Rᵀ) d: corner c's u_q = Σ_p R[p][q] d_p.
+        let mut u = [0f32; 24];
+        for c in 0..8 {
+            for q in 0..3 {
+                let mut sum = 0f32;
+                for p in 0..3 {
+                    sum = d[3 * c + p].mul_add(r[p][q], sum);
+                }
+                u[3 * c + q] = sum;
+            }
+        }
+        let mut fp = [F8::default(); 3];
+        for (row, &weight) in k.iter().zip(&u) {
+            for l in 0..3 {
+                fp[l] = fp[l].plus(weight, row[l]);
+            }
+        }
+        // f = (I ⊗ R) K u: corner b's f_p = Σ_l R[p][l] (K u)_{3b + l}.
+        for b in 0..8 {
+            for p in 0..3 {
+                let mut sum = 0f32;
+                for l in 0..3 {
+                    sum = fp[l].0[b].mul_add(r[p][l], sum);
+                }
+                f[3 * b + p] = sum;
+            }
+        }
+    }
+}
+
+dispatch! {
     /// `values[blocks[8 i + j]] += scale · (block (i, j) of m)` for the 64 corner pairs of
     /// an element matrix in planar layout (pairs with no block, `NO_BLOCK`, skipped). Plane c of corner i's three rows holds column
     /// c of its eight blocks in its lanes; each block's column is gathered into four
@@ -470,6 +506,30 @@ fn sweep_rows(pattern: &Pattern, inverse: &[Matrix3<f64>], active: &[bool], r: &
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_rotated_product_is_the_rotated_matrix_times_the_displacement() {
+        // A symmetric 24 × 24 matrix, a rotation, a displacement.
+        let mut dense = [0f32; 576];
+        for r in 0..24 {
+            for c in 0..=r {
+                let v = ((r * 31 + c * 17) as f32 * 0.37).sin() + if r == c { 4.0 } else { 0.0 };
+                dense[24 * c + r] = v;
+                dense[24 * r + c] = v;
+            }
+        }
+        let k = to_planar(&dense);
+        let rot = nalgebra::Rotation3::from_euler_angles(0.3, -0.7, 1.1);
+        let r: [[f32; 3]; 3] = std::array::from_fn(|p| std::array::from_fn(|q| rot[(p, q)] as f32));
+        let d: [f32; 24] = std::array::from_fn(|i| (i as f32 * 0.61).cos());
+        let (mut rotated, mut expected, mut f) = ([[F8::default(); 3]; 24], [0f32; 24], [0f32; 24]);
+        rotate_and_multiply(&k, &r, &d, &mut rotated, &mut expected);
+        rotated_multiply(&k, &r, &d, &mut f);
+        let scale = expected.iter().fold(0f32, |m, v| m.max(v.abs()));
+        for i in 0..24 {
+            assert!((f[i] - expected[i]).abs() < 1e-5 * scale, "entry {i}: {} against {}", f[i], expected[i]);
+        }
+    }
     use crate::math::Matrix3;
 
     #[test]
