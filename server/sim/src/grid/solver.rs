@@ -239,23 +239,12 @@ impl Dynamics {
         // The elements' blocks are kept from step to step: an element's are taken out
         // and put back rotated anew only once its rotation has moved by more than
         // ROTATION_KEPT since they were made (most of a body at rest or moving rigidly
-        // in small steps keeps them), and every STIFFNESS_REMADE steps the whole part is
-        // made again from nothing (the f32 round-off of taking blocks out and putting
-        // them back does not accumulate). The forces always take the rotation of now.
-        let remake = self.stiffness_age >= STIFFNESS_REMADE || self.stiffness_scale != a_stiff;
-        if remake {
-            self.stiffness.clear();
-            self.scattered.iter_mut().for_each(|r| *r = None);
-            self.stiffness_age = 0;
-            self.stiffness_scale = a_stiff;
-        }
-        self.stiffness_age += 1;
-        // One pass over the elements: rotations, f_el − (β + h) K_R v, and the element's
-        // blocks of the system where they moved.
-        let damping = settings.beta_s + h;
+        // in small steps keeps them). The whole part is made again from nothing every
+        // STIFFNESS_REMADE steps (the f32 round-off of taking blocks out and putting
+        // them back does not accumulate), and when most elements moved (taking out and
+        // putting back would cost twice as much). The forces take the rotation of now.
         let cell_m = topo.layout.cell_size_m();
-        let consistent = settings.mass == MassModel::Consistent;
-        let to_f32 = |r: &Matrix3<f64>| -> [[f32; 3]; 3] { std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32)) };
+        let (mut alive, mut moved) = (0usize, 0usize);
         for e in 0..topo.elements.len() {
             if !topo.elements.alive[e] {
                 continue;
@@ -264,6 +253,27 @@ impl Dynamics {
             if let Some(r) = averaged_edge_rotation(&|n: usize| topo.nodes.x[nodes[n] as usize], &cell_m) {
                 self.rotations[e] = r;
             }
+            alive += 1;
+            moved += usize::from(self.scattered[e].is_none_or(|before| (self.rotations[e] - before).amax() > ROTATION_KEPT));
+        }
+        let remake = self.stiffness_age >= STIFFNESS_REMADE || self.stiffness_scale != a_stiff || 2 * moved > alive;
+        if remake {
+            self.stiffness.clear();
+            self.scattered.iter_mut().for_each(|r| *r = None);
+            self.stiffness_age = 0;
+            self.stiffness_scale = a_stiff;
+        }
+        self.stiffness_age += 1;
+        // One pass over the elements: f_el − (β + h) K_R v, and the element's blocks of
+        // the system where they moved.
+        let damping = settings.beta_s + h;
+        let consistent = settings.mass == MassModel::Consistent;
+        let to_f32 = |r: &Matrix3<f64>| -> [[f32; 3]; 3] { std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32)) };
+        for e in 0..topo.elements.len() {
+            if !topo.elements.alive[e] {
+                continue;
+            }
+            let nodes = &topo.elements.nodes[e];
             let r = self.rotations[e];
             let k = &topo.elements.stiffness_single[e];
             let d = world_displacement(topo, e, &r, damping);
@@ -869,15 +879,33 @@ mod tests {
         let settings = settings();
         let mut topo = bar();
         let mut kept = Dynamics::new(&topo);
-        // Turning a little further every step, by more than the tolerance each time:
-        // taken out and put back every step, then remade from nothing.
+        // Turning a quarter of the bar (its far end) a little further every step, by
+        // more than the tolerance each time: its blocks taken out and put back every
+        // step, then the whole part remade from nothing at the appointed step.
+        let r_of = |angle: f64| nalgebra::Rotation3::from_axis_angle(&Vec3::z_axis(), angle);
+        let far = |x: f64| x > 0.012 - 1e-9;
         for step in 0..STIFFNESS_REMADE + 1 {
-            turn(&mut topo, 2.0 * ROTATION_KEPT * f64::from(step));
+            let r = r_of(2.0 * ROTATION_KEPT * f64::from(step));
+            for i in 0..topo.nodes.len() {
+                let rest = topo.nodes.rest[i];
+                topo.nodes.x[i] = if far(rest.x) { r * rest } else { rest };
+            }
             kept.assemble(&mut topo, &settings);
+            assert_eq!(kept.stiffness_age, if step == STIFFNESS_REMADE { 1 } else { step + 1 }, "step {step}");
+            if step == 100 {
+                // Taken out and put back a hundred times: within round-off of fresh.
+                let mut fresh = Dynamics::new(&topo);
+                fresh.assemble(&mut topo, &settings);
+                let off = relative_difference(&kept.system, &fresh.system);
+                assert!(off < 1e-5, "after 100 updates {off:e} off a fresh assembly");
+            }
         }
-        assert_eq!(kept.stiffness_age, 1, "remade at the last step");
         let mut fresh = Dynamics::new(&topo);
         fresh.assemble(&mut topo, &settings);
         assert_eq!(kept.system, fresh.system, "made from nothing, as a fresh assembly");
+        // When most elements turned, the whole part is made from nothing at once.
+        turn(&mut topo, 0.1);
+        kept.assemble(&mut topo, &settings);
+        assert_eq!(kept.stiffness_age, 1, "remade when most elements moved");
     }
 }
