@@ -1,7 +1,8 @@
 //! Dynamics of the branched grid: corotational hexahedra, implicit Euler on the assembled
-//! block-sparse system (crate::solver) solved by warm-started preconditioned conjugate
-//! gradient (its guess extrapolated from the last steps' solutions), Rayleigh damping, lumped or consistent mass, fixed nodes, and penalty
-//! contacts whose stiffness enters the solve.
+//! block-sparse system (crate::solver; the elements' blocks kept while their rotations
+//! stay put) solved by preconditioned conjugate gradient from a guess extrapolated from
+//! the last steps' solutions, Rayleigh damping, lumped or consistent mass, fixed nodes,
+//! and penalty contacts whose stiffness enters the solve.
 //!
 //! Rotation: per element, the polar rotation of its deformation gradient at the centre
 //! (the mean of its four x-, y- and z-edges over the cell's sides), by Newton's
