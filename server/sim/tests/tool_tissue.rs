@@ -838,3 +838,50 @@ fn a_probe_pressed_into_the_grid_never_passes_through_its_surface() {
         assert!(force >= 2.5, "{name}: pressed {:.1} mm deep with only {force:.2} N", depth * 1e3);
     }
 }
+
+/// The multirate schedule's haptic loop renders the probe's contact against the patch
+/// each deformation step publishes (crate::multirate::patch) and holds it as the
+/// deformation does: each patch vertex pushed out along the normal it came in with.
+/// With the radial penalty the patch, sprung back by the force the deformation had
+/// applied, slid past the ball's centre: the force rendered fell to nothing (the block's
+/// 5 mm probe 14.5 mm in, the layered abdomen's from 5.5 mm on) while the deformation
+/// pushed back with 2-16 N.
+#[test]
+fn a_probe_pressed_into_the_grid_under_multirate_feels_the_tissue_hold() {
+    let mut scene = serde_json::to_value(grid_block_with_probe(0.005, 300.0)).unwrap();
+    // A deformation step of 33 ms converges within the cap with the Cholesky factor.
+    scene["model"]["branched-grid"]["solver"] = serde_json::json!({ "preconditioner": "cholesky" });
+    let scene = Scene::from_json_str(&scene.to_string(), "block", None).unwrap();
+    let every = 33;
+    let schedule = cutsim_sim::scene::MultirateSpec { deformation_every_steps: serde_json::from_value(serde_json::json!(every)).unwrap() };
+    let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
+    let top = model.with_grid(|g| g.broad_top().unwrap());
+    let xy = (top.x + 0.0003, top.y + 0.0002);
+    let mut commands = vec![cutsim_sim::tool::ToolCommand::default(); 1];
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 1];
+    let (mut worst, mut weakest) = (f64::NEG_INFINITY, f64::INFINITY);
+    let mut force = 0.0;
+    // Down at 50 mm/s from 2 mm above to 30 mm in.
+    for step in 0..640 {
+        let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - 0.05 * 1e-3 * f64::from(step));
+        commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+        model.step(&commands, &mut feedback);
+        force = feedback[0].force_n.z;
+        // At the end of each deformation period (a new patch's force fades in from the
+        // old one's over the period, so that the force has no step).
+        if step % every == every - 1 {
+            if let Some(h) = model.with_grid(|g| grid_surface_height(g, xy)) {
+                worst = worst.max(h - tip.z);
+            }
+            // The force the deformation step ended with against the force rendered.
+            let applied = -model.patch(0).applied.z;
+            if applied > 0.5 {
+                weakest = weakest.min(force / applied);
+            }
+        }
+    }
+    println!("multirate block, 5 mm probe: {force:.2} N 30 mm in, the surface at most {:.2} mm above the tip, rendered force at least {weakest:.2} x the deformation's", worst * 1e3);
+    assert!(worst < 0.005, "the surface {:.2} mm above the tip (ball radius 5 mm)", worst * 1e3);
+    assert!(weakest > 0.5, "the force rendered fell to {weakest:.2} x the deformation's own");
+    assert!(force >= 2.5, "30 mm in with only {force:.2} N");
+}

@@ -395,7 +395,17 @@ fn capsule(tool: &ToolShape, command: &ToolCommand) -> Option<Capsule> {
         return None;
     }
     let tip = command.pose.position_m;
-    Some(Capsule { tip, top: tip + command.pose.axis() * tool.length_m, radius_m: tool.radius_m, stiffness_n_per_m: tool.contact_stiffness_n_per_m })
+    let rotation = *command.pose.orientation.to_rotation_matrix().matrix();
+    Some(Capsule {
+        tip,
+        top: tip + command.pose.axis() * tool.length_m,
+        radius_m: tool.radius_m,
+        stiffness_n_per_m: tool.contact_stiffness_n_per_m,
+        rotation,
+        // As the deformation's own contact: a blade cutting is not held off the tissue.
+        holds: !(tool.can_cut && command.cut),
+        max_depth_m: tool.max_force_n / tool.contact_stiffness_n_per_m,
+    })
 }
 
 fn hash_command(h: &mut StateHasher, c: &ToolCommand) {

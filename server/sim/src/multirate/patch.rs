@@ -13,6 +13,15 @@
 //! method. The dent's shape changes at the deformation rate, not in between: that is
 //! the reduction (docs/branched-grid.md, "Multirate haptics").
 //!
+//! The contact holds as the deformation's own does (crate::grid::hold): each vertex in
+//! contact is pushed out along the normal it came in with, kept in the tool's frame for
+//! as long as the contact lasts, so a probe pressed deeper than its ball's centre does
+//! not slip between the patch's vertices. The deformation step publishes the normals
+//! of the vertices it held; a vertex that first touches between deformation steps gets
+//! its own ([`ContactPatch::commit`]). With the radial penalty the patch, sprung back
+//! by the force the deformation step had applied, slid past the ball's centre and the
+//! force rendered fell to nothing 5 mm into a block while the deformation still held it.
+//!
 //! Friction, where the tissue's material has it, is the deformation's own model
 //! (crate::grid::friction) carried on between deformation steps: each vertex in contact
 //! keeps its anchor on the tool (published by the deformation step, then moved by the
@@ -48,6 +57,9 @@ pub struct ContactPatch {
     pub anchors: Vec<Option<Vec3>>,
     /// The friction of the tissue under the tool (its nearest vertex's material).
     pub friction: Friction,
+    /// Per vertex: the normal it is held along while in contact (crate::grid::hold), in
+    /// the tool's frame; None: not in contact. The haptic loop keeps them up to date.
+    pub held: Vec<Option<Vec3>>,
 }
 
 /// The tool's capsule at a haptic step, world frame.
@@ -58,6 +70,20 @@ pub struct Capsule {
     pub radius_m: f64,
     /// Penalty stiffness per vertex, N/m.
     pub stiffness_n_per_m: f64,
+    /// The tool's orientation (tool frame to world): the held normals turn with it.
+    pub rotation: Matrix3<f64>,
+    /// Whether contacts hold (crate::grid::hold); false for a blade cutting, whose
+    /// tissue must reach the cutting shape and is pushed out radially.
+    pub holds: bool,
+    /// How deep one vertex may be pushed before it lets go (its force would exceed the
+    /// tool's rated force), m.
+    pub max_depth_m: f64,
+}
+
+impl Capsule {
+    fn hold(&self) -> crate::grid::hold::Capsule {
+        crate::grid::hold::Capsule { a: self.tip, b: self.top, radius: self.radius_m }
+    }
 }
 
 /// The solved contact of a tool with its patch.
@@ -86,6 +112,7 @@ impl ContactPatch {
         self.compliance_residual = 0.0;
         self.anchors.clear();
         self.friction = Friction::default();
+        self.held.clear();
     }
 
     /// Solves the tool's contact with the patch: the displacement `u` with
@@ -170,7 +197,7 @@ impl ContactPatch {
         for (j, x) in self.positions.iter().enumerate().take(MAX_PATCH_VERTICES) {
             let (Some(Some(from_tip)), false) = (self.anchors.get(j), sliding.get(j)) else { continue };
             let p = x + u;
-            let Some((normal, normal_n, _)) = normal_force(tool, &p, false) else { continue };
+            let Some(Touch { normal, normal_n, .. }) = self.touch(tool, j, &p, false) else { continue };
             let pull = tangent_projection(&normal) * (tool.tip + from_tip - p) * tool.stiffness_n_per_m;
             if pull.norm() > self.friction.static_coefficient * normal_n {
                 sliding.set(j);
@@ -180,23 +207,29 @@ impl ContactPatch {
         changed
     }
 
-    /// After the haptic step's `contact` was rendered: each vertex in frictional contact
-    /// keeps its anchor while it sticks, moves it to the dynamic cone while it slides,
-    /// gets one where it first touches; one that let go loses it (as the deformation's
-    /// own friction does over its step). Allocates nothing.
+    /// After the haptic step's `contact` was rendered: each vertex in contact keeps the
+    /// normal it is held along, and one that first touched gets the one it came in with;
+    /// one that let go loses it. Each vertex in frictional contact keeps its anchor while
+    /// it sticks, moves it to the dynamic cone while it slides, gets one where it first
+    /// touches; one that let go loses it (as the deformation's own friction does over its
+    /// step). Allocates nothing.
     pub fn commit(&mut self, tool: &Capsule, contact: &PatchContact) {
-        if self.friction.static_coefficient <= 0.0 {
-            return;
-        }
-        let k = tool.stiffness_n_per_m;
-        for j in 0..self.positions.len().min(self.anchors.len()) {
+        let to_tool = tool.rotation.transpose();
+        for j in 0..self.positions.len() {
             let p = self.positions[j] + contact.displacement_m;
-            self.anchors[j] = match (normal_force(tool, &p, false), self.anchors[j]) {
+            let touch = self.touch(tool, j, &p, false);
+            if let Some(held) = self.held.get_mut(j) {
+                *held = touch.filter(|_| tool.holds).map(|t| to_tool * t.entry);
+            }
+            if self.friction.static_coefficient <= 0.0 || j >= self.anchors.len() {
+                continue;
+            }
+            self.anchors[j] = match (touch, self.anchors[j]) {
                 (None, _) => None,
                 (Some(_), None) => Some(p - tool.tip),
-                (Some((normal, normal_n, _)), Some(from_tip)) => {
-                    let (force, sliding) = stick_force(&p, &(tool.tip + from_tip), &normal, k, normal_n, self.friction);
-                    Some(if sliding { slid_anchor(&p, &force, k) - tool.tip } else { from_tip })
+                (Some(Touch { normal, normal_n, .. }), Some(from_tip)) => {
+                    let (force, sliding) = stick_force(&p, &(tool.tip + from_tip), &normal, tool.stiffness_n_per_m, normal_n, self.friction);
+                    Some(if sliding { slid_anchor(&p, &force, tool.stiffness_n_per_m) - tool.tip } else { from_tip })
                 }
             };
         }
@@ -221,7 +254,7 @@ impl ContactPatch {
     /// force in that direction (no stiffness: its size follows the normal force only).
     #[inline]
     fn vertex_forces(&self, tool: &Capsule, j: usize, p: &Vec3, sliding: &Sliding, exact: bool) -> Option<(Vec3, Matrix3<f64>)> {
-        let (normal, normal_n, mut stiffness) = normal_force(tool, p, exact)?;
+        let Touch { normal, normal_n, mut stiffness, .. } = self.touch(tool, j, p, exact)?;
         let k = tool.stiffness_n_per_m;
         let mut force = normal * normal_n;
         if let (true, Some(Some(from_tip))) = (self.friction.static_coefficient > 0.0, self.anchors.get(j)) {
@@ -235,6 +268,58 @@ impl ContactPatch {
         }
         Some((force, stiffness))
     }
+}
+
+impl ContactPatch {
+    /// How vertex `j` at `p` touches the tool: pushed out along the normal it is held
+    /// along (crate::grid::hold; within a quarter radius of the surface, along the
+    /// surface's normal there), or radially where the tool does not hold (a blade
+    /// cutting). None: not in contact.
+    #[inline]
+    fn touch(&self, tool: &Capsule, j: usize, p: &Vec3, exact: bool) -> Option<Touch> {
+        if !tool.holds {
+            return normal_force(tool, p, exact).map(|(normal, normal_n, stiffness)| Touch { normal, normal_n, stiffness, entry: normal });
+        }
+        let held = self.held.get(j).copied().flatten();
+        // Most of a patch's vertices are outside and held by nothing: nothing more to
+        // compute for them (no square root: this runs for each vertex, each evaluation).
+        if held.is_none() {
+            let (_, closest) = closest_point_on_segment(p, &tool.tip, &tool.top);
+            if (p - closest).norm_squared() >= tool.radius_m * tool.radius_m {
+                return None;
+            }
+        }
+        let held = held.map(|n| tool.rotation * n);
+        let capsule = tool.hold();
+        let contact = crate::grid::hold::contact(&capsule, p, held, None, tool.max_depth_m)?;
+        let k = tool.stiffness_n_per_m;
+        if contact.normal != contact.entry || held.is_none() {
+            // Along the surface's normal (the shallow band, or a first touch, whose entry
+            // is where it is now): the radial penalty's own stiffness, turning included.
+            if let Some((normal, normal_n, stiffness)) = normal_force(tool, p, exact).filter(|(n, _, _)| (n - contact.normal).norm() < 1e-9) {
+                return Some(Touch { normal, normal_n, stiffness, entry: contact.entry });
+            }
+        }
+        // Along a fixed normal n the depth t is where the ray from p leaves the capsule,
+        // at a point whose outward normal is q: ∂t/∂p = −qᵀ/(q·n), so the stiffness is
+        // k n qᵀ/(q·n) (k n nᵀ where the ray leaves square to the surface; a grazing exit
+        // is taken as square, its derivative being unbounded).
+        let (n, t) = (contact.normal, contact.depth);
+        let q = tool.hold().radial(&(p + n * t)).0;
+        let square = q.dot(&n);
+        let stiffness = if square > 0.1 { n * q.transpose() * (k / square) } else { n * n.transpose() * k };
+        Some(Touch { normal: n, normal_n: k * t, stiffness, entry: contact.entry })
+    }
+}
+
+/// A vertex's contact: the normal it is pushed out along, the penalty's size on it (N),
+/// its stiffness `−∂f/∂p`, and the normal it came in with.
+#[derive(Debug, Clone, Copy)]
+struct Touch {
+    normal: Vec3,
+    normal_n: f64,
+    stiffness: Matrix3<f64>,
+    entry: Vec3,
 }
 
 /// Solve passes that may find more sliding vertices (each a Newton solve).
@@ -255,8 +340,8 @@ impl Sliding {
     }
 }
 
-/// The penalty on a vertex at `p` inside the capsule (pushed out radially, as the grid's
-/// own contact does): its direction and size, N, and its stiffness `−∂f/∂p`: `k n nᵀ`
+/// The radial penalty on a vertex at `p` inside the capsule (pushed out from the axis, as
+/// the grid's own contact does for a blade cutting and near a tool's surface): its direction and size, N, and its stiffness `−∂f/∂p`: `k n nᵀ`
 /// across the surface less the turning of the direction, `k (r − d)/d` across `n` (and
 /// along the axis, for the shaft) — without the latter Newton's method converged only
 /// linearly, about a fifth of the error an iteration. None outside.
@@ -292,12 +377,12 @@ mod tests {
     fn flat_patch(compliance: f64) -> ContactPatch {
         // A 9 × 9 grid of vertices 1 mm apart on z = 0.
         let positions: Vec<Vec3> = (0..81).map(|i| Vec3::new((i % 9) as f64 * 1e-3 - 4e-3, (i / 9) as f64 * 1e-3 - 4e-3, 0.0)).collect();
-        ContactPatch { vertices: (0..81).collect(), positions, compliance: Matrix3::identity() * compliance, ..ContactPatch::default() }
+        ContactPatch { vertices: (0..81).collect(), held: vec![None; positions.len()], positions, compliance: Matrix3::identity() * compliance, ..ContactPatch::default() }
     }
 
     fn probe(depth: f64) -> Capsule {
         // A ball-ended rod of radius 3 mm pressed straight down, its centre line at x = y = 0.
-        Capsule { tip: Vec3::new(0.0, 0.0, 3e-3 - depth), top: Vec3::new(0.0, 0.0, 0.1), radius_m: 3e-3, stiffness_n_per_m: 500.0 }
+        Capsule { tip: Vec3::new(0.0, 0.0, 3e-3 - depth), top: Vec3::new(0.0, 0.0, 0.1), radius_m: 3e-3, stiffness_n_per_m: 500.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.02 }
     }
 
     #[test]
@@ -314,9 +399,10 @@ mod tests {
         let rigid = flat_patch(0.0).solve(&probe(1e-3));
         let patch = flat_patch(1e-3); // 1 mm per newton
         let contact = patch.solve(&probe(1e-3));
-        // The patch moved down by C F: the force on the tool is the force it moved by.
+        // The patch moved down by C F: the force on the tool is the force it moved by
+        // (to the Newton solve's tolerance, 10 nm).
         let on_tissue = -contact.force_n;
-        assert!((contact.displacement_m - patch.compliance * on_tissue).norm() < 1e-9, "{contact:?}");
+        assert!((contact.displacement_m - patch.compliance * on_tissue).norm() < 1e-8, "{contact:?}");
         assert!(contact.force_n.z > 0.0 && contact.force_n.z < rigid.force_n.z, "softer than rigid: {} vs {}", contact.force_n.z, rigid.force_n.z);
     }
 
@@ -332,6 +418,46 @@ mod tests {
         let again = moved.solve(&probe(1e-3));
         assert!((again.force_n - settled.force_n).norm() < 1e-9 * settled.force_n.norm().max(1.0), "{again:?} vs {settled:?}");
         assert!(again.displacement_m.norm() < 1e-9);
+    }
+
+    #[test]
+    fn a_probe_past_its_balls_centre_still_pushes_the_vertices_it_holds_down() {
+        // The probe's ball centre 1 mm below the patch (4 mm in): the vertices within
+        // its radius of the axis are inside, above the centre.
+        let tool = probe(4e-3);
+        let mut held = flat_patch(0.0);
+        // As the deformation step publishes them: held along the tool's axis out of its
+        // tip (they came in under the ball).
+        for (x, n) in held.positions.iter().zip(held.held.iter_mut()) {
+            if (x - tool.tip).norm() < tool.radius_m {
+                *n = Some(-Vec3::z());
+            }
+        }
+        let contact = held.solve(&tool);
+        assert!(contact.contacts > 0);
+        // Each pushed down until it is below the ball: 4 mm less the height where the
+        // ball crosses its vertical line.
+        let expected: f64 = held
+            .positions
+            .iter()
+            .zip(&held.held)
+            .filter(|(_, n)| n.is_some())
+            .map(|(x, _)| {
+                let across = (x - tool.tip).xy().norm_squared();
+                500.0 * ((tool.radius_m.powi(2) - across).sqrt() + 1e-3)
+            })
+            .sum();
+        assert!((contact.force_n.z - expected).abs() < 1e-9 * expected, "{} vs {expected}", contact.force_n.z);
+        // The radial penalty pushes the same vertices up and out past the ball's centre:
+        // the tool is pulled into the tissue.
+        let radial = held.solve(&Capsule { holds: false, ..tool });
+        assert!(radial.force_n.z < 0.0, "radially: {:?}", radial.force_n);
+        // A vertex the haptic loop finds in contact keeps the normal it came in with.
+        let before = held.held.clone();
+        held.commit(&tool, &contact);
+        for (now, then) in held.held.iter().zip(&before) {
+            assert!(then.is_none() || now == then, "{then:?} became {now:?}");
+        }
     }
 
     #[test]

@@ -135,11 +135,15 @@ impl BranchedGrid {
         patch.vertices.clear();
         patch.positions.clear();
         patch.anchors.clear();
+        patch.held.clear();
         for &(v, _) in &near {
             patch.vertices.push(v);
             patch.positions.push(self.frame.to_world(&self.surface.position(&self.topo, v as usize)));
             let anchor = self.anchors.get(v as usize).copied().flatten().filter(|a| a.tool == i && a.step == self.step_index);
             patch.anchors.push(anchor.map(|a| self.frame.rotation * a.from_tip));
+            // The normal it was held along this step, tool frame (the grid's own).
+            let touch = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step == self.step_index);
+            patch.held.push(touch.map(|t| t.normal_in_tool));
         }
         patch.friction = near.first().map_or_else(Default::default, |&(v, _)| self.friction_at(v as usize));
         self.patch_scratch = near;
