@@ -60,6 +60,7 @@ fn main() {
     let preconditioner = args.iter().position(|a| a == "--preconditioner").and_then(|i| args.get(i + 1).cloned());
     let filters: Vec<String> = args.iter().filter(|a| !a.starts_with("--") && Some(*a) != preconditioner.as_ref()).cloned().collect();
     println!("cutsim-sim branched-grid benchmark (release, one core)");
+    println!("on {}", cutsim_sim::stats::machine_description());
     println!(
         "{:<22} {:>8} {:>8} {:>7} {:>8} {:>7} | {:>8} {:>8} {:>8} {:>5} | {:>8} {:>8} {:>8} {:>7} {:>8}",
         "scene", "voxels", "elements", "nodes", "tris", "build s", "probe p50", "p99", "max", "CG", "cut p50", "p99", "max", "updates", "vox/upd"

@@ -24,6 +24,7 @@ fn main() {
     let preconditioner = args.iter().position(|a| a == "--preconditioner").and_then(|i| args.get(i + 1).cloned());
     let filters: Vec<String> = args.iter().filter(|a| !a.starts_with("--") && Some(*a) != preconditioner.as_ref()).cloned().collect();
     println!("cutsim-sim multirate benchmark (real time: haptic loop at 1 kHz here, deformation on its worker thread)");
+    println!("on {}", cutsim_sim::stats::machine_description());
     println!(
         "{:<44} | {:>8} {:>8} {:>8} | {:>9} {:>9} {:>7} | {:>6} | {:>7} {:>6}",
         "case", "haptic p50 ms", "p99", "max", "deform p50 ms", "p99", "rate Hz", "waits", "probe N", "cut"

@@ -90,6 +90,7 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     println!("cutsim-sim step benchmark (release, one core): skin-patch 10 × 8 cm at three resolutions");
+    println!("on {}", cutsim_sim::stats::machine_description());
     println!(
         "{:<34} {:>7} {:>6} {:>6} {:>10} {:>9} {:>9} {:>9}   stages per step (forces / contacts / integrate / cut)",
         "case", "nodes", "subst", "CG it", "steps/s", "p50 µs", "p99 µs", "max µs"

@@ -345,7 +345,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
 
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let command = format!("cargo run --release -p cutsim-sim --bin accuracy-speed{}", if quick { " -- --quick" } else { "" });
-    let machine = format!("{} logical CPUs", std::thread::available_parallelism().map_or(0, |n| n.get()));
+    let machine = cutsim_sim::stats::machine_description();
     let files = [
         ("accuracy-speed.md", markdown(&studies, &loads, &membrane, &reference_check, &command, &machine)),
         ("accuracy-speed.svg", svg(&studies)),
@@ -416,7 +416,7 @@ fn schedules(quick: bool, out: &Path) -> Result<(), String> {
         }
     }
     let command = format!("cargo run --release -p cutsim-sim --bin accuracy-speed -- schedules{}", if quick { " --quick" } else { "" });
-    let machine = format!("{} logical CPUs", std::thread::available_parallelism().map_or(0, |n| n.get()));
+    let machine = cutsim_sim::stats::machine_description();
     let path = out.join("accuracy-speed.md");
     let document = std::fs::read_to_string(&path).unwrap_or_default();
     std::fs::write(&path, splice(&document, &markdown(&comparisons, &command, &machine, script))).map_err(|e| format!("{}: {e}", path.display()))?;
