@@ -14,32 +14,37 @@ if [ ! -d "$data_dir" ]; then
 fi
 export CUTSIM_DATA_DIR="$data_dir"
 
+# Each phase's line says how long the run has taken so far (CI allows 90 minutes: the
+# timings show where they go).
+started=$SECONDS
+phase() { echo "==> [$(( (SECONDS - started) / 60 )) min $(( (SECONDS - started) % 60 )) s] $*"; }
+
 if ! command -v python3 >/dev/null; then
     echo "error: python3 is needed for the scikit-fem reference and the Python client example's test" >&2
     exit 2
 fi
-echo "==> scikit-fem reference solutions (tools/reference; a virtual environment made on the first run)"
+phase "scikit-fem reference solutions (tools/reference; a virtual environment made on the first run)"
 tools/reference/run.sh
 
-echo "==> cargo test (unit, integration and end-to-end tests)"
+phase "cargo test (unit, integration and end-to-end tests)"
 cargo test --workspace --locked
 
-echo "==> fuzzing: every cargo-fuzz target for 20,000 inputs (docs/fuzzing.md)"
+phase "fuzzing: every cargo-fuzz target for 20,000 inputs (docs/fuzzing.md)"
 fuzz/run.sh 20000
 
-echo "==> HTTP API fuzzing: schemathesis against docs/openapi.yaml and a real server (tools/api-fuzz)"
+phase "HTTP API fuzzing: schemathesis against docs/openapi.yaml and a real server (tools/api-fuzz)"
 cargo build --locked -p cutsim-server
 tools/api-fuzz/run.sh 100
 
-echo "==> load and faults, short (cutsim-load; its full run writes docs/reliability.md)"
+phase "load and faults, short (cutsim-load; its full run writes docs/reliability.md)"
 cargo build --locked -p cutsim-load
 target/debug/cutsim-load --sessions 2 --viewers 2 --seconds 8 --report target/reliability-ci.md >/dev/null
 
-echo "==> Python client example (grpcio stubs from proto/cutsim.proto) against a real server"
+phase "Python client example (grpcio stubs from proto/cutsim.proto) against a real server"
 clients/python/setup.sh >/dev/null
 CUTSIM_SERVER_BIN="$(pwd)/target/debug/cutsim-server" clients/python/.venv/bin/python -m unittest discover -s clients/python -p "test_*.py"
 
-echo "==> browser tests (web viewer in headless chromium)"
+phase "browser tests (web viewer in headless chromium)"
 if ! command -v npm >/dev/null; then
     echo "error: npm (Node.js) is needed for the browser tests; install Node.js 18 or newer" >&2
     exit 2
@@ -47,7 +52,7 @@ fi
 chromium="${CHROMIUM:-/usr/bin/chromium}"
 if [ ! -x "$chromium" ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-        echo "==> installing Debian's chromium (apt-get)"
+        phase "installing Debian's chromium (apt-get)"
         apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null
     else
         echo "error: chromium not found at $chromium; install it (apt-get install chromium) or set CHROMIUM" >&2
@@ -57,7 +62,7 @@ fi
 (cd web-viewer && npm ci --no-audit --no-fund --loglevel=error)
 (cd tests/browser && npm ci --no-audit --no-fund --loglevel=error && CUTSIM_SERVER_BIN="$(pwd)/../../target/debug/cutsim-server" npm test)
 
-echo "==> the container image: docker/Dockerfile built and run (health check, viewer, cut-bot)"
+phase "the container image: docker/Dockerfile built and run (health check, viewer, cut-bot)"
 docker/test-image.sh
 
-echo "==> all tests passed"
+phase "all tests passed"
