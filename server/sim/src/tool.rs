@@ -86,6 +86,18 @@ impl ToolShape {
     pub fn cutting_capsule(&self) -> (f64, f64) {
         self.cutting_shape.unwrap_or((self.radius_m * 0.5, self.length_m))
     }
+
+    /// Whether the tool cuts under `command`: a cutting tool, active at a finite pose,
+    /// with its button held.
+    pub fn cuts(&self, command: &ToolCommand) -> bool {
+        self.can_cut && command.active && command.cut && command.pose.is_finite()
+    }
+
+    /// How deep one surface vertex may lie in the tool before its contact lets go: its
+    /// penalty would then carry the tool's rated force alone (crate::grid::hold), m.
+    pub fn hold_max_depth_m(&self) -> f64 {
+        self.max_force_n / self.contact_stiffness_n_per_m
+    }
 }
 
 /// What the device (or a script) asks of one tool for one step.

@@ -385,7 +385,7 @@ impl BranchedGrid {
         let tool_to_grid = super::hold::tool_to_grid(&self.frame.rotation, command.pose.orientation.to_rotation_matrix().matrix());
         let top = tip + tool_to_grid * Vec3::z() * tool.length_m;
         let capsule = Capsule { a: tip, b: top, radius: tool.radius_m };
-        let max_depth = tool.max_force_n / tool.contact_stiffness_n_per_m;
+        let max_depth = tool.hold_max_depth_m();
         let cutting = self.cutting(i, command);
         // The tool's motion over the step: a new contact came in along it.
         let moved = self.previous_tips[i].map(|before| tip - before);
@@ -424,7 +424,7 @@ impl BranchedGrid {
 
     /// Whether tool `i` cuts under `command` (a cutting tool with its button held).
     fn cutting(&self, i: usize, command: &ToolCommand) -> bool {
-        self.tools[i].can_cut && command.active && command.cut && command.pose.is_finite()
+        self.tools[i].cuts(command)
     }
 
     /// The penalty force tool `i` at `command`'s pose would feel from the surface as it

@@ -375,7 +375,7 @@ impl Multirate {
             fb.torque_nm = contact.torque_nm + torque * fade;
             fb.contacts = contact.contacts;
             let (cutting, resistance) = self.cut_feedback[i];
-            if command.cut && self.tools[i].can_cut {
+            if self.tools[i].cuts(command) {
                 fb.cutting = cutting;
                 fb.force_n += resistance;
                 fb.resistance_n = resistance;
@@ -403,8 +403,8 @@ fn capsule(tool: &ToolShape, command: &ToolCommand) -> Option<Capsule> {
         stiffness_n_per_m: tool.contact_stiffness_n_per_m,
         rotation,
         // As the deformation's own contact: a blade cutting is not held off the tissue.
-        holds: !(tool.can_cut && command.cut),
-        max_depth_m: tool.max_force_n / tool.contact_stiffness_n_per_m,
+        holds: !tool.cuts(command),
+        max_depth_m: tool.hold_max_depth_m(),
     })
 }
 

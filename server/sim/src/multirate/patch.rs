@@ -305,7 +305,7 @@ impl ContactPatch {
         // k n qᵀ/(q·n) (k n nᵀ where the ray leaves square to the surface; a grazing exit
         // is taken as square, its derivative being unbounded).
         let (n, t) = (contact.normal, contact.depth);
-        let q = tool.hold().radial(&(p + n * t)).0;
+        let q = capsule.radial(&(p + n * t)).0;
         let square = q.dot(&n);
         let stiffness = if square > 0.1 { n * q.transpose() * (k / square) } else { n * n.transpose() * k };
         Some(Touch { normal: n, normal_n: k * t, stiffness, entry: contact.entry })
@@ -341,7 +341,8 @@ impl Sliding {
 }
 
 /// The radial penalty on a vertex at `p` inside the capsule (pushed out from the axis, as
-/// the grid's own contact does for a blade cutting and near a tool's surface): its direction and size, N, and its stiffness `−∂f/∂p`: `k n nᵀ`
+/// the grid's own contact does for a blade cutting and near a tool's surface): its
+/// direction and size, N, and its stiffness `−∂f/∂p`: `k n nᵀ`
 /// across the surface less the turning of the direction, `k (r − d)/d` across `n` (and
 /// along the axis, for the shaft) — without the latter Newton's method converged only
 /// linearly, about a fifth of the error an iteration. None outside.
