@@ -23,10 +23,10 @@
 use std::sync::Arc;
 
 use super::topology::Topology;
-use crate::math::Matrix3;
+use crate::math::{Matrix3, Vec3};
 use crate::solver::background::{Background, take_due};
 use crate::solver::block_sparse::{Block, BlockMatrix, Pattern};
-use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorScratch, FactorSolve, Structure};
+use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorScratch, FactorSolve, Ordering, Structure};
 
 /// A new factor is asked for this often (steps).
 pub const REFACTOR_EVERY: u64 = 16;
@@ -59,7 +59,7 @@ pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;
 /// is checked against at load, before any factor is computed.
 pub fn factor_entries(topo: &Topology) -> Result<usize, FactorError> {
     let active: Vec<bool> = (0..topo.nodes.len()).map(|n| topo.nodes.alive[n] && !topo.nodes.fixed[n]).collect();
-    Ok(Structure::new(&super::solver::system_pattern(topo), &active)?.factor_entries)
+    Ok(Structure::new(&super::solver::system_pattern(topo), &active, Ordering::Fewest(&topo.nodes.rest))?.factor_entries)
 }
 
 /// What the worker is given: the system's blocks at the step it was asked for (the
@@ -70,8 +70,9 @@ pub fn factor_entries(topo: &Topology) -> Result<usize, FactorError> {
 struct Job {
     blocks: Vec<Block<f32>>,
     structure: Option<Arc<Structure>>,
-    /// After a cut: the pattern and active set to make the structure from.
-    new_structure: (Pattern, Vec<bool>),
+    /// After a cut: the pattern, active set and nodes' rest positions (the ordering's) to
+    /// make the structure from.
+    new_structure: (Pattern, Vec<bool>, Vec<Vec3>),
     rotations: Vec<Matrix3<f64>>,
     /// A factor no longer in use, whose buffer the new one is written into.
     recycled: std::sync::Mutex<Vec<f32>>,
@@ -81,7 +82,10 @@ fn run(job: &Job, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
     let out = std::mem::take(&mut *job.recycled.lock().unwrap_or_else(|e| e.into_inner()));
     let structure = match &job.structure {
         Some(structure) => structure.clone(),
-        None => Arc::new(Structure::new(&job.new_structure.0, &job.new_structure.1)?),
+        None => {
+            let (pattern, active, positions) = &job.new_structure;
+            Arc::new(Structure::new(pattern, active, Ordering::Fewest(positions))?)
+        }
     };
     Factor::from_blocks(structure, &job.blocks, out, scratch)
 }
@@ -215,11 +219,12 @@ impl Factorization {
         Some(self.solve.with(factor, Some(&self.warp)))
     }
 
-    /// Makes the first factor, of `system` (whose nodes are turned by `rotations`), at
-    /// once: at load, from the model at rest, so that the first step does not make it.
-    pub fn prime(&mut self, system: &BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>], step_s: f64) {
+    /// Makes the first factor, of `system` (whose nodes are turned by `rotations` and
+    /// rest at `positions`), at once: at load, from the model at rest, so that the first
+    /// step does not make it.
+    pub fn prime(&mut self, system: &BlockMatrix<f32>, active: &[bool], positions: &[Vec3], rotations: &[Matrix3<f64>], step_s: f64) {
         self.step_s = step_s;
-        match Factor::of(system, active) {
+        match Factor::of(system, active, Ordering::Fewest(positions)) {
             Ok(factor) => {
                 self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s);
                 self.current = Some(factor);
@@ -232,8 +237,9 @@ impl Factorization {
 
     /// After step `step`'s solve: when `prepare` chose this step, hands `system`'s values
     /// to the worker (swapped for a spare buffer, which the next step's assembly
-    /// overwrites), due after the factor's delay.
-    pub fn after_solve(&mut self, step: u64, system: &mut BlockMatrix<f32>, active: &[bool], rotations: &[Matrix3<f64>]) {
+    /// overwrites), due after the factor's delay; after a cut, with the nodes' rest
+    /// `positions` to order the new structure by.
+    pub fn after_solve(&mut self, step: u64, system: &mut BlockMatrix<f32>, active: &[bool], positions: &[Vec3], rotations: &[Matrix3<f64>]) {
         if !std::mem::take(&mut self.hand_over) {
             return;
         }
@@ -253,7 +259,7 @@ impl Factorization {
         next.blocks.resize(system.values.len(), [0.0; 12]);
         std::mem::swap(&mut next.blocks, &mut system.values);
         if reusable.is_none() {
-            next.new_structure = (system.pattern.clone(), active.to_vec());
+            next.new_structure = (system.pattern.clone(), active.to_vec(), positions.to_vec());
         }
         next.structure = reusable;
         *next.recycled.get_mut().unwrap_or_else(|e| e.into_inner()) = self.retired.take().unwrap_or_default();

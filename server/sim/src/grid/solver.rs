@@ -365,7 +365,7 @@ impl Dynamics {
             Preconditioning::Cholesky => {
                 self.assemble(topo, settings);
                 node_rotations_into(&self.first_element, &self.rotations, &mut self.node_rotations);
-                self.factorization.prime(&self.system, &self.active, &self.node_rotations, settings.dt_s);
+                self.factorization.prime(&self.system, &self.active, &topo.nodes.rest, &self.node_rotations, settings.dt_s);
             }
             Preconditioning::Multigrid => {
                 self.assemble(topo, settings);
@@ -481,7 +481,7 @@ impl Dynamics {
     /// blow-up).
     pub fn finish_step(&mut self, topo: &mut Topology, settings: &SolverSettings, step: u64) -> f64 {
         if settings.preconditioner == Preconditioning::Cholesky {
-            self.factorization.after_solve(step, &mut self.system, &self.active, &self.node_rotations);
+            self.factorization.after_solve(step, &mut self.system, &self.active, &topo.nodes.rest, &self.node_rotations);
         }
         let h = settings.dt_s;
         let mut max_dv: f64 = 0.0;

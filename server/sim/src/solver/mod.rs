@@ -13,6 +13,8 @@
 //!   iteration count does not grow with resolution;
 //! - [`cholesky`]: a sparse Cholesky factor of a recent system (faer's), the other such
 //!   preconditioner: computed on a worker, reused for many steps;
+//! - [`ordering`]: the order its factorization eliminates the nodes in (nested
+//!   dissection by position: a smaller factor than minimum degree);
 //! - [`kernels`]: the per-step kernels — element rotation and scatter, block-row products
 //!   and Gauss–Seidel sweeps, the conjugate gradient's vector updates — vectorized, each
 //!   sum in a fixed order (the same bits at every vector width);
@@ -27,6 +29,7 @@ pub mod block_sparse;
 pub mod cholesky;
 pub mod kernels;
 pub mod multigrid;
+pub mod ordering;
 pub mod pcg;
 pub mod preconditioner;
 pub mod predictor;
