@@ -213,8 +213,8 @@ fn check_factor_size(scene: &Scene, grid: &BranchedGrid) -> Result<(), SceneErro
         &scene.origin,
         field,
         format!(
-            "the Cholesky factor of this scene's system would hold {entries} entries ({} MB to compute in double precision), more than the {} allowed; use the multigrid preconditioner or a coarser level",
-            entries * 8 / 1_000_000,
+            "the Cholesky factor of this scene's system would hold {entries} entries ({} MB in single precision), more than the {} allowed; use the multigrid preconditioner or a coarser level",
+            entries * 4 / 1_000_000,
             super::factorization::MAX_FACTOR_ENTRIES
         ),
     ))

@@ -34,24 +34,28 @@ pub const REFACTOR_EVERY: u64 = 16;
 pub const MIN_DELAY: u64 = 16;
 
 /// Steps of `step_s` between asking for a factor with `factor_entries` entries in L over
-/// `unknowns` unknowns and using it: twice the factorization's time at 2·10¹⁰ units of
+/// `unknowns` unknowns and using it: twice the factorization's time at 3·10¹⁰ units of
 /// entries² / unknowns per second; at least [`MIN_DELAY`] ms (and one step). Measured on
-/// this project's 2-core machine (faer, one thread), that rate is 1.5–3.6·10¹⁰: 3.3 ms
-/// for 0.5 M entries over 5,226 unknowns, 44 ms for 3.5 M over 9,720, 2.0 s for 80 M
-/// over 90,033. A function of the structure and the step alone, so the schedule is the
-/// same on every machine; a slower one waits (counted in `solver_waits`). The step
-/// counts because a multirate schedule's deformation steps are tens of ms long.
+/// this project's 2-core Xeon (faer, one thread, single precision, 2026-11-26), that
+/// rate is 3.0–4.4·10¹⁰ for factors of millions of entries: 28 ms for 2.99 M entries
+/// over 9,720 unknowns (the level-0 cantilever), 23 ms for 2.54 M over 7,794, 88 ms for
+/// 8.28 M over 17,781; small factors run slower per unit and are covered by the
+/// minimum (4.9 ms for 0.51 M over 5,226). (In double precision it was 2.0–2.6·10¹⁰,
+/// and this constant 2·10¹⁰.) A function of the structure and the step alone, so the
+/// schedule is the same on every machine; a slower one waits (counted in
+/// `solver_waits`). The step counts because a multirate schedule's deformation steps are
+/// tens of ms long.
 pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64) -> u64 {
     let work = (factor_entries as f64).powi(2) / unknowns.max(1) as f64;
-    let ms = 2.0 * work / 2e10 * 1e3;
+    let ms = 2.0 * work / 3e10 * 1e3;
     let step_ms = step_s * 1e3;
     let at_least = (MIN_DELAY as f64 / step_ms).ceil().max(1.0);
     (ms / step_ms).ceil().max(at_least) as u64
 }
 
 /// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
-/// project's machine): at 40 M the worker computes in 320 MB (double precision) and
-/// the factors in use and in the making take 160 MB each (single).
+/// project's machine): at 40 M the factors in use and in the making take 160 MB each
+/// (single precision), and the worker its gathered system beside them.
 pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;
 
 /// The entries of the Cholesky factor of `topo`'s step system (its symbolic
