@@ -263,7 +263,14 @@ impl Factorization {
         next.blocks.resize(system.values.len(), [0.0; 12]);
         std::mem::swap(&mut next.blocks, &mut system.values);
         if reusable.is_none() {
-            next.new_structure = (system.pattern.clone(), active.to_vec(), positions.to_vec());
+            // Into the spare job's buffers: the active set and the positions reuse their
+            // allocation (the pattern is cloned whole, as before).
+            let (pattern, was_active, rest) = &mut next.new_structure;
+            *pattern = system.pattern.clone();
+            was_active.clear();
+            was_active.extend_from_slice(active);
+            rest.clear();
+            rest.extend_from_slice(positions);
         }
         next.structure = reusable;
         *next.recycled.get_mut().unwrap_or_else(|e| e.into_inner()) = self.retired.take().unwrap_or_default();

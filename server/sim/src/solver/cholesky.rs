@@ -124,9 +124,9 @@ impl Structure {
         }
         let size = unknowns as usize;
         let lower = SymbolicSparseColMatRef::new_checked(size, size, &col_ptr, None, &row_idx);
-        let minimum_degree = || factorize_symbolic_cholesky(lower, Side::Lower, SymmetricOrdering::Amd, Default::default()).map_err(FactorError::Symbolic);
+        let by_degree = || factorize_symbolic_cholesky(lower, Side::Lower, SymmetricOrdering::Amd, Default::default()).map_err(FactorError::Symbolic);
         let first_of = |i: u32| first[i as usize];
-        let nested_dissection = |positions: &[Vec3]| {
+        let by_position = |positions: &[Vec3]| {
             // The nodes' order, three unknowns each: `forward[k]` is the unknown
             // eliminated k-th.
             let nodes: Vec<u32> = (0..n as u32).filter(|&i| first_of(i) != INACTIVE).collect();
@@ -139,11 +139,11 @@ impl Structure {
             factorize_symbolic_cholesky(lower, Side::Lower, SymmetricOrdering::Custom(perm), Default::default()).map_err(FactorError::Symbolic)
         };
         let symbolic = match ordering {
-            Ordering::MinimumDegree => minimum_degree()?,
-            Ordering::NestedDissection(positions) => nested_dissection(positions)?,
+            Ordering::MinimumDegree => by_degree()?,
+            Ordering::NestedDissection(positions) => by_position(positions)?,
             Ordering::Fewest(positions) => {
-                let (by_position, by_degree) = (nested_dissection(positions)?, minimum_degree()?);
-                if by_position.len_val() <= by_degree.len_val() { by_position } else { by_degree }
+                let (dissected, minimum) = (by_position(positions)?, by_degree()?);
+                if dissected.len_val() <= minimum.len_val() { dissected } else { minimum }
             }
         };
         let factor_entries = symbolic.len_val();

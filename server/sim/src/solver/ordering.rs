@@ -13,8 +13,9 @@
 //! Measured against faer's approximate minimum degree (entries of L of the step
 //! systems): box lattices fill in a third to a half less (30 × 30 × 30 nodes 124 M →
 //! 76 M, 81 × 17 × 17 nodes 101 M → 48 M), the level-0 cantilever of the MuJoCo
-//! comparison 15 % less (3.50 M → 2.99 M, factored in 105 ms instead of 155 ms on this
-//! project's Xeon); but minimum degree does better on the layered abdomen, whose
+//! comparison 15 % less (3.50 M → 2.99 M; its numeric factorization 40 ms instead of
+//! 53 ms in double precision on this project's Xeon); but minimum degree does better on
+//! the layered abdomen, whose
 //! branched nodes make poor planes. `cholesky::Ordering::Fewest` computes both and
 //! keeps the smaller.
 
