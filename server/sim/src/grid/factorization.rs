@@ -26,7 +26,7 @@ use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
 use crate::solver::background::{Background, take_due};
 use crate::solver::block_sparse::{Block, BlockMatrix, Pattern};
-use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorScratch, FactorSolve, Ordering, Structure};
+use crate::solver::cholesky::{Factor, FactorError, FactorPreconditioner, FactorMemory, FactorScratch, FactorSolve, Ordering, Structure};
 
 /// A new factor is asked for this often (steps).
 pub const REFACTOR_EVERY: u64 = 16;
@@ -54,8 +54,9 @@ pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64) -> u64 {
 }
 
 /// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
-/// project's machine): at 40 M the factors in use and in the making take 160 MB each
-/// (single precision), and the worker its gathered system beside them.
+/// project's machine): at 40 M the factors in use and in the making take 240 MB each
+/// (computed in single precision, applied from a copy in bfloat16), and the worker its
+/// gathered system beside them.
 pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;
 
 /// The entries of the Cholesky factor of `topo`'s step system (its symbolic
@@ -79,7 +80,7 @@ struct Job {
     new_structure: (Pattern, Vec<bool>, Vec<Vec3>),
     rotations: Vec<Matrix3<f64>>,
     /// A factor no longer in use, whose buffer the new one is written into.
-    recycled: std::sync::Mutex<Vec<f32>>,
+    recycled: std::sync::Mutex<FactorMemory>,
 }
 
 fn run(job: &Job, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
@@ -123,7 +124,7 @@ pub struct Factorization {
     /// (nothing is allocated on the physics thread once the first job is back), and the
     /// last factor retired, whose buffer the next one is written into.
     spare_job: Option<Arc<Job>>,
-    retired: Option<Vec<f32>>,
+    retired: Option<FactorMemory>,
     /// This step's system goes to the worker once it is solved.
     hand_over: bool,
     solve: FactorSolve,
@@ -197,7 +198,7 @@ impl Factorization {
                     self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s);
                     // The old factor's buffer goes to the next job, not to the allocator:
                     // freeing megabytes here would cost this step an unmap.
-                    self.retired = self.current.replace(factor).map(Factor::into_values);
+                    self.retired = self.current.replace(factor).map(Factor::into_memory);
                     match Arc::get_mut(&mut job) {
                         Some(back) => std::mem::swap(&mut self.factored_rotations, &mut back.rotations),
                         // A copy of this model shares the job: its rotations are copied.

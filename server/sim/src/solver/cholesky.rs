@@ -13,7 +13,9 @@
 //!   approximate minimum degree; computed once per topology;
 //! - [`Factor`]: the numeric factor of one system's values on that structure, computed
 //!   on a worker thread (the models schedule it: see `grid::factorization`);
-//! - [`FactorSolve`]: `z = A_old⁻¹ r` with buffers of its own: no allocation per solve.
+//! - [`FactorSolve`]: `z = A_old⁻¹ r` with buffers of its own: no allocation per solve;
+//!   a supernodal factor from its copy in bfloat16 (`super::compact_factor`), a
+//!   simplicial one (small) by faer's solves.
 //!
 //! Everything runs on one thread per call (faer's `Par::Seq`): the physics thread keeps
 //! its core, the worker its own.
@@ -23,12 +25,13 @@ use std::sync::Arc;
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky};
+use faer::sparse::linalg::cholesky::{LltRef, SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering, factorize_symbolic_cholesky};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::perm::PermRef;
 use faer::{Conj, MatMut, Par, Side};
 
 use super::block_sparse::{Block, BlockMatrix, Pattern, Scalar, at};
+use super::compact_factor::{Supernodes, to_bf16};
 use super::ordering::nested_dissection;
 use super::pcg::Preconditioner;
 use crate::math::{Matrix3, Vec3};
@@ -75,6 +78,12 @@ pub struct Structure {
     /// Per entry: the block it is read from, and the position in that block.
     source: Vec<(u32, u8)>,
     symbolic: SymbolicCholesky<u32>,
+    /// A supernodal factorization's layout, for the solves in bfloat16
+    /// (`super::compact_factor`); None for a simplicial one (small factors), which
+    /// faer's solves apply in f32.
+    supernodes: Option<Supernodes>,
+    /// Per unknown: its place in the elimination order.
+    slot: Vec<u32>,
     /// Entries of the factor L.
     pub factor_entries: usize,
 }
@@ -147,7 +156,15 @@ impl Structure {
             }
         };
         let factor_entries = symbolic.len_val();
-        Ok(Structure { first, unknowns: size, col_ptr, row_idx, source, symbolic, factor_entries })
+        let supernodes = match symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(supernodal) => Some(Supernodes::of(supernodal)),
+            SymbolicCholeskyRaw::Simplicial(_) => None,
+        };
+        let slot = match symbolic.perm() {
+            Some(perm) => perm.arrays().1.to_vec(),
+            None => (0..size as u32).collect(),
+        };
+        Ok(Structure { first, unknowns: size, col_ptr, row_idx, source, symbolic, supernodes, slot, factor_entries })
     }
 
     /// Unknowns of the factored system.
@@ -167,7 +184,16 @@ impl Structure {
 #[derive(Debug, Clone)]
 pub struct Factor {
     pub structure: Arc<Structure>,
+    memory: FactorMemory,
+}
+
+/// A factor's values: as computed (f32), and for a supernodal one in bfloat16, what
+/// its solves read (`super::compact_factor`). Recycled from a factor no longer in use
+/// into the next factorization.
+#[derive(Debug, Clone, Default)]
+pub struct FactorMemory {
     values: Vec<f32>,
+    compact: Vec<u16>,
 }
 
 impl Structure {
@@ -192,17 +218,20 @@ pub struct FactorScratch {
 
 impl Factor {
     /// Factors the system whose lower triangle is `lower` (from [`Structure::gather`]),
-    /// in single precision, into `out` (a factor no longer used, recycled: no
-    /// allocation where it has the size). The triangular solves stream the factor from
-    /// memory every iteration, so it is kept in single precision (half their time); it
-    /// is computed so too, since 2026-11-26: 1.4–1.7× faster than in double precision
+    /// in single precision, into `memory` (a factor no longer used, recycled: no
+    /// allocation where it has the size), and a supernodal one also into its copy in
+    /// bfloat16, which its solves read. The triangular solves stream the factor from
+    /// memory every iteration, so it is kept in single precision (half their time), and
+    /// supernodal ones in bfloat16 (half again); it
+    /// is computed in single precision too, since 2026-11-26: 1.4–1.7× faster than in double precision
     /// and converted (the level-0 cantilever's 2.99 M entries in 28 ms against 40 ms,
     /// the CT liver's level 1 in 88 ms against 151 ms, on this project's Xeon), with
     /// half the worker's memory and the same iteration counts (the cantilever's 600
     /// sagging steps: 2.64 a step either way). As a preconditioner its rounding is
     /// harmless; a system too ill-conditioned for it fails to factor and the solve goes
     /// on with block Jacobi (counted in `solver_factor_failures`).
-    fn new(structure: Arc<Structure>, lower: &[f32], mut out: Vec<f32>, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
+    fn new(structure: Arc<Structure>, lower: &[f32], mut memory: FactorMemory, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
+        let out = &mut memory.values;
         let s = &*structure;
         let symbolic = SymbolicSparseColMatRef::new_checked(s.unknowns, s.unknowns, &s.col_ptr, None, &s.row_idx);
         let matrix = SparseColMatRef::new(symbolic, lower);
@@ -214,14 +243,18 @@ impl Factor {
         }
         let buffer = &mut scratch.buffer.as_mut().expect("sized above").1;
         s.symbolic
-            .factorize_numeric_llt(&mut out, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(buffer), Default::default())
+            .factorize_numeric_llt(out, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(buffer), Default::default())
             .map_err(FactorError::NotPositiveDefinite)?;
-        Ok(Factor { structure, values: out })
+        memory.compact.clear();
+        if s.supernodes.is_some() {
+            memory.compact.extend(memory.values.iter().map(|&v| to_bf16(v)));
+        }
+        Ok(Factor { structure, memory })
     }
 
     /// Factors the system whose block values are `blocks` (on the pattern the structure
     /// was made from).
-    pub fn from_blocks<T: Scalar>(structure: Arc<Structure>, blocks: &[Block<T>], out: Vec<f32>, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
+    pub fn from_blocks<T: Scalar>(structure: Arc<Structure>, blocks: &[Block<T>], out: FactorMemory, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
         let mut lower = std::mem::take(&mut scratch.lower);
         structure.gather(blocks, &mut lower);
         let factor = Factor::new(structure, &lower, out, scratch);
@@ -232,12 +265,12 @@ impl Factor {
     /// Factors a block matrix (at once, on this thread).
     pub fn of<T: Scalar>(a: &BlockMatrix<T>, active: &[bool], ordering: Ordering<'_>) -> Result<Factor, FactorError> {
         let structure = Arc::new(Structure::new(&a.pattern, active, ordering)?);
-        Factor::from_blocks(structure, &a.values, Vec::new(), &mut FactorScratch::default())
+        Factor::from_blocks(structure, &a.values, FactorMemory::default(), &mut FactorScratch::default())
     }
 
-    /// The factor's values, to recycle into the next factorization.
-    pub fn into_values(self) -> Vec<f32> {
-        self.values
+    /// The factor's buffers, to recycle into the next factorization.
+    pub fn into_memory(self) -> FactorMemory {
+        self.memory
     }
 }
 
@@ -245,7 +278,9 @@ impl Factor {
 #[derive(Default)]
 pub struct FactorSolve {
     rhs: RefCell<Vec<f32>>,
+    /// faer's scratch (simplicial factors), or the supernodal solves' own.
     scratch: RefCell<Option<MemBuffer>>,
+    work: RefCell<Vec<f32>>,
     /// The unknowns the scratch was sized for.
     sized_for: usize,
 }
@@ -267,9 +302,16 @@ impl FactorSolve {
     /// Sizes the buffers for `factor` (allocates only when its structure grew).
     pub fn prepare(&mut self, factor: &Factor) {
         let s = &*factor.structure;
-        if self.sized_for != s.unknowns || self.scratch.get_mut().is_none() {
+        let ready = match &s.supernodes {
+            Some(supernodes) => self.work.get_mut().len() >= supernodes.scratch_len(),
+            None => self.scratch.get_mut().is_some(),
+        };
+        if self.sized_for != s.unknowns || !ready {
             self.rhs.get_mut().resize(s.unknowns, 0.0);
-            *self.scratch.get_mut() = Some(MemBuffer::new(s.symbolic.solve_in_place_scratch::<f32>(1, Par::Seq)));
+            match &s.supernodes {
+                Some(supernodes) => self.work.get_mut().resize(supernodes.scratch_len(), 0.0),
+                None => *self.scratch.get_mut() = Some(MemBuffer::new(s.symbolic.solve_in_place_scratch::<f32>(1, Par::Seq))),
+            }
             self.sized_for = s.unknowns;
         }
     }
@@ -298,28 +340,34 @@ impl Preconditioner for FactorPreconditioner<'_> {
     fn apply(&self, r: &[Vec3], z: &mut [Vec3]) {
         let s = &*self.factor.structure;
         let mut rhs = self.solve.rhs.borrow_mut();
-        let mut scratch = self.solve.scratch.borrow_mut();
-        let scratch = scratch.as_mut().expect("prepared");
+        // A supernodal factor's own solves work in the elimination order: each unknown
+        // goes straight to its slot. faer's permute themselves.
+        let slot = |u: u32| if s.supernodes.is_some() { s.slot[u as usize] as usize } else { u as usize };
         for (i, &f) in s.first.iter().enumerate() {
             if f != INACTIVE {
-                let f = f as usize;
                 let turned = match self.warp {
                     Some(w) => w[i].tr_mul(&r[i]),
                     None => r[i],
                 };
-                rhs[f] = turned.x as f32;
-                rhs[f + 1] = turned.y as f32;
-                rhs[f + 2] = turned.z as f32;
+                rhs[slot(f)] = turned.x as f32;
+                rhs[slot(f + 1)] = turned.y as f32;
+                rhs[slot(f + 2)] = turned.z as f32;
             }
         }
-        let llt = LltRef::<u32, f32>::new(&s.symbolic, &self.factor.values);
-        llt.solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(scratch));
+        match &s.supernodes {
+            Some(supernodes) => supernodes.solve(&self.factor.memory.compact, &mut rhs, &mut self.solve.work.borrow_mut()),
+            None => {
+                let mut scratch = self.solve.scratch.borrow_mut();
+                let scratch = scratch.as_mut().expect("prepared");
+                let llt = LltRef::<u32, f32>::new(&s.symbolic, &self.factor.memory.values);
+                llt.solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(scratch));
+            }
+        }
         for (i, &f) in s.first.iter().enumerate() {
             z[i] = if f == INACTIVE {
                 Vec3::zeros()
             } else {
-                let f = f as usize;
-                let x = Vec3::new(f64::from(rhs[f]), f64::from(rhs[f + 1]), f64::from(rhs[f + 2]));
+                let x = Vec3::new(f64::from(rhs[slot(f)]), f64::from(rhs[slot(f + 1)]), f64::from(rhs[slot(f + 2)]));
                 match self.warp {
                     Some(w) => w[i] * x,
                     None => x,
@@ -332,6 +380,7 @@ impl Preconditioner for FactorPreconditioner<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::solver::compact_factor::from_bf16;
 
     /// A chain of `n` nodes, each coupled to the next: SPD, with a node held.
     fn chain(n: usize) -> (BlockMatrix<f64>, Vec<bool>) {
@@ -422,12 +471,17 @@ mod tests {
         assert!(by_position < by_degree, "nested dissection {by_position} entries, minimum degree {by_degree}");
     }
 
+    /// A supernodal factor is applied from its values in bfloat16: its solve is that of
+    /// those values (faer's, in f32) to single precision, and of the system itself to
+    /// the precision of 8 significant bits.
     #[test]
-    fn a_large_factor_solves_non_symmetric_blocks_to_single_precision() {
+    fn a_large_factor_solves_as_its_values_in_bfloat16_do() {
         let (a, active) = lattice(11);
         let n = a.rows();
         let positions = lattice_positions(11);
         let factor = Factor::of(&a, &active, Ordering::NestedDissection(&positions)).unwrap();
+        let s = &*factor.structure;
+        assert!(s.supernodes.is_some(), "large enough for a supernodal factor");
         let mut solve = FactorSolve::default();
         solve.prepare(&factor);
         let x: Vec<Vec3> = (0..n).map(|i| if active[i] { Vec3::new((i as f64).sin(), (i as f64 * 0.3).cos(), 0.1 * (i % 5) as f64) } else { Vec3::zeros() }).collect();
@@ -435,8 +489,31 @@ mod tests {
         a.multiply(&x, &mut b, &active);
         let mut z = vec![Vec3::zeros(); n];
         solve.with(&factor, None).apply(&b, &mut z);
-        let error = (0..n).map(|i| (z[i] - x[i]).amax()).fold(0.0, f64::max);
-        assert!(error < 1e-5, "{error}");
+
+        let rounded: Vec<f32> = factor.memory.values.iter().map(|&v| from_bf16(to_bf16(v))).collect();
+        let mut rhs = vec![0f32; s.unknowns];
+        for (i, &f) in s.first.iter().enumerate() {
+            if f != INACTIVE {
+                for q in 0..3 {
+                    rhs[f as usize + q] = b[i][q] as f32;
+                }
+            }
+        }
+        let mut scratch = MemBuffer::new(s.symbolic.solve_in_place_scratch::<f32>(1, Par::Seq));
+        LltRef::<u32, f32>::new(&s.symbolic, &rounded).solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(&mut scratch));
+        let (mut from_faer, mut from_exact) = (0f64, 0f64);
+        for (i, &f) in s.first.iter().enumerate() {
+            if f != INACTIVE {
+                for q in 0..3 {
+                    from_faer = from_faer.max((z[i][q] - f64::from(rhs[f as usize + q])).abs());
+                    from_exact = from_exact.max((z[i][q] - x[i][q]).abs());
+                }
+            } else {
+                assert_eq!(z[i], Vec3::zeros());
+            }
+        }
+        assert!(from_faer < 1e-5, "{from_faer}");
+        assert!(from_exact > 1e-5 && from_exact < 2e-2, "{from_exact}");
     }
 
     /// A system turned node by node, `A' = W A Wᵀ`, is solved (to the factor's single

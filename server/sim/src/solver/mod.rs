@@ -13,6 +13,8 @@
 //!   iteration count does not grow with resolution;
 //! - [`cholesky`]: a sparse Cholesky factor of a recent system (faer's), the other such
 //!   preconditioner: computed on a worker, reused for many steps;
+//! - [`compact_factor`]: its triangular solves, from a copy in bfloat16 (half the
+//!   memory traffic of an application);
 //! - [`ordering`]: the order its factorization eliminates the nodes in (nested
 //!   dissection by position: a smaller factor than minimum degree);
 //! - [`kernels`]: the per-step kernels — element rotation and scatter, block-row products
@@ -27,6 +29,7 @@
 pub mod background;
 pub mod block_sparse;
 pub mod cholesky;
+pub mod compact_factor;
 pub mod kernels;
 pub mod multigrid;
 pub mod ordering;
