@@ -31,7 +31,7 @@ use faer::perm::PermRef;
 use faer::{Conj, MatMut, Par, Side};
 
 use super::block_sparse::{Block, BlockMatrix, Pattern, Scalar, at};
-use super::compact_factor::{Supernodes, to_bf16};
+use super::compact_factor::Supernodes;
 use super::ordering::nested_dissection;
 use super::pcg::Preconditioner;
 use crate::math::{Matrix3, Vec3};
@@ -245,9 +245,9 @@ impl Factor {
         s.symbolic
             .factorize_numeric_llt(out, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(buffer), Default::default())
             .map_err(FactorError::NotPositiveDefinite)?;
-        memory.compact.clear();
-        if s.supernodes.is_some() {
-            memory.compact.extend(memory.values.iter().map(|&v| to_bf16(v)));
+        match &s.supernodes {
+            Some(supernodes) => supernodes.compact(&memory.values, &mut memory.compact),
+            None => memory.compact.clear(),
         }
         Ok(Factor { structure, memory })
     }
@@ -380,7 +380,7 @@ impl Preconditioner for FactorPreconditioner<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solver::compact_factor::from_bf16;
+    use crate::solver::compact_factor::{from_bf16, to_bf16};
 
     /// A chain of `n` nodes, each coupled to the next: SPD, with a node held.
     fn chain(n: usize) -> (BlockMatrix<f64>, Vec<bool>) {
