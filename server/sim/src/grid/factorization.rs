@@ -54,9 +54,10 @@ pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64) -> u64 {
 }
 
 /// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
-/// project's machine): at 40 M the factors in use and in the making take about 270 MB
-/// each (computed in single precision, applied from a copy in bfloat16 with its diagonal
-/// blocks transposed), and the worker its gathered system beside them.
+/// project's machine): at 40 M the factors in use and in the making take about 110 MB
+/// each (a copy in bfloat16 with its diagonal blocks transposed, what the solves read),
+/// and the worker 160 MB for the single-precision values it computes them from, beside
+/// its gathered system.
 pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;
 
 /// The entries of the Cholesky factor of `topo`'s step system (its symbolic

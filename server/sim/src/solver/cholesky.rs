@@ -187,8 +187,9 @@ pub struct Factor {
     memory: FactorMemory,
 }
 
-/// A factor's values: as computed (f32), and for a supernodal one in bfloat16, what
-/// its solves read (`super::compact_factor`). Recycled from a factor no longer in use
+/// A factor's values as its solves read them: a simplicial one's as computed (f32), a
+/// supernodal one's in bfloat16 (`super::compact_factor`; its f32 values stay in the
+/// [`FactorScratch`] they were computed in). Recycled from a factor no longer in use
 /// into the next factorization.
 #[derive(Debug, Clone, Default)]
 pub struct FactorMemory {
@@ -209,18 +210,21 @@ impl Structure {
 }
 
 /// What a factorization works in, kept between factorizations by whoever makes them (a
-/// worker thread): the gathered lower triangle and faer's scratch, grown, never shrunk.
+/// worker thread): the gathered lower triangle, faer's scratch, and a supernodal
+/// factor's f32 values (only their bfloat16 copy goes with the factor); grown, never
+/// shrunk.
 #[derive(Default)]
 pub struct FactorScratch {
     lower: Vec<f32>,
     buffer: Option<(StackReq, MemBuffer)>,
+    values: Vec<f32>,
 }
 
 impl Factor {
     /// Factors the system whose lower triangle is `lower` (from [`Structure::gather`]),
     /// in single precision, into `memory` (a factor no longer used, recycled: no
-    /// allocation where it has the size), and a supernodal one also into its copy in
-    /// bfloat16, which its solves read. The triangular solves stream the factor from
+    /// allocation where it has the size); a supernodal one into the scratch's buffer and
+    /// from there into `memory` as the bfloat16 copy its solves read. The triangular solves stream the factor from
     /// memory every iteration, so it is kept in single precision (half their time), and
     /// supernodal ones in bfloat16 (half again); it
     /// is computed in single precision too, since 2026-11-26: 1.4–1.7× faster than in double precision
@@ -231,8 +235,10 @@ impl Factor {
     /// harmless; a system too ill-conditioned for it fails to factor and the solve goes
     /// on with block Jacobi (counted in `solver_factor_failures`).
     fn new(structure: Arc<Structure>, lower: &[f32], mut memory: FactorMemory, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
-        let out = &mut memory.values;
         let s = &*structure;
+        // A supernodal factor is computed in the scratch's buffer and copied out; a
+        // simplicial one in its own.
+        let mut out = std::mem::take(if s.supernodes.is_some() { &mut scratch.values } else { &mut memory.values });
         let symbolic = SymbolicSparseColMatRef::new_checked(s.unknowns, s.unknowns, &s.col_ptr, None, &s.row_idx);
         let matrix = SparseColMatRef::new(symbolic, lower);
         out.resize(s.symbolic.len_val(), 0.0);
@@ -242,13 +248,26 @@ impl Factor {
             scratch.buffer = Some((req, MemBuffer::new(req)));
         }
         let buffer = &mut scratch.buffer.as_mut().expect("sized above").1;
-        s.symbolic
-            .factorize_numeric_llt(out, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(buffer), Default::default())
-            .map_err(FactorError::NotPositiveDefinite)?;
+        let factored = s
+            .symbolic
+            .factorize_numeric_llt(&mut out, matrix, Side::Lower, LltRegularization::default(), Par::Seq, MemStack::new(buffer), Default::default())
+            .map(|_| ())
+            .map_err(FactorError::NotPositiveDefinite);
         match &s.supernodes {
-            Some(supernodes) => supernodes.compact(&memory.values, &mut memory.compact),
-            None => memory.compact.clear(),
+            Some(supernodes) => {
+                if factored.is_ok() {
+                    supernodes.compact(&out, &mut memory.compact);
+                }
+                scratch.values = out;
+                // Whatever f32 buffer came recycled (a simplicial factor's) is not needed.
+                memory.values = Vec::new();
+            }
+            None => {
+                memory.values = out;
+                memory.compact = Vec::new();
+            }
         }
+        factored?;
         Ok(Factor { structure, memory })
     }
 
@@ -479,9 +498,12 @@ mod tests {
         let (a, active) = lattice(11);
         let n = a.rows();
         let positions = lattice_positions(11);
-        let factor = Factor::of(&a, &active, Ordering::NestedDissection(&positions)).unwrap();
+        let structure = Arc::new(Structure::new(&a.pattern, &active, Ordering::NestedDissection(&positions)).unwrap());
+        let mut scratch = FactorScratch::default();
+        let factor = Factor::from_blocks(structure, &a.values, FactorMemory::default(), &mut scratch).unwrap();
         let s = &*factor.structure;
         assert!(s.supernodes.is_some(), "large enough for a supernodal factor");
+        assert!(factor.memory.values.is_empty(), "its f32 values stay in the scratch");
         let mut solve = FactorSolve::default();
         solve.prepare(&factor);
         let x: Vec<Vec3> = (0..n).map(|i| if active[i] { Vec3::new((i as f64).sin(), (i as f64 * 0.3).cos(), 0.1 * (i % 5) as f64) } else { Vec3::zeros() }).collect();
@@ -490,7 +512,7 @@ mod tests {
         let mut z = vec![Vec3::zeros(); n];
         solve.with(&factor, None).apply(&b, &mut z);
 
-        let rounded: Vec<f32> = factor.memory.values.iter().map(|&v| from_bf16(to_bf16(v))).collect();
+        let rounded: Vec<f32> = scratch.values.iter().map(|&v| from_bf16(to_bf16(v))).collect();
         let mut rhs = vec![0f32; s.unknowns];
         for (i, &f) in s.first.iter().enumerate() {
             if f != INACTIVE {
@@ -499,8 +521,8 @@ mod tests {
                 }
             }
         }
-        let mut scratch = MemBuffer::new(s.symbolic.solve_in_place_scratch::<f32>(1, Par::Seq));
-        LltRef::<u32, f32>::new(&s.symbolic, &rounded).solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(&mut scratch));
+        let mut buffer = MemBuffer::new(s.symbolic.solve_in_place_scratch::<f32>(1, Par::Seq));
+        LltRef::<u32, f32>::new(&s.symbolic, &rounded).solve_in_place_with_conj(Conj::No, MatMut::from_column_major_slice_mut(&mut rhs[..], s.unknowns, 1), Par::Seq, MemStack::new(&mut buffer));
         let (mut from_faer, mut from_exact) = (0f64, 0f64);
         for (i, &f) in s.first.iter().enumerate() {
             if f != INACTIVE {
