@@ -164,6 +164,12 @@ pub async fn info(server: &ServerProcess, id: &str, token: &str, with_state_hash
     Ok(server.sessions().await?.get_session(request).await.map_err(|s| anyhow!("session {id}: {}", s.message()))?.into_inner())
 }
 
+/// How long an HTTP request may take. Some are long by nature: a playback seek replays
+/// the recording up to its step (14,000 skin-patch steps after the SIGKILL case), which
+/// on this project's 2-core host in a slow hour took over the 30 s this was before
+/// (CI, 2026-11-27: both sessions' seeks timed out; a run minutes later passed).
+const HTTP_DEADLINE: Duration = Duration::from_secs(120);
+
 /// One HTTP/1.1 request on a fresh connection: (status, body).
 pub async fn http(addr: &str, method: &str, path: &str, token: &str, body: &str) -> anyhow::Result<(u16, String)> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -174,7 +180,7 @@ pub async fn http(addr: &str, method: &str, path: &str, token: &str, body: &str)
     );
     stream.write_all(request.as_bytes()).await?;
     let mut buf = Vec::new();
-    tokio::time::timeout(Duration::from_secs(30), stream.read_to_end(&mut buf)).await??;
+    tokio::time::timeout(HTTP_DEADLINE, stream.read_to_end(&mut buf)).await??;
     let text = String::from_utf8_lossy(&buf).into_owned();
     let status = text.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
     Ok((status, text.split("\r\n\r\n").nth(1).unwrap_or_default().to_owned()))

@@ -223,17 +223,18 @@ pub struct FactorScratch {
 impl Factor {
     /// Factors the system whose lower triangle is `lower` (from [`Structure::gather`]),
     /// in single precision, into `memory` (a factor no longer used, recycled: no
-    /// allocation where it has the size); a supernodal one into the scratch's buffer and
-    /// from there into `memory` as the bfloat16 copy its solves read. The triangular solves stream the factor from
-    /// memory every iteration, so it is kept in single precision (half their time), and
-    /// supernodal ones in bfloat16 (half again); it
-    /// is computed in single precision too, since 2026-11-26: 1.4–1.7× faster than in double precision
-    /// and converted (the level-0 cantilever's 2.99 M entries in 28 ms against 40 ms,
-    /// the CT liver's level 1 in 88 ms against 151 ms, on this project's Xeon), with
-    /// half the worker's memory and the same iteration counts (the cantilever's 600
-    /// sagging steps: 2.64 a step either way). As a preconditioner its rounding is
-    /// harmless; a system too ill-conditioned for it fails to factor and the solve goes
-    /// on with block Jacobi (counted in `solver_factor_failures`).
+    /// allocation where it has the size); a supernodal one into the scratch's buffer,
+    /// and from there into `memory` as the bfloat16 copy its solves read. The
+    /// triangular solves stream the factor from memory every iteration, so it is kept
+    /// in single precision (half their time), a supernodal one in bfloat16 (half
+    /// again). It is computed in single precision too, since 2026-11-26: 1.4–1.7×
+    /// faster than in double precision and converted (the level-0 cantilever's 2.99 M
+    /// entries in 28 ms against 40 ms, the CT liver's level 1 in 88 ms against 151 ms,
+    /// on this project's Xeon), with half the worker's memory and the same iteration
+    /// counts (the cantilever's 600 sagging steps: 2.64 a step either way). As a
+    /// preconditioner its rounding is harmless; a system too ill-conditioned for it
+    /// fails to factor and the solve goes on with block Jacobi (counted in
+    /// `solver_factor_failures`).
     fn new(structure: Arc<Structure>, lower: &[f32], mut memory: FactorMemory, scratch: &mut FactorScratch) -> Result<Factor, FactorError> {
         let s = &*structure;
         // A supernodal factor is computed in the scratch's buffer and copied out; a
