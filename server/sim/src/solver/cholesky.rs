@@ -82,8 +82,6 @@ pub struct Structure {
     /// (`super::compact_factor`); None for a simplicial one (small factors), which
     /// faer's solves apply in f32.
     supernodes: Option<Supernodes>,
-    /// Per unknown: its place in the elimination order.
-    slot: Vec<u32>,
     /// Entries of the factor L.
     pub factor_entries: usize,
 }
@@ -160,11 +158,7 @@ impl Structure {
             SymbolicCholeskyRaw::Supernodal(supernodal) => Some(Supernodes::of(supernodal)),
             SymbolicCholeskyRaw::Simplicial(_) => None,
         };
-        let slot = match symbolic.perm() {
-            Some(perm) => perm.arrays().1.to_vec(),
-            None => (0..size as u32).collect(),
-        };
-        Ok(Structure { first, unknowns: size, col_ptr, row_idx, source, symbolic, supernodes, slot, factor_entries })
+        Ok(Structure { first, unknowns: size, col_ptr, row_idx, source, symbolic, supernodes, factor_entries })
     }
 
     /// Unknowns of the factored system.
@@ -361,8 +355,10 @@ impl Preconditioner for FactorPreconditioner<'_> {
         let s = &*self.factor.structure;
         let mut rhs = self.solve.rhs.borrow_mut();
         // A supernodal factor's own solves work in the elimination order: each unknown
-        // goes straight to its slot. faer's permute themselves.
-        let slot = |u: u32| if s.supernodes.is_some() { s.slot[u as usize] as usize } else { u as usize };
+        // goes straight to its slot (the elimination order's inverse permutation, which
+        // the symbolic factorization holds). faer's permute themselves.
+        let order = s.supernodes.as_ref().and(s.symbolic.perm()).map(|perm| perm.arrays().1);
+        let slot = |u: u32| order.map_or(u as usize, |inverse| inverse[u as usize] as usize);
         for (i, &f) in s.first.iter().enumerate() {
             if f != INACTIVE {
                 let turned = match self.warp {

@@ -97,8 +97,7 @@ impl Supernodes {
         out.clear();
         out.extend(values.iter().map(|&v| to_bf16(v)));
         for s in 0..self.begin.len() - 1 {
-            let columns = (self.begin[s + 1] - self.begin[s]) as usize;
-            let height = (self.values_at[s + 1] - self.values_at[s]) / columns;
+            let (columns, height) = self.shape(s);
             for e in 0..columns * columns {
                 let entry = out[self.values_at[s] + (e % columns) * height + e / columns];
                 out.push(entry);
@@ -134,10 +133,16 @@ impl Supernodes {
         }
     }
 
+    /// Supernode `s`'s columns and rows (its diagonal block's and its rectangle's).
+    fn shape(&self, s: usize) -> (usize, usize) {
+        let columns = (self.begin[s + 1] - self.begin[s]) as usize;
+        (columns, (self.values_at[s + 1] - self.values_at[s]) / columns)
+    }
+
     /// Supernode `s`: its first column, its columns, its rectangle's rows, its values.
     fn supernode<'a>(&'a self, s: usize, l: &'a [u16]) -> (usize, usize, &'a [u32], &'a [u16]) {
         let first = self.begin[s] as usize;
-        let columns = self.begin[s + 1] as usize - first;
+        let columns = self.shape(s).0;
         let rows = &self.rows[self.rows_at[s] as usize..self.rows_at[s + 1] as usize];
         (first, columns, rows, &l[self.values_at[s]..self.values_at[s + 1]])
     }
