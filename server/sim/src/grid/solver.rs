@@ -277,8 +277,20 @@ impl Dynamics {
         let direct = remake && most_moved && self.most_moved_last;
         self.most_moved_last = most_moved;
         if remake {
+            // Not zeroed whole: every live element stores the blocks it writes first
+            // (`Scatter::first`), and only the blocks none of them writes are zeroed
+            // here, with those a dead element was first to write.
             let part = if direct { &mut self.system.values } else { &mut self.stiffness };
-            part.iter_mut().for_each(|b| *b = [0.0; 12]);
+            for &b in &self.scatter.unwritten {
+                part[b as usize] = [0.0; 12];
+            }
+            for e in (0..topo.elements.len()).filter(|&e| !topo.elements.alive[e] && self.scatter.first[e] != 0) {
+                for (k, &b) in self.scatter.blocks[e].iter().enumerate() {
+                    if (self.scatter.first[e] >> k) & 1 == 1 {
+                        part[b as usize] = [0.0; 12];
+                    }
+                }
+            }
             self.scattered.iter_mut().for_each(|r| *r = None);
             self.stiffness_age = 0;
             self.stiffness_scale = a_stiff;
@@ -309,10 +321,12 @@ impl Dynamics {
                     if let Some(before) = before {
                         let mut unused = [0f32; 24];
                         rotate_and_multiply(k, &to_f32(&before), &d, rotated, &mut unused);
-                        scatter_element(part, blocks, rotated, -(a_stiff as f32));
+                        scatter_element(part, blocks, rotated, -(a_stiff as f32), 0);
                     }
+                    // On a remake, each element is scattered once, in order.
+                    let first = if remake { self.scatter.first[e] } else { 0 };
                     rotate_and_multiply(k, &rf, &d, rotated, &mut f);
-                    scatter_element(part, blocks, rotated, a_stiff as f32);
+                    scatter_element(part, blocks, rotated, a_stiff as f32, first);
                     self.scattered[e] = Some(r);
                 }
             }

@@ -116,6 +116,13 @@ pub const NO_BLOCK: u32 = u32::MAX;
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Scatter {
     pub blocks: Vec<[u32; 64]>,
+    /// Per element, bit `8 i + j` set where pair (i, j)'s block is written by no element
+    /// before it: assembling every included element in order, storing those blocks
+    /// instead of adding to them, and zeroing [`Scatter::unwritten`] makes the matrix
+    /// without first zeroing all of it (a pass over every block, 4 % of a level-0 step).
+    pub first: Vec<u64>,
+    /// The blocks no included element writes (a lone node's diagonal, a held node's).
+    pub unwritten: Vec<u32>,
 }
 
 impl Scatter {
@@ -162,7 +169,20 @@ impl Scatter {
                 position[pattern.cols[k] as usize] = NO_BLOCK;
             }
         }
-        Scatter { blocks }
+        // Which element writes each block first, in element order (what an assembly
+        // that stores those blocks instead of adding to them needs; no block is written
+        // twice as a first).
+        let mut first = vec![0u64; elements.len()];
+        let mut written = vec![false; pattern.blocks()];
+        for (e, pairs) in blocks.iter().enumerate() {
+            for (k, &b) in pairs.iter().enumerate().filter(|(_, b)| **b != NO_BLOCK) {
+                if !std::mem::replace(&mut written[b as usize], true) {
+                    first[e] |= 1 << k;
+                }
+            }
+        }
+        let unwritten = (0..pattern.blocks() as u32).filter(|&b| !written[b as usize]).collect();
+        Scatter { blocks, first, unwritten }
     }
 }
 
@@ -290,7 +310,7 @@ impl BlockMatrix<f32> {
     /// Adds `scale ·` a 24 × 24 element matrix in planar layout (see
     /// `kernels::Planar24`) to the blocks its corners map to.
     pub fn add_element(&mut self, blocks: &[u32; 64], m: &super::kernels::Planar24, scale: f32) {
-        super::kernels::scatter_element(&mut self.values, blocks, m, scale);
+        super::kernels::scatter_element(&mut self.values, blocks, m, scale, 0);
     }
 }
 
@@ -318,6 +338,24 @@ mod tests {
             }
         }
         assert!(scatter.blocks[0].contains(&NO_BLOCK), "node 5's couplings are left out");
+        // Each block is first written by exactly one element, the earliest holding it;
+        // the unwritten ones by none.
+        let mut firsts = vec![0; pattern.blocks()];
+        for (e, pairs) in scatter.blocks.iter().enumerate() {
+            for (k, &b) in pairs.iter().enumerate() {
+                if (scatter.first[e] >> k) & 1 == 1 {
+                    firsts[b as usize] += 1;
+                    let earlier = scatter.blocks[..e].iter().any(|p| p.contains(&b)) || pairs[..k].contains(&b);
+                    assert!(!earlier, "element {e} pair {k}: block {b} was written before");
+                }
+            }
+        }
+        for b in 0..pattern.blocks() {
+            let held = scatter.blocks.iter().any(|p| p.contains(&(b as u32)));
+            assert_eq!(firsts[b], usize::from(held), "block {b}");
+            assert_eq!(scatter.unwritten.contains(&(b as u32)), !held, "block {b}");
+        }
+        assert!(!scatter.unwritten.is_empty(), "node 5's diagonal and the corner nodes no element holds");
         // Adding at a left-out pair adds nothing (and does not index past the values).
         let mut a = BlockMatrix::<f64>::zeros(pattern);
         a.add(NO_BLOCK as usize, &Matrix3::identity());

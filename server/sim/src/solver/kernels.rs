@@ -169,10 +169,14 @@ dispatch! {
 
 dispatch! {
     /// `values[blocks[8 i + j]] += scale · (block (i, j) of m)` for the 64 corner pairs of
-    /// an element matrix in planar layout (pairs with no block, `NO_BLOCK`, skipped). Plane c of corner i's three rows holds column
-    /// c of its eight blocks in its lanes; each block's column is gathered into four
-    /// lanes (the fourth zero, as every block's padding) and added as one vector.
-    pub fn scatter_element(values: &mut [[f32; 12]], blocks: &[u32; 64], m: &Planar24, scale: f32) {
+    /// an element matrix in planar layout (pairs with no block, `NO_BLOCK`, skipped); the
+    /// pairs whose bit `8 i + j` is set in `first` are stored instead of added (the
+    /// element is the first to write that block: see `Scatter::first`, which spares
+    /// zeroing the whole matrix before assembling it). Plane c of corner i's three rows
+    /// holds column c of its eight blocks in its lanes; each block's column is gathered
+    /// into four lanes (the fourth zero, as every block's padding) and added as one
+    /// vector.
+    pub fn scatter_element(values: &mut [[f32; 12]], blocks: &[u32; 64], m: &Planar24, scale: f32, first: u64) {
         for i in 0..8 {
             let rows = [&m[3 * i], &m[3 * i + 1], &m[3 * i + 2]];
             for j in 0..8 {
@@ -180,10 +184,12 @@ dispatch! {
                     continue;
                 }
                 let v = &mut values[blocks[8 * i + j] as usize];
+                // Storing `scale · x` gives the bits adding it to zero would.
+                let kept = if (first >> (8 * i + j)) & 1 == 1 { 0.0 } else { 1.0 };
                 for c in 0..3 {
                     let column = [rows[0][c].0[j], rows[1][c].0[j], rows[2][c].0[j], 0.0];
                     for r in 0..4 {
-                        v[4 * c + r] += scale * column[r];
+                        v[4 * c + r] = kept * v[4 * c + r] + scale * column[r];
                     }
                 }
             }
