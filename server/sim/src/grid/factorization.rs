@@ -7,8 +7,9 @@
 //! - every [`REFACTOR_EVERY`] steps the step's system, once solved, is handed to a
 //!   worker thread (its buffer swapped for a spare: nothing is copied), whose factor
 //!   replaces the one in use at the step `delay` later (a step waits for a late worker;
-//!   the waits are counted). `delay` grows with the factor's size (see [`delay_for`]) so
-//!   that on this class of machine the worker is rarely late;
+//!   the waits are counted). `delay` grows with the factor's size and shrinks as the
+//!   steps' own solves take longer (see [`delay_for`]) so that on this class of machine
+//!   the worker is rarely late;
 //! - after a cut the structure (pattern, ordering, symbolic factor) is made again on the
 //!   worker with the first factor, due twice the last delay later; until it arrives the
 //!   solve uses block Jacobi alone.
@@ -41,16 +42,55 @@ pub const MIN_DELAY: u64 = 16;
 /// over 9,720 unknowns (the level-0 cantilever), 23 ms for 2.54 M over 7,794, 88 ms for
 /// 8.28 M over 17,781; small factors run slower per unit and are covered by the
 /// minimum (4.9 ms for 0.51 M over 5,226). (In double precision it was 2.0–2.6·10¹⁰,
-/// and this constant 2·10¹⁰.) A function of the structure and the step alone, so the
-/// schedule is the same on every machine; a slower one waits (counted in
-/// `solver_waits`). The step counts because a multirate schedule's deformation steps are
-/// tens of ms long.
-pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64) -> u64 {
-    let work = (factor_entries as f64).powi(2) / unknowns.max(1) as f64;
-    let ms = 2.0 * work / 3e10 * 1e3;
-    let step_ms = step_s * 1e3;
+/// and this constant 2·10¹⁰.)
+///
+/// A step lasts `step_s` of wall time when the physics keeps pace with real time, and
+/// longer when its own work takes longer: `work` is what the steps since the last
+/// factor did with this one ([`StepWork::floor_s`], the least time that takes), so a
+/// large factor whose steps cannot keep pace is not left waiting tens of its slow steps
+/// (on the level-0 cantilever each step of delay leaves about 0.01 more iterations a
+/// step). A function of the structure, the step and the iterations the steps took
+/// (the same on every machine: the state decides them), so the schedule is the same
+/// on every machine; a slower one waits (counted in `solver_waits`). The step counts
+/// because a multirate schedule's deformation steps are tens of ms long.
+pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64, work: &StepWork) -> u64 {
+    let entries2 = (factor_entries as f64).powi(2) / unknowns.max(1) as f64;
+    let ms = 2.0 * entries2 / 3e10 * 1e3;
+    let step_ms = step_s.max(work.floor_s(factor_entries)) * 1e3;
     let at_least = (MIN_DELAY as f64 / step_ms).ceil().max(1.0);
     (ms / step_ms).ceil().max(at_least) as u64
+}
+
+/// Factor applications a second (a forward and a backward pass over L in bfloat16,
+/// entries of L; `compact_factor`) and system products a second (3×3 blocks in f32,
+/// scalar entries) on this project's Xeon, rounded up from what the level-0
+/// cantilever's steps measured (perf, 2026-11-27: 1.1 ms an application of 2.99 M
+/// entries, 0.23 ms a product of 0.72 M): a lower bound on a step's time.
+const APPLIED_ENTRIES_PER_S: f64 = 3e9;
+const MULTIPLIED_ENTRIES_PER_S: f64 = 4e9;
+
+/// What the conjugate gradient did with the factor in use over the steps since it came
+/// (counted by [`Factorization::solved`]): how long a step takes at least.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepWork {
+    pub steps: u64,
+    /// Factor applications (one an iteration) and solves (each multiplies by the system
+    /// once more than it iterates).
+    pub applications: u64,
+    pub solves: u64,
+    /// Scalar entries of the system's blocks.
+    pub system_entries: usize,
+}
+
+impl StepWork {
+    /// The least wall time a step takes for its solves alone (s): the mean applications
+    /// and products a step made, at the rates above. Before any step (a first factor),
+    /// one solve of one iteration.
+    pub fn floor_s(&self, factor_entries: usize) -> f64 {
+        let (applications, solves) = if self.steps == 0 { (1.0, 1.0) } else { (self.applications as f64 / self.steps as f64, self.solves as f64 / self.steps as f64) };
+        let products = applications + solves;
+        applications * factor_entries as f64 / APPLIED_ENTRIES_PER_S + products * self.system_entries as f64 / MULTIPLIED_ENTRIES_PER_S
+    }
 }
 
 /// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
@@ -129,6 +169,10 @@ pub struct Factorization {
     /// This step's system goes to the worker once it is solved.
     hand_over: bool,
     solve: FactorSolve,
+    /// What the steps did with the factor in use since it came (for the next delay), and
+    /// the last step counted.
+    work: StepWork,
+    last_counted: Option<u64>,
     /// Steps that waited for the worker; factorizations that failed (the solve then
     /// goes on with block Jacobi until the next one).
     pub waits: u64,
@@ -165,6 +209,8 @@ impl Clone for Factorization {
             retired: None,
             hand_over: self.hand_over,
             solve: FactorSolve::default(),
+            work: self.work,
+            last_counted: self.last_counted,
             waits: self.waits,
             failures: self.failures,
         }
@@ -196,7 +242,9 @@ impl Factorization {
             let mut job = pending.job;
             match result {
                 Some(Ok(factor)) if pending.generation == self.generation => {
-                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s);
+                    self.work.system_entries = 9 * system.values.len();
+                    self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s, &self.work);
+                    self.work = StepWork::default();
                     // The old factor's buffer goes to the next job, not to the allocator:
                     // freeing megabytes here would cost this step an unmap.
                     self.retired = self.current.replace(factor).map(Factor::into_memory);
@@ -225,6 +273,18 @@ impl Factorization {
         Some(self.solve.with(factor, Some(&self.warp)))
     }
 
+    /// Step `step`'s solve with the preconditioner [`Self::prepare`] returned took
+    /// `iterations`: counted for the next factor's delay (see [`delay_for`]).
+    pub fn solved(&mut self, step: u64, iterations: u32) {
+        if self.last_counted.replace(step) != Some(step) {
+            self.work.steps += 1;
+        }
+        // The first application comes before the first iteration; the last iteration's
+        // is skipped when it converged.
+        self.work.applications += u64::from(iterations.max(1));
+        self.work.solves += 1;
+    }
+
     /// Makes the first factor, of `system` (whose nodes are turned by `rotations` and
     /// rest at `positions`), at once: at load, from the model at rest, so that the first
     /// step does not make it.
@@ -232,7 +292,8 @@ impl Factorization {
         self.step_s = step_s;
         match Factor::of(system, active, Ordering::Fewest(positions)) {
             Ok(factor) => {
-                self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s);
+                self.work = StepWork { system_entries: 9 * system.values.len(), ..StepWork::default() };
+                self.delay = delay_for(factor.structure.factor_entries, factor.structure.unknowns(), self.step_s, &self.work);
                 self.current = Some(factor);
                 self.factored_rotations.clear();
                 self.factored_rotations.extend_from_slice(rotations);
@@ -289,5 +350,40 @@ impl Factorization {
             self.precomputed = Some(run(&job, &mut FactorScratch::default()));
         }
         self.pending = Some(Pending { due, generation: self.generation, job });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The level-0 cantilever's factor and system (docs/fem-comparison.md).
+    const ENTRIES: usize = 2_990_000;
+    const UNKNOWNS: usize = 9_720;
+    const SYSTEM: usize = 720_000;
+
+    #[test]
+    fn a_factor_comes_after_twice_its_factorization_counted_in_steps_as_long_as_their_solves() {
+        // Twice 2.99 M² / 9,720 / 3·10¹⁰ s = 61.3 ms.
+        let first = StepWork { system_entries: SYSTEM, ..StepWork::default() };
+        // Before any step: one application (1.0 ms) and two products (0.36 ms) a step.
+        assert_eq!(delay_for(ENTRIES, UNKNOWNS, 1e-3, &first), 46);
+        // 2.3 applications and 1 solve a step: 2.3 ms + 0.59 ms.
+        let busy = StepWork { steps: 10, applications: 23, solves: 10, system_entries: SYSTEM };
+        assert_eq!(delay_for(ENTRIES, UNKNOWNS, 1e-3, &busy), 22);
+        // Steps longer than their solves (a multirate schedule's) count as themselves.
+        assert_eq!(delay_for(ENTRIES, UNKNOWNS, 20e-3, &busy), 4);
+        // A small factor's steps keep pace: the minimum, 16 steps of 1 ms.
+        let small = StepWork { steps: 10, applications: 20, solves: 10, system_entries: 50_000 };
+        assert_eq!(delay_for(100_000, 3_000, 1e-3, &small), MIN_DELAY);
+    }
+
+    #[test]
+    fn the_steps_work_counts_applications_solves_and_distinct_steps() {
+        let mut f = Factorization::new();
+        f.solved(5, 3);
+        f.solved(5, 0);
+        f.solved(6, 2);
+        assert_eq!(f.work, StepWork { steps: 2, applications: 6, solves: 3, system_entries: 0 });
     }
 }

@@ -487,7 +487,11 @@ impl Dynamics {
             _ => None,
         };
         match (hierarchy, factor) {
-            (_, Some(factor)) => pcg.solve(&operator, &factor, b, x, active, diagonal, pcg_settings),
+            (_, Some(factor)) => {
+                let convergence = pcg.solve(&operator, &factor, b, x, active, diagonal, pcg_settings);
+                factorization.solved(step, convergence.iterations);
+                convergence
+            }
             (Some(hierarchy), None) => {
                 let vcycle = VCycle {
                     hierarchy: std::cell::RefCell::new(hierarchy),
