@@ -279,17 +279,12 @@ impl Dynamics {
         if remake {
             // Not zeroed whole: every live element stores the blocks it writes first
             // (`Scatter::first`), and only the blocks none of them writes are zeroed
-            // here, with those a dead element was first to write.
+            // here. The scatter was made for the live elements of now: elements die
+            // only by cuts, which remake it (`resize`) before the next step.
+            debug_assert!((0..topo.elements.len()).all(|e| topo.elements.alive[e] || self.scatter.first[e] == 0), "the scatter is of the live elements");
             let part = if direct { &mut self.system.values } else { &mut self.stiffness };
             for &b in &self.scatter.unwritten {
                 part[b as usize] = [0.0; 12];
-            }
-            for e in (0..topo.elements.len()).filter(|&e| !topo.elements.alive[e] && self.scatter.first[e] != 0) {
-                for (k, &b) in self.scatter.blocks[e].iter().enumerate() {
-                    if (self.scatter.first[e] >> k) & 1 == 1 {
-                        part[b as usize] = [0.0; 12];
-                    }
-                }
             }
             self.scattered.iter_mut().for_each(|r| *r = None);
             self.stiffness_age = 0;

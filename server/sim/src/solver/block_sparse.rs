@@ -355,7 +355,7 @@ mod tests {
             assert_eq!(firsts[b], usize::from(held), "block {b}");
             assert_eq!(scatter.unwritten.contains(&(b as u32)), !held, "block {b}");
         }
-        assert!(!scatter.unwritten.is_empty(), "node 5's diagonal and the corner nodes no element holds");
+        assert!(!scatter.unwritten.is_empty(), "nodes no included element holds keep a diagonal block");
         // Adding at a left-out pair adds nothing (and does not index past the values).
         let mut a = BlockMatrix::<f64>::zeros(pattern);
         a.add(NO_BLOCK as usize, &Matrix3::identity());

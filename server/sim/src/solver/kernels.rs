@@ -184,12 +184,14 @@ dispatch! {
                     continue;
                 }
                 let v = &mut values[blocks[8 * i + j] as usize];
-                // Storing `scale · x` gives the bits adding it to zero would.
-                let kept = if (first >> (8 * i + j)) & 1 == 1 { 0.0 } else { 1.0 };
+                // Zero plus the element's part: the bits of zeroing and then adding,
+                // whatever the block held (a NaN of a contained blow-up included, which
+                // multiplying it by zero would keep).
+                let before = if (first >> (8 * i + j)) & 1 == 1 { [0.0; 12] } else { *v };
                 for c in 0..3 {
                     let column = [rows[0][c].0[j], rows[1][c].0[j], rows[2][c].0[j], 0.0];
                     for r in 0..4 {
-                        v[4 * c + r] = kept * v[4 * c + r] + scale * column[r];
+                        v[4 * c + r] = before[4 * c + r] + scale * column[r];
                     }
                 }
             }
@@ -595,6 +597,35 @@ mod tests {
                 let generic = row_generic::<f64, false>(&doubles, &cols, range.clone(), &x, skip);
                 assert_eq!(wide.map(f64::to_bits), generic.map(f64::to_bits), "f64 {range:?} skipping {skip}");
             }
+        }
+    }
+
+    #[test]
+    fn a_first_write_stores_what_zeroing_and_adding_would_whatever_the_block_held() {
+        let k24 = crate::grid::hex::box_stiffness([0.003, 0.002, 0.004], 5e3, 0.4);
+        let m = to_planar(&k24.as_slice().iter().map(|&v| v as f32).collect::<Vec<f32>>());
+        // Corner pairs onto 64 blocks, two of them left out.
+        let mut blocks: [u32; 64] = std::array::from_fn(|k| k as u32);
+        blocks[9] = NO_BLOCK;
+        blocks[40] = NO_BLOCK;
+        let first = 0x00FF_0F0F_F0F0_FF01u64;
+        let mut zeroed = vec![[0f32; 12]; 64];
+        for (k, v) in zeroed.iter_mut().enumerate() {
+            if (first >> k) & 1 == 0 {
+                *v = [0.25 * k as f32; 12];
+            }
+        }
+        let mut stale = zeroed.clone();
+        for (k, v) in stale.iter_mut().enumerate() {
+            if (first >> k) & 1 == 1 {
+                *v = [f32::NAN; 12];
+            }
+        }
+        scatter_element(&mut zeroed, &blocks, &m, 0.5, 0);
+        scatter_element(&mut stale, &blocks, &m, 0.5, first);
+        for k in (0..64).filter(|&k| blocks[k] != NO_BLOCK) {
+            let bits = |v: &[f32; 12]| v.map(f32::to_bits);
+            assert_eq!(bits(&stale[k]), bits(&zeroed[k]), "block {k}");
         }
     }
 
