@@ -12,6 +12,7 @@ pub mod hex;
 pub mod marching;
 pub mod preconditioning;
 mod model;
+pub mod shared_stiffness;
 pub mod solver;
 pub mod support;
 pub mod surface;

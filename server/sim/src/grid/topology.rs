@@ -13,6 +13,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use super::condense::{CellVoxel, Condensed, Dilatation, VoxelMatrices, condense_direct, remove_contribution, voxel_contribution};
 use super::hex::{Mat8, Mat24, corner_bits};
+use super::shared_stiffness::SharedStiffness;
 use crate::solver::kernels::{Planar24, to_planar};
 use crate::union_find::UnionFind;
 use crate::math::Vec3;
@@ -113,8 +114,9 @@ pub struct Elements {
     /// matrices, which do not fit in cache on large scenes, at a relative precision
     /// (6e-8) far below the solve's tolerance — in the planar layout the vectorized
     /// kernels take (`solver::kernels::Planar24`). At rest the strain is exactly zero,
-    /// so the rounding makes no force there.
-    pub stiffness_single: Vec<Planar24>,
+    /// so the rounding makes no force there. Each distinct matrix is stored once
+    /// (`super::shared_stiffness`): at level 0 an element's is its voxel's.
+    pub stiffness_single: SharedStiffness,
     /// Consistent scalar mass (the 3D matrix is this ⊗ I₃).
     pub mass: Vec<Mat8>,
     /// Per material present, its volume as a function of the nodes (mean-dilatation
@@ -140,7 +142,7 @@ impl Elements {
     fn push(&mut self, cell: u32, nodes: [u32; 8], condensed: Condensed, ghost: &Mat24, voxels: u32) -> u32 {
         self.cell.push(cell);
         self.nodes.push(nodes);
-        self.stiffness_single.push(single(&(condensed.stiffness + ghost)));
+        self.stiffness_single.push(&single(&(condensed.stiffness + ghost)));
         self.stiffness.push(condensed.stiffness);
         self.mass.push(condensed.mass);
         self.dilatations.push(condensed.dilatations);
@@ -268,7 +270,7 @@ impl Topology {
     pub fn set_ghost(&mut self, ghost: Mat24) {
         self.ghost = ghost;
         for e in 0..self.elements.len() {
-            self.elements.stiffness_single[e] = single(&(self.elements.stiffness[e] + ghost));
+            self.elements.stiffness_single.set(e, &single(&(self.elements.stiffness[e] + ghost)));
         }
     }
 
@@ -538,7 +540,7 @@ impl Topology {
                 let e = e as usize;
                 let elements = &mut self.elements;
                 remove_contribution(&mut elements.stiffness[e], &mut elements.mass[e], &mut elements.dilatations[e], &part, &self.voxel_matrices);
-                elements.stiffness_single[e] = single(&(elements.stiffness[e] + self.ghost));
+                elements.stiffness_single.set(e, &single(&(elements.stiffness[e] + self.ghost)));
                 let e = e as u32;
                 self.elements.voxel_count[e as usize] -= 1;
                 self.material[v] = 0;

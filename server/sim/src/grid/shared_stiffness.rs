@@ -1,0 +1,179 @@
+//! The elements' single-precision stiffnesses as the solver reads them, each distinct
+//! matrix stored once.
+//!
+//! Every step rotates every moving element's stiffness (`solver::kernels::
+//! rotate_and_multiply`), 2.3 KB a matrix in the planar layout. Stored per element, a
+//! level-0 body streams all of them through the caches each step (5.9 MB on the
+//! 3,321-node cantilever of the MuJoCo comparison, as much as its Cholesky factor in
+//! bfloat16): perf put a quarter of the rotation's samples on loading them. But at level
+//! 0 an element is one voxel, so its matrix is the voxel's of its material (plus the
+//! ghost): a body of one material has a single distinct matrix, the layered abdomen a
+//! handful; coarse levels' condensed elements differ from each other, and there each
+//! stays its own. So elements point into a table of distinct matrices, found by their
+//! bits (equal bits, one entry; the solver computes with the same values, so the same
+//! state hash), with a count of the elements using each: a cut that changes an element's
+//! matrix gives it another entry and frees the old one when no element uses it any more,
+//! so the table holds at most one entry per element however many cuts a session makes.
+
+use std::collections::HashMap;
+
+use crate::solver::kernels::Planar24;
+
+/// The table: `matrices[of_element[e]]` is element e's stiffness.
+#[derive(Debug, Clone, Default)]
+pub struct SharedStiffness {
+    matrices: Vec<Planar24>,
+    /// Per entry, how many elements use it (0: a free entry, listed in `free`).
+    users: Vec<u32>,
+    free: Vec<u32>,
+    /// Entries by a hash of their bits (then compared whole).
+    by_bits: HashMap<u64, Vec<u32>>,
+    of_element: Vec<u32>,
+}
+
+impl SharedStiffness {
+    /// Elements.
+    pub fn len(&self) -> usize {
+        self.of_element.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.of_element.is_empty()
+    }
+
+    /// Distinct matrices in use.
+    pub fn distinct(&self) -> usize {
+        self.users.iter().filter(|&&u| u > 0).count()
+    }
+
+    /// Adds an element with stiffness `k`.
+    pub fn push(&mut self, k: &Planar24) {
+        let entry = self.entry_for(k);
+        self.of_element.push(entry);
+    }
+
+    /// Replaces element `e`'s stiffness with `k`.
+    pub fn set(&mut self, e: usize, k: &Planar24) {
+        let old = self.of_element[e];
+        if same_bits(&self.matrices[old as usize], k) {
+            return;
+        }
+        // Released first, so that an entry only this element used is the one reused.
+        self.release(old);
+        self.of_element[e] = self.entry_for(k);
+    }
+
+    /// The entry holding `k` with one more user (a new one where none holds it).
+    fn entry_for(&mut self, k: &Planar24) -> u32 {
+        let hash = bits_hash(k);
+        let candidates = self.by_bits.entry(hash).or_default();
+        if let Some(&found) = candidates.iter().find(|&&c| same_bits(&self.matrices[c as usize], k)) {
+            self.users[found as usize] += 1;
+            return found;
+        }
+        let entry = match self.free.pop() {
+            Some(free) => {
+                self.matrices[free as usize] = *k;
+                self.users[free as usize] = 1;
+                free
+            }
+            None => {
+                self.matrices.push(*k);
+                self.users.push(1);
+                (self.matrices.len() - 1) as u32
+            }
+        };
+        candidates.push(entry);
+        entry
+    }
+
+    /// One user fewer for `entry`; freed when it has none.
+    fn release(&mut self, entry: u32) {
+        let users = &mut self.users[entry as usize];
+        *users -= 1;
+        if *users == 0 {
+            let hash = bits_hash(&self.matrices[entry as usize]);
+            let candidates = self.by_bits.get_mut(&hash).expect("an entry in use is indexed by its bits");
+            candidates.retain(|&c| c != entry);
+            if candidates.is_empty() {
+                self.by_bits.remove(&hash);
+            }
+            self.free.push(entry);
+        }
+    }
+}
+
+impl std::ops::Index<usize> for SharedStiffness {
+    type Output = Planar24;
+
+    /// Element `e`'s stiffness.
+    fn index(&self, e: usize) -> &Planar24 {
+        &self.matrices[self.of_element[e] as usize]
+    }
+}
+
+fn bits(k: &Planar24) -> impl Iterator<Item = u32> + '_ {
+    k.iter().flat_map(|row| row.iter().flat_map(|plane| plane.0.iter().map(|v| v.to_bits())))
+}
+
+/// Equal bits (not equal values: −0 and 0 differ, and a NaN equals its own bits).
+fn same_bits(a: &Planar24, b: &Planar24) -> bool {
+    bits(a).eq(bits(b))
+}
+
+/// FNV-1a over the bits: the same on every machine (the table's layout must not depend
+/// on a random seed, though only its lookups use the hash).
+fn bits_hash(k: &Planar24) -> u64 {
+    bits(k).fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solver::kernels::F8;
+
+    fn matrix(seed: f32) -> Planar24 {
+        std::array::from_fn(|r| std::array::from_fn(|l| F8(std::array::from_fn(|b| ((r * 24 + l * 8 + b) as f32 * 0.1 + seed).sin()))))
+    }
+
+    #[test]
+    fn elements_with_equal_matrices_share_one_entry_and_read_back_their_own() {
+        let (a, b) = (matrix(1.0), matrix(2.0));
+        let mut table = SharedStiffness::default();
+        for k in [&a, &b, &a, &a, &b] {
+            table.push(k);
+        }
+        assert_eq!((table.len(), table.distinct()), (5, 2));
+        for (e, k) in [&a, &b, &a, &a, &b].into_iter().enumerate() {
+            assert!(same_bits(&table[e], k), "element {e}");
+        }
+        // −0 and 0 are different bits: a matrix differing only there is its own entry.
+        let mut c = a;
+        c[0][0].0[0] = if a[0][0].0[0] == 0.0 { -0.0 } else { -a[0][0].0[0] };
+        table.push(&c);
+        assert_eq!(table.distinct(), 3);
+    }
+
+    #[test]
+    fn a_changed_element_takes_another_entry_and_an_unused_one_is_reused() {
+        let (a, b, c) = (matrix(1.0), matrix(2.0), matrix(3.0));
+        let mut table = SharedStiffness::default();
+        table.push(&a);
+        table.push(&a);
+        table.push(&b);
+        // Element 2 alone used b: its entry is freed and taken by c, the table does not grow.
+        table.set(2, &c);
+        assert_eq!((table.distinct(), table.matrices.len()), (2, 2));
+        assert!(same_bits(&table[2], &c) && same_bits(&table[0], &a) && same_bits(&table[1], &a));
+        // Element 0 leaves a shared entry: a stays for element 1.
+        table.set(0, &b);
+        assert!(same_bits(&table[0], &b) && same_bits(&table[1], &a));
+        assert_eq!((table.distinct(), table.matrices.len()), (3, 3));
+        // Setting the same bits changes nothing; back to a shares element 1's entry.
+        table.set(0, &b);
+        table.set(0, &a);
+        assert_eq!(table.distinct(), 2);
+        assert_eq!(table.of_element[0], table.of_element[1]);
+        assert!(same_bits(&table[0], &a) && same_bits(&table[2], &c));
+    }
+}
