@@ -7,7 +7,9 @@ as a 3D flexcomp grid (linear tetrahedra, six per cell) with integrator="discret
 cutsim as a branched-grid box at level 0 (one trilinear hexahedron per cell), solved to
 a relative residual of 1e-5 with each preconditioner. Both count the same nodes. Rounds
 alternate between the two so that the machine's drift hits both alike; the table gives
-the median over rounds of each run's median step time.
+the median over rounds of each run's median step time, and below it each round's own
+ratio (MuJoCo against the best preconditioner timed right after it): on a noisy
+machine the rounds' ratios show how far one run's medians can be trusted.
 
     python compare.py --server PATH/cutsim-server [--rounds N] [--steps N] [--out FILE]
 """
@@ -124,7 +126,7 @@ def time_cutsim(server, n, preconditioner, steps):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--server", required=True)
-    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--out")
     args = parser.parse_args()
@@ -143,7 +145,7 @@ def main():
             cutsim = ", ".join(f"{p} {runs[p][-1]:.1f} ms" for p in PRECONDITIONERS)
             print(f"{n}: round {r + 1}: MuJoCo {m['p50_ms']:.1f} ms, cutsim {cutsim}", file=sys.stderr, flush=True)
         median = {k: statistics.median(v) for k, v in runs.items()}
-        rows.append((n, median, info))
+        rows.append((n, median, info, runs))
     lines = [
         "# cutsim's level-0 grid against MuJoCo's flex FEM",
         "",
@@ -158,14 +160,24 @@ def main():
         "| nodes | MuJoCo elements | MuJoCo step p50 | cutsim elements | cutsim Jacobi p50 (CG/step) | cutsim multigrid p50 (CG/step) | cutsim Cholesky p50 (CG/step) | MuJoCo ÷ best cutsim |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for n, median, info in rows:
+    for n, median, info, _ in rows:
         best = min(median[p] for p in PRECONDITIONERS)
         cutsim = " | ".join(f"{median[p]:.2f} ms ({info[p]['cg']:.1f})" for p in PRECONDITIONERS)
         lines.append(
             f"| {info['jacobi']['nodes']:,} | {info['mujoco']['elements']:,} | {median['mujoco']:.1f} ms | {info['jacobi']['elements']:,} | "
             f"{cutsim} | {median['mujoco'] / best:.1f}× |"
         )
-    text = "\n".join(lines) + "\n"
+    lines.append("")
+    for n, median, info, runs in rows:
+        best = min(PRECONDITIONERS, key=lambda p: median[p])
+        ratios = [m / c for m, c in zip(runs["mujoco"], runs[best])]
+        lines.append(
+            f"Per round at {info['jacobi']['nodes']:,} nodes, MuJoCo ÷ cutsim {best} in the same round: "
+            + ", ".join(f"{r:.1f}×" for r in ratios)
+            + f" (median {statistics.median(ratios):.1f}×, range {min(ratios):.1f}–{max(ratios):.1f}×)."
+        )
+        lines.append("")
+    text = "\n".join(lines).rstrip("\n") + "\n"
     print(text)
     if args.out:
         with open(args.out, "w") as f:
