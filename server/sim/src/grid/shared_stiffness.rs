@@ -136,6 +136,32 @@ mod tests {
         std::array::from_fn(|r| std::array::from_fn(|l| F8(std::array::from_fn(|b| ((r * 24 + l * 8 + b) as f32 * 0.1 + seed).sin()))))
     }
 
+    /// A body of one material at level 0 (and one of whole cells at level 1) has one
+    /// distinct matrix, ghost material included; a cut gives the elements it changed
+    /// their own, and never more entries than elements.
+    #[test]
+    fn a_uniform_body_shares_one_matrix_until_a_cut_changes_some() {
+        use crate::grid::condense::{Volumetric, VoxelMatrices};
+        use crate::grid::topology::{Layout, Topology};
+        let volume = crate::volume::procedural::solid_box([0.008, 0.004, 0.004], 0.001, 1);
+        for level in [0, 1] {
+            let layout = Layout::new(volume.dims, level, volume.spacing_m);
+            let material = volume.labels.iter().map(|&l| u16::from(l != 0)).collect();
+            let mut topo = Topology::build(layout, material, VoxelMatrices::new(volume.spacing_m, &[(1e4, 0.45, 1000.0)], Volumetric::MeanDilatation));
+            let ghost = topo.elements.stiffness[0] * 1e-3;
+            topo.set_ghost(ghost);
+            let table = &topo.elements.stiffness_single;
+            assert_eq!((table.len(), table.distinct()), (topo.elements.len(), 1), "level {level}");
+            // Two voxels of one corner cell go: at level 1 its element changes (and is
+            // its own entry); at level 0 their elements die and the rest stay shared.
+            topo.remove_voxels(&[0, 1]);
+            let table = &topo.elements.stiffness_single;
+            let live_distinct = (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]).map(|e| table.of_element[e]).collect::<std::collections::BTreeSet<u32>>().len();
+            assert_eq!(live_distinct, if level == 0 { 1 } else { 2 }, "level {level} after the cut");
+            assert!(table.matrices.len() <= table.len());
+        }
+    }
+
     #[test]
     fn elements_with_equal_matrices_share_one_entry_and_read_back_their_own() {
         let (a, b) = (matrix(1.0), matrix(2.0));
