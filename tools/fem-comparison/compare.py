@@ -160,24 +160,22 @@ def main():
         "| nodes | MuJoCo elements | MuJoCo step p50 | cutsim elements | cutsim Jacobi p50 (CG/step) | cutsim multigrid p50 (CG/step) | cutsim Cholesky p50 (CG/step) | MuJoCo ÷ best cutsim |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for n, median, info, _ in rows:
-        best = min(median[p] for p in PRECONDITIONERS)
+    per_round = []
+    for n, median, info, runs in rows:
+        best = min(PRECONDITIONERS, key=lambda p: median[p])
         cutsim = " | ".join(f"{median[p]:.2f} ms ({info[p]['cg']:.1f})" for p in PRECONDITIONERS)
         lines.append(
             f"| {info['jacobi']['nodes']:,} | {info['mujoco']['elements']:,} | {median['mujoco']:.1f} ms | {info['jacobi']['elements']:,} | "
-            f"{cutsim} | {median['mujoco'] / best:.1f}× |"
+            f"{cutsim} | {median['mujoco'] / median[best]:.1f}× |"
         )
-    lines.append("")
-    for n, median, info, runs in rows:
-        best = min(PRECONDITIONERS, key=lambda p: median[p])
         ratios = [m / c for m, c in zip(runs["mujoco"], runs[best])]
-        lines.append(
+        per_round += [
+            "",
             f"Per round at {info['jacobi']['nodes']:,} nodes, MuJoCo ÷ cutsim {best} in the same round: "
             + ", ".join(f"{r:.1f}×" for r in ratios)
-            + f" (median {statistics.median(ratios):.1f}×, range {min(ratios):.1f}–{max(ratios):.1f}×)."
-        )
-        lines.append("")
-    text = "\n".join(lines).rstrip("\n") + "\n"
+            + f" (median {statistics.median(ratios):.1f}×, range {min(ratios):.1f}–{max(ratios):.1f}×).",
+        ]
+    text = "\n".join(lines + per_round) + "\n"
     print(text)
     if args.out:
         with open(args.out, "w") as f:

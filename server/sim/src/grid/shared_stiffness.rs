@@ -32,20 +32,6 @@ pub struct SharedStiffness {
 }
 
 impl SharedStiffness {
-    /// Elements.
-    pub fn len(&self) -> usize {
-        self.of_element.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.of_element.is_empty()
-    }
-
-    /// Distinct matrices in use.
-    pub fn distinct(&self) -> usize {
-        self.users.iter().filter(|&&u| u > 0).count()
-    }
-
     /// Adds an element with stiffness `k`.
     pub fn push(&mut self, k: &Planar24) {
         let entry = self.entry_for(k);
@@ -112,25 +98,32 @@ impl std::ops::Index<usize> for SharedStiffness {
     }
 }
 
-fn bits(k: &Planar24) -> impl Iterator<Item = u32> + '_ {
-    k.iter().flat_map(|row| row.iter().flat_map(|plane| plane.0.iter().map(|v| v.to_bits())))
+fn values(k: &Planar24) -> impl Iterator<Item = f32> + '_ {
+    k.iter().flat_map(|row| row.iter().flat_map(|plane| plane.0.iter().copied()))
 }
 
 /// Equal bits (not equal values: −0 and 0 differ, and a NaN equals its own bits).
 fn same_bits(a: &Planar24, b: &Planar24) -> bool {
-    bits(a).eq(bits(b))
+    values(a).map(f32::to_bits).eq(values(b).map(f32::to_bits))
 }
 
-/// FNV-1a over the bits: the same on every machine (the table's layout must not depend
-/// on a random seed, though only its lookups use the hash).
+/// The state hash's FNV-1a over the bits: the same on every machine (only the table's
+/// lookups use it, but no random seed is needed either).
 fn bits_hash(k: &Planar24) -> u64 {
-    bits(k).fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3))
+    let mut hasher = crate::hash::StateHasher::new();
+    values(k).for_each(|v| hasher.write_f32(v));
+    hasher.finish()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::solver::kernels::F8;
+
+    /// Distinct matrices in use.
+    fn distinct(table: &SharedStiffness) -> usize {
+        table.users.iter().filter(|&&u| u > 0).count()
+    }
 
     fn matrix(seed: f32) -> Planar24 {
         std::array::from_fn(|r| std::array::from_fn(|l| F8(std::array::from_fn(|b| ((r * 24 + l * 8 + b) as f32 * 0.1 + seed).sin()))))
@@ -151,14 +144,14 @@ mod tests {
             let ghost = topo.elements.stiffness[0] * 1e-3;
             topo.set_ghost(ghost);
             let table = &topo.elements.stiffness_single;
-            assert_eq!((table.len(), table.distinct()), (topo.elements.len(), 1), "level {level}");
+            assert_eq!((table.of_element.len(), distinct(table)), (topo.elements.len(), 1), "level {level}");
             // Two voxels of one corner cell go: at level 1 its element changes (and is
             // its own entry); at level 0 their elements die and the rest stay shared.
             topo.remove_voxels(&[0, 1]);
             let table = &topo.elements.stiffness_single;
             let live_distinct = (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]).map(|e| table.of_element[e]).collect::<std::collections::BTreeSet<u32>>().len();
             assert_eq!(live_distinct, if level == 0 { 1 } else { 2 }, "level {level} after the cut");
-            assert!(table.matrices.len() <= table.len());
+            assert!(table.matrices.len() <= table.of_element.len());
         }
     }
 
@@ -169,7 +162,7 @@ mod tests {
         for k in [&a, &b, &a, &a, &b] {
             table.push(k);
         }
-        assert_eq!((table.len(), table.distinct()), (5, 2));
+        assert_eq!((table.of_element.len(), distinct(&table)), (5, 2));
         for (e, k) in [&a, &b, &a, &a, &b].into_iter().enumerate() {
             assert!(same_bits(&table[e], k), "element {e}");
         }
@@ -177,7 +170,7 @@ mod tests {
         let mut c = a;
         c[0][0].0[0] = if a[0][0].0[0] == 0.0 { -0.0 } else { -a[0][0].0[0] };
         table.push(&c);
-        assert_eq!(table.distinct(), 3);
+        assert_eq!(distinct(&table), 3);
     }
 
     #[test]
@@ -189,16 +182,16 @@ mod tests {
         table.push(&b);
         // Element 2 alone used b: its entry is freed and taken by c, the table does not grow.
         table.set(2, &c);
-        assert_eq!((table.distinct(), table.matrices.len()), (2, 2));
+        assert_eq!((distinct(&table), table.matrices.len()), (2, 2));
         assert!(same_bits(&table[2], &c) && same_bits(&table[0], &a) && same_bits(&table[1], &a));
         // Element 0 leaves a shared entry: a stays for element 1.
         table.set(0, &b);
         assert!(same_bits(&table[0], &b) && same_bits(&table[1], &a));
-        assert_eq!((table.distinct(), table.matrices.len()), (3, 3));
+        assert_eq!((distinct(&table), table.matrices.len()), (3, 3));
         // Setting the same bits changes nothing; back to a shares element 1's entry.
         table.set(0, &b);
         table.set(0, &a);
-        assert_eq!(table.distinct(), 2);
+        assert_eq!(distinct(&table), 2);
         assert_eq!(table.of_element[0], table.of_element[1]);
         assert!(same_bits(&table[0], &a) && same_bits(&table[2], &c));
     }
