@@ -87,11 +87,14 @@ fn steps_with_contact_allocate_nothing() {
         let (commands, mut fb) = lower_tool_1(&mut m);
         let count = allocations_during(|| run(&mut m, &commands, &mut fb, 200));
         assert_eq!(count, 0, "{integrator} steps with contact allocated {count} times");
-        // The skin pushes the probe back up, mostly straight up (on its foundation the skin
+        // The skin pushes the probe back up, mostly straight up: on its foundation the skin
         // gives way little, so only a few nodes of the triangular lattice touch the probe,
-        // not placed symmetrically about its axis).
+        // not placed symmetrically about its axis, and what the skin stretched sideways
+        // under them as it was pressed stays held by friction, within its static cone
+        // (the implicit integrator's stuck points keep about a quarter of the push).
         assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "{integrator}: the probe is pushed back: {:?}", fb[1]);
-        assert!(fb[1].force_n.xy().norm() < 0.2 * fb[1].force_n.z, "{:?}", fb[1]);
+        let mu_static = 0.5;
+        assert!(fb[1].force_n.xy().norm() < mu_static * fb[1].force_n.z, "{:?}", fb[1]);
     }
 }
 

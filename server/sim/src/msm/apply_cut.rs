@@ -135,8 +135,8 @@ impl MassSpring {
         }
 
         let n = self.nodes.len();
-        if self.contacts.capacity() < 2 * n {
-            self.contacts.reserve(2 * n - self.contacts.len());
+        if self.contacts.capacity() < super::CONTACTS_PER_NODE * n {
+            self.contacts.reserve(super::CONTACTS_PER_NODE * n - self.contacts.len());
         }
         if let Integrator::ImplicitEuler(solver) = &mut self.integrator {
             solver.reserve(n, self.springs.len());

@@ -221,7 +221,7 @@ impl MassSpring {
             holder: super::hold::Holder::new(tools.len(), params.friction, topo.tris.len()),
             blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),
-            contacts: Vec::with_capacity(2 * n),
+            contacts: Vec::with_capacity(super::CONTACTS_PER_NODE * n),
             scene_tools,
             tools,
             bodies,

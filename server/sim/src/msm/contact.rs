@@ -94,11 +94,18 @@ pub(crate) struct Contact {
     pub node: u32,
     pub normal: Vec3,
     pub stiffness: f64,
+    /// The velocity along `normal` the contact drives its node to within the step, m/s
+    /// (the implicit solve adds stiffness × (h + β) × this to the node's force, so the
+    /// stiff spring ends the step with the node at it): a held point's share of the
+    /// tool's pressing, less the closing of a gap just off the tool (a speculative
+    /// contact), or a stuck point's share of the tool's sliding; 0 for a penalty, whose
+    /// force the caller has added.
+    pub drive_m_per_s: f64,
 }
 
 /// Adds the contact forces of one tool to the nodes, and their reaction to `feedback`
 /// (scaled by `weight`, the substep's share of the step). Contacts are appended to
-/// `contacts` (whose capacity is twice the node count: a node's penalty and a tip face's hold, so this never allocates).
+/// `contacts` (whose capacity is [`super::CONTACTS_PER_NODE`] times the node count, so this never allocates).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn apply_tool_contacts(
     tool: &PlacedTool,
@@ -126,7 +133,7 @@ pub(crate) fn apply_tool_contacts(
             nodes.f[i] += on_node;
             force -= on_node;
             torque -= (nodes.x[i] - tool.tip).cross(&on_node);
-            contacts.push(Contact { node: id, normal: pen.direction, stiffness });
+            contacts.push(Contact { node: id, normal: pen.direction, stiffness, drive_m_per_s: 0.0 });
             count += 1;
         }
     });

@@ -104,9 +104,9 @@ pub(crate) fn push_with_flat(
             for k in 0..3 {
                 let i = ids[k] as usize;
                 nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
-                contacts.push(Contact { node: ids[k], normal: n, stiffness: stiffness * w[k] });
+                contacts.push(Contact { node: ids[k], normal: n, stiffness: stiffness * w[k], drive_m_per_s: 0.0 });
                 if back {
-                    contacts.push(Contact { node: ids[k], normal: edge, stiffness: stiffness * w[k] });
+                    contacts.push(Contact { node: ids[k], normal: edge, stiffness: stiffness * w[k], drive_m_per_s: 0.0 });
                 }
             }
             // The force the rest of the skin pulls the point off the flat (and against

@@ -16,8 +16,13 @@
 //! Projected nodes lose the velocity with which they approached the tool (relative to
 //! the tool's own velocity), so the contact is inelastic and adds no energy; across the
 //! face, Coulomb friction (before the explicit integrator's substep, as a force that
-//! overcomes the point's mass and implicit drag; after the implicit integrator's solve,
-//! as a velocity filter). The force
+//! overcomes the point's mass and implicit drag; in the implicit integrator's solve, as
+//! stiff springs that carry a stuck point with the tool, checked against the cone after
+//! it, or as the dynamic force on a sliding one: [`Rub`]). Under the implicit integrator
+//! a round tip also holds the nodes just off its ball that the skin's forces would carry
+//! into it within the step (a speculative contact, whose spring closes the gap and no
+//! more), and lets go of nodes they would carry off it, so that the ring of points round
+//! a resting ball keeps its members from step to step. The force
 //! the tool feels is the force the rest of the skin presses the held points against its
 //! face with (their spring, foundation and gravity forces along the axis, never
 //! pulling): the force of the solved state, not a penalty depth. A tool that appeared
@@ -67,9 +72,15 @@ pub(crate) struct Holder {
     rubs: Vec<Rub>,
 }
 
-/// A point held by a tool under the implicit integrator: friction acts on it after the
-/// solve, as a velocity filter (Bridson, Fedkiw and Anderson 2002), so that a point
-/// that sticks moves exactly with the tool whatever the springs did within the step.
+/// A point held by a tool under the implicit integrator. One the static cone can hold
+/// sticks to the tool within the solve (stiff springs across the push, like the held
+/// contact along it); after the solve the force they took is checked against the cone
+/// and, beyond it, replaced by the dynamic friction (a velocity correction). One the
+/// cone cannot hold slides against the dynamic friction, a force added before the solve.
+/// Friction decided within the solve keeps the membrane's response to it in the same
+/// step: as a velocity filter after the solve alone (Bridson, Fedkiw and Anderson
+/// 2002) the springs answered it a step late, and the points round a resting round tip
+/// alternated between sticking and sliding from step to step.
 #[derive(Debug, Clone, Copy)]
 struct Rub {
     tool: usize,
@@ -83,6 +94,12 @@ struct Rub {
     normal_n: f64,
     /// The substep's share of the step.
     weight: f64,
+    /// Stuck within the solve: the stiffness of its springs across the push (times each
+    /// node's weight), N/m, and their directions; None when sliding or frictionless.
+    stuck: Option<(f64, [Vec3; 2])>,
+    /// Sliding: the dynamic friction on it, N (added to its nodes' forces once the
+    /// tool's held points are all found, so that it does not count as pressing).
+    slide: Vec3,
 }
 
 /// The model state a hold reads and changes.
@@ -163,6 +180,12 @@ struct Reaction {
 }
 
 impl Reaction {
+    /// A force `on_tool` at `at` that is not a held point's push (its friction).
+    fn rub(&mut self, tool: &PlacedTool, at: Vec3, on_tool: Vec3) {
+        self.force += on_tool;
+        self.torque += (at - tool.tip).cross(&on_tool);
+    }
+
     fn add(&mut self, tool: &PlacedTool, at: Vec3, on_tool: Vec3, normal_n: f64) {
         self.force += on_tool;
         self.torque += (at - tool.tip).cross(&on_tool);
@@ -190,22 +213,47 @@ impl Holder {
         self.rubs.clear();
     }
 
-    /// Coulomb friction on the points the implicit integrator held this step, after its
-    /// solve: each sticks to its tool (its slip is removed) while the force that takes
-    /// stays within the static cone of its normal force, else slides against the dynamic
-    /// one. Moves the nodes by the velocity changes over the step h and adds the
-    /// reaction to the tools' feedback.
-    pub fn rub_after_solve(&mut self, nodes: &mut Nodes, drag: Drag, h: f64, feedback: &mut [ToolFeedback]) {
+    /// After the implicit solve, the Coulomb cone on the points that stuck to their
+    /// tools within it ([`Rub`]): the force their springs across the push took, beyond
+    /// the static coefficient times the normal force, is brought down to the dynamic one
+    /// (a velocity correction over the step h). Adds the friction to the tools' feedback.
+    /// `spring_damping_s` is the solve's β (its springs act over h + β).
+    pub fn rub_after_solve(&mut self, nodes: &mut Nodes, drag: Drag, h: f64, spring_damping_s: f64, feedback: &mut [ToolFeedback]) {
+        let Some((mu_static, mu_dynamic)) = self.friction else { return };
         for rub in &self.rubs {
-            let Some((resists, _)) = point_dynamics(nodes, &drag, h, rub.ids, rub.w, Vec3::zeros()) else { continue };
-            let velocity: Vec3 = (0..3).map(|k| nodes.v[rub.ids[k] as usize] * rub.w[k]).sum();
-            let force = friction_force(velocity - rub.tool_velocity, rub.push, &resists, h, rub.normal_n, self.friction);
-            for k in 0..3 {
-                let i = rub.ids[k] as usize;
-                let Some(yields) = drag.resistance(nodes, i, h).try_inverse() else { continue };
-                let dv = (yields * force * (h * rub.w[k])).component_mul(&nodes.free[i]);
-                nodes.v[i] += dv;
-                nodes.x[i] += dv * h;
+            let Some((stiffness, tangents)) = rub.stuck else { continue };
+            // What the springs gave the point over the step: each node's spring pulled it
+            // towards the tool's motion by its stiffness times its lag.
+            let mut force = Vec3::zeros();
+            for k in (0..3).filter(|&k| rub.w[k] != 0.0) {
+                let lag = rub.tool_velocity - nodes.v[rub.ids[k] as usize];
+                for t in tangents {
+                    force += t * (stiffness * rub.w[k] * (h + spring_damping_s) * lag.dot(&t));
+                }
+            }
+            let size = force.norm();
+            if size > mu_static * rub.normal_n {
+                let sliding = force * (mu_dynamic * rub.normal_n / size);
+                // The nodes' velocity changes against their own resistance, scaled so
+                // that the point loses at most the tool's motion across the push: the
+                // springs that took the force are the rest of the skin's too, and
+                // released against the nodes' mass alone they would fling the point.
+                let mut dv = [Vec3::zeros(); 3];
+                let mut point_dv = Vec3::zeros();
+                for k in (0..3).filter(|&k| rub.w[k] != 0.0) {
+                    let i = rub.ids[k] as usize;
+                    let Some(yields) = drag.resistance(nodes, i, h).try_inverse() else { continue };
+                    dv[k] = (yields * (sliding - force) * (h * rub.w[k])).component_mul(&nodes.free[i]);
+                    point_dv += dv[k] * rub.w[k];
+                }
+                let carried = (rub.tool_velocity - rub.push * rub.tool_velocity.dot(&rub.push)).norm();
+                let scale = if point_dv.norm() > carried { carried / point_dv.norm() } else { 1.0 };
+                for k in (0..3).filter(|&k| rub.w[k] != 0.0) {
+                    let i = rub.ids[k] as usize;
+                    nodes.v[i] += dv[k] * scale;
+                    nodes.x[i] += dv[k] * (scale * h);
+                }
+                force = sliding;
             }
             feedback[rub.tool].force_n -= force * rub.weight;
             feedback[rub.tool].torque_nm -= rub.lever.cross(&force) * rub.weight;
@@ -233,11 +281,26 @@ impl Holder {
         let HeldTool { placed: tool, velocity: tool_velocity, reach_m } = tool;
         let push = -tool.axis;
         let friction = self.friction;
+        let first_rub = self.rubs.len();
         let mut reaction = Reaction::default();
 
         // 1. Nodes under the tip face, as far above it as the tip can have come since the
         // last substep (a tool thrust fast has swept the skin it passed).
-        let reach = tool.radius_m + margin_m;
+        // Under the implicit integrator a round tip resting on the skin also holds the
+        // nodes just off its ball that would reach it within the step (a speculative
+        // contact). Not before it rests on a triangle: corners drawn onto a ball
+        // narrower than the mesh leave the triangle between them inside it, deeper than
+        // the reach, and the tool would take itself as through the skin.
+        let speculative = implicit.is_some() && tool.tip_shape == TipShape::Round && self.held_triangle[index].is_some();
+        let held_corners = self.held_triangle[index].map_or([u32::MAX; 3], |t| {
+            let ids = topo.tris[t as usize];
+            let corners = ids.map(|v| nodes.x[v as usize]);
+            let middle = (corners[0] + corners[1] + corners[2]) / 3.0;
+            let spread = corners.iter().map(|c| (c - middle).norm_squared()).fold(0.0, f64::max);
+            let sagitta = tool.radius_m - (tool.radius_m * tool.radius_m - spread).max(0.0).sqrt();
+            if sagitta < 0.5 * reach_m { [u32::MAX; 3] } else { ids }
+        });
+        let reach = tool.radius_m + margin_m + if speculative { reach_m } else { 0.0 };
         let along = tool.radius_m.max(reach_m.min(0.5 * tool.length_m));
         let (min, max) = (tool.tip - Vec3::repeat(reach), tool.tip + Vec3::repeat(reach));
         let (lo, hi) = (min.inf(&(min + tool.axis * along)), max.sup(&(max + tool.axis * along)));
@@ -246,7 +309,23 @@ impl Holder {
             if nodes.inv_mass[i] == 0.0 {
                 return;
             }
-            let Some((depth, push)) = face_exit(tool, &nodes.x[i], reach_m) else { return };
+            let Some((depth, push)) = face_exit(tool, &nodes.x[i], reach_m).or_else(|| speculative.then(|| round_tip_gap(tool, &nodes.x[i], reach_m)).flatten().map(|(gap, push)| (-gap, push))) else { return };
+            if depth < 0.0 {
+                // Off the ball (a speculative contact, one-sided): held only when the
+                // skin's forces would carry it further than its gap into the ball. A
+                // corner of the triangle the tip rests on only when the ball is wide
+                // against the triangle: corners drawn onto the ball put the triangle's
+                // middle inside it by the ball's sagitta over the triangle, against the
+                // hold of the triangle's point on the ball (stiff springs at odds: the
+                // 2 mm ball on the 2.5 mm mesh flung the skin through itself).
+                if held_corners.contains(&id) {
+                    return;
+                }
+                let coming = nodes.v[i] + nodes.f[i] * (h * nodes.inv_mass[i]);
+                if -(coming - tool_velocity).dot(&push) * h <= -depth {
+                    return;
+                }
+            }
             let at = HeldPoint { ids: [id; 3], w: [1.0, 0.0, 0.0], push, depth };
             hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
         });
@@ -315,6 +394,12 @@ impl Holder {
                 hold_point(nodes, &drag, h, implicit.as_mut(), &mut self.rubs, friction, (tool, index, tool_velocity, weight), at, &mut reaction);
             }
         }
+        for rub in &self.rubs[first_rub..] {
+            for k in (0..3).filter(|&k| rub.w[k] != 0.0) {
+                let i = rub.ids[k] as usize;
+                nodes.f[i] += (rub.slide * rub.w[k]).component_mul(&nodes.free[i]);
+            }
+        }
         self.finish(index, held, reaction, feedback, weight, through)
     }
 
@@ -375,11 +460,15 @@ fn hold_point(
     let point: Vec3 = (0..3).map(|k| nodes.x[ids[k] as usize] * w[k]).sum();
     if let Some(implicit) = implicit {
         let point_velocity: Vec3 = (0..3).map(|k| nodes.v[ids[k] as usize] * w[k]).sum();
-        let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push, 0.0);
+        let (dv, _) = contact_velocity_change(point_velocity, tool_velocity, push, gap / h);
+        // A point off the face is carried to where the face will be at the step's end,
+        // but no further than a point on it (held still along the push: the tool's own
+        // travel meets it), and never after a face that lifts away.
+        let drive = (tool_velocity.dot(&push).max(0.0) - gap / h).min(0.0);
         for k in (0..3).filter(|&k| w[k] != 0.0) {
             let i = ids[k] as usize;
             nodes.v[i] += (dv * share(k)).component_mul(&nodes.free[i]);
-            implicit.contacts.push(Contact { node: ids[k], normal: push, stiffness: implicit.stiffness_n_per_m * w[k] });
+            implicit.contacts.push(Contact { node: ids[k], normal: push, stiffness: implicit.stiffness_n_per_m * w[k], drive_m_per_s: drive });
         }
         // The force the point's nodes press it against the face with, as a constraint
         // on the point takes it (the force F that stops the point, each node taking
@@ -395,7 +484,26 @@ fn hold_point(
             / point_inv_mass;
         let normal_n = (-pressing.dot(&push)).max(0.0);
         reaction.add(tool, point, -push * normal_n, normal_n);
-        rubs.push(Rub { tool: index, ids, w, push, lever: point - tool.tip, tool_velocity, normal_n, weight });
+        let mut stuck = None;
+        let mut slide = Vec3::zeros();
+        if normal_n > 0.0
+            && let Some((resists, coming)) = point_dynamics(nodes, drag, h, ids, w, Vec3::zeros())
+            && let Some((force, sticks)) = coulomb(coming - tool_velocity, push, &resists, h, normal_n, friction)
+        {
+            if sticks {
+                let tangents = across(push);
+                for t in tangents {
+                    for k in (0..3).filter(|&k| w[k] != 0.0) {
+                        implicit.contacts.push(Contact { node: ids[k], normal: t, stiffness: implicit.stiffness_n_per_m * w[k], drive_m_per_s: tool_velocity.dot(&t) });
+                    }
+                }
+                stuck = Some((implicit.stiffness_n_per_m, tangents));
+            } else {
+                slide = force;
+                reaction.rub(tool, point, -force);
+            }
+        }
+        rubs.push(Rub { tool: index, ids, w, push, lever: point - tool.tip, tool_velocity, normal_n, weight, stuck, slide });
         return;
     }
     // The point's velocity at the end of the substep were it free, before the drag (its
@@ -462,14 +570,32 @@ fn contact_force(coming: Vec3, tool_velocity: Vec3, push: Vec3, allowed_approach
 /// the substep (a force F changes its end velocity by h·R⁻¹·F: its mass, and the drag
 /// the integrator takes implicitly), so stopping the slip takes R·slip/h.
 fn friction_force(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, normal_n: f64, friction: Option<Friction>) -> Vec3 {
-    let Some((mu_static, mu_dynamic)) = friction else { return Vec3::zeros() };
+    coulomb(relative, push, resists, h, normal_n, friction).map_or_else(Vec3::zeros, |(force, _)| force)
+}
+
+/// [`friction_force`], and whether the point sticks; None without friction or normal force.
+fn coulomb(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, normal_n: f64, friction: Option<Friction>) -> Option<(Vec3, bool)> {
+    let (mu_static, mu_dynamic) = friction?;
     if normal_n <= 0.0 {
-        return Vec3::zeros();
+        return None;
     }
     let slip = relative - push * relative.dot(&push);
     let stick = -(resists * slip) / h;
     let sideways = (stick - push * stick.dot(&push)).norm();
-    if sideways <= mu_static * normal_n { stick } else { stick * (mu_dynamic * normal_n / sideways) }
+    Some(if sideways <= mu_static * normal_n { (stick, true) } else { (stick * (mu_dynamic * normal_n / sideways), false) })
+}
+
+/// Two unit vectors across `n` (a unit vector), at right angles to each other.
+fn across(n: Vec3) -> [Vec3; 2] {
+    let least = if n.x.abs() <= n.y.abs() && n.x.abs() <= n.z.abs() {
+        Vec3::x()
+    } else if n.y.abs() <= n.z.abs() {
+        Vec3::y()
+    } else {
+        Vec3::z()
+    };
+    let first = n.cross(&least).normalize();
+    [first, n.cross(&first)]
 }
 
 /// How deep a node inside the tool lies under the tip face and the way out (the face's
@@ -489,6 +615,16 @@ pub(crate) fn face_exit(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<(f6
     }
     let (through_side, _) = tool.section_exit(&(x - tool.tip - tool.axis * along))?;
     (along < through_side).then_some((along, -tool.axis))
+}
+
+/// How far a point just outside a round tip's ball lies off it and the way out (the
+/// ball's normal), when within `reach_m` of its lower half (where [`face_exit`] would
+/// hold it once inside); None otherwise.
+fn round_tip_gap(tool: &PlacedTool, x: &Vec3, reach_m: f64) -> Option<(f64, Vec3)> {
+    let from_centre = x - (tool.tip + tool.axis * tool.radius_m);
+    let d = from_centre.norm();
+    let gap = d - tool.radius_m;
+    (gap >= 0.0 && gap <= reach_m && from_centre.dot(&tool.axis) <= 0.0).then(|| (gap, from_centre / d))
 }
 
 #[cfg(test)]

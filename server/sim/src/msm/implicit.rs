@@ -143,6 +143,8 @@ impl ImplicitSolver {
 
         for c in contacts {
             self.inv_diag[c.node as usize] += c.normal.component_mul(&c.normal) * c.stiffness;
+            // Its spring's rest point moves at the drive's velocity over the step.
+            nodes.f[c.node as usize] += c.normal * (c.stiffness * (h + spring_damping_s) * c.drive_m_per_s);
         }
 
         // The warm start (the previous solution) on this step's free axes, and the

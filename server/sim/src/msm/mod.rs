@@ -75,6 +75,10 @@ const MAX_CUT_REACTIONS_PER_TOOL: usize = 64;
 /// edge, soft enough for the Jacobi-preconditioned CG.
 const HELD_STIFFNESS_OVER_CONTACT: f64 = 100.0;
 
+/// The most contacts a node takes in a step: a tool's penalty, and a tip face's hold
+/// along its push and (stuck by friction, under the implicit integrator) across it.
+const CONTACTS_PER_NODE: usize = 4;
+
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
 /// step by step, the force would switch on and off with the pose's millisecond jitter,
 /// and a haptic proxy pulled through the cut would stick and slip at the loop rate (a
@@ -208,7 +212,7 @@ impl MassSpring {
                 self.timed(|s| s.push_with_flats(feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 let check = self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns);
                 let drag = hold::Drag { mass_damping_per_s: self.mass_damping_per_s, foundation: self.foundation.as_ref() };
-                self.holder.rub_after_solve(&mut self.nodes, drag, self.dt_s, feedback);
+                self.holder.rub_after_solve(&mut self.nodes, drag, self.dt_s, self.spring_damping_s, feedback);
                 check
             }
         };
