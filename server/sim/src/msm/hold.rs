@@ -21,8 +21,8 @@
 //! it, or as the dynamic force on a sliding one: [`Rub`]). Under the implicit integrator
 //! a round tip also holds the nodes just off its ball that the skin's forces would carry
 //! into it within the step (a speculative contact, whose spring closes the gap and no
-//! more), and lets go of nodes they would carry off it, so that the ring of points round
-//! a resting ball keeps its members from step to step. The force
+//! more), so that the ring of points round a resting ball keeps its members from step
+//! to step. The force
 //! the tool feels is the force the rest of the skin presses the held points against its
 //! face with (their spring, foundation and gravity forces along the axis, never
 //! pulling): the force of the solved state, not a penalty depth. A tool that appeared
@@ -288,9 +288,8 @@ impl Holder {
         // last substep (a tool thrust fast has swept the skin it passed).
         // Under the implicit integrator a round tip resting on the skin also holds the
         // nodes just off its ball that would reach it within the step (a speculative
-        // contact). Not before it rests on a triangle: corners drawn onto a ball
-        // narrower than the mesh leave the triangle between them inside it, deeper than
-        // the reach, and the tool would take itself as through the skin.
+        // contact): only while a held triangle goes on, the resting ball it is for (at
+        // first touch the triangle's point is found as before).
         let speculative = implicit.is_some() && tool.tip_shape == TipShape::Round && self.held_triangle[index].is_some();
         let held_corners = self.held_triangle[index].map_or([u32::MAX; 3], |t| {
             let ids = topo.tris[t as usize];
