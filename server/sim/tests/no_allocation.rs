@@ -93,7 +93,8 @@ fn steps_with_contact_allocate_nothing() {
         // under them as it was pressed stays held by friction, within its static cone
         // (the implicit integrator's stuck points keep about a quarter of the push).
         assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "{integrator}: the probe is pushed back: {:?}", fb[1]);
-        let mu_static = 0.5;
+        let cutsim_sim::scene::ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+        let mu_static = spec.material.friction.as_ref().unwrap().static_coefficient.get();
         assert!(fb[1].force_n.xy().norm() < mu_static * fb[1].force_n.z, "{:?}", fb[1]);
     }
 }

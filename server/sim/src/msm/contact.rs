@@ -96,10 +96,10 @@ pub(crate) struct Contact {
     pub stiffness: f64,
     /// The velocity along `normal` the contact drives its node to within the step, m/s
     /// (the implicit solve adds stiffness × (h + β) × this to the node's force, so the
-    /// stiff spring ends the step with the node at it): a held point's share of the
-    /// tool's pressing, less the closing of a gap just off the tool (a speculative
-    /// contact), or a stuck point's share of the tool's sliding; 0 for a penalty, whose
-    /// force the caller has added.
+    /// stiff spring ends the step with the node at it): the closing of a gap just off a
+    /// round tip (a speculative hold), or the tool's velocity across its push for a
+    /// point stuck by friction; 0 for a point held on the face (it stays put along the
+    /// push) and for a penalty, whose force the caller has added.
     pub drive_m_per_s: f64,
 }
 

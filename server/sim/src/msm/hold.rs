@@ -187,8 +187,7 @@ impl Reaction {
     }
 
     fn add(&mut self, tool: &PlacedTool, at: Vec3, on_tool: Vec3, normal_n: f64) {
-        self.force += on_tool;
-        self.torque += (at - tool.tip).cross(&on_tool);
+        self.rub(tool, at, on_tool);
         self.normal_n += normal_n;
         self.points += 1;
     }
@@ -291,7 +290,7 @@ impl Holder {
         // contact): only while a held triangle goes on, the resting ball it is for (at
         // first touch the triangle's point is found as before).
         let speculative = implicit.is_some() && tool.tip_shape == TipShape::Round && self.held_triangle[index].is_some();
-        let held_corners = self.held_triangle[index].map_or([u32::MAX; 3], |t| {
+        let held_corners = self.held_triangle[index].filter(|_| speculative).map_or([u32::MAX; 3], |t| {
             let ids = topo.tris[t as usize];
             let corners = ids.map(|v| nodes.x[v as usize]);
             let middle = (corners[0] + corners[1] + corners[2]) / 3.0;
@@ -584,16 +583,10 @@ fn coulomb(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, normal_n:
     Some(if sideways <= mu_static * normal_n { (stick, true) } else { (stick * (mu_dynamic * normal_n / sideways), false) })
 }
 
-/// Two unit vectors across `n` (a unit vector), at right angles to each other.
+/// Two unit vectors across `n` (a unit vector), at right angles to each other (the two
+/// springs of a stuck point together act as `I − n nᵀ`, whichever pair this is).
 fn across(n: Vec3) -> [Vec3; 2] {
-    let least = if n.x.abs() <= n.y.abs() && n.x.abs() <= n.z.abs() {
-        Vec3::x()
-    } else if n.y.abs() <= n.z.abs() {
-        Vec3::y()
-    } else {
-        Vec3::z()
-    };
-    let first = n.cross(&least).normalize();
+    let first = crate::math::any_perpendicular(&n);
     [first, n.cross(&first)]
 }
 

@@ -75,8 +75,10 @@ const MAX_CUT_REACTIONS_PER_TOOL: usize = 64;
 /// edge, soft enough for the Jacobi-preconditioned CG.
 const HELD_STIFFNESS_OVER_CONTACT: f64 = 100.0;
 
-/// The most contacts a node takes in a step: a tool's penalty, and a tip face's hold
-/// along its push and (stuck by friction, under the implicit integrator) across it.
+/// Room for this many contacts per node, sized at load and on cuts so a step does not
+/// allocate: a node in a tool's penalty takes one, a held point three (its push and,
+/// stuck by friction under the implicit integrator, two across it) per node, and only
+/// the few nodes at a tip are held.
 const CONTACTS_PER_NODE: usize = 4;
 
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
