@@ -6,6 +6,7 @@
 mod harness;
 
 use std::process::{Command, Stdio};
+use tokio::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::Duration;
 
 use cutsim_proto::v1 as pb;
@@ -29,6 +30,20 @@ fn bridge(server: &Server, session: &Created, seconds: f64, dir: &TempDir) -> Co
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
     c
+}
+
+/// Every test here runs a real-time server and a bridge whose loop ticks every
+/// millisecond; on a two-core machine two of them at once delay each other's ticks.
+/// Tests that claim something of the timing itself (that the rate limiter never had to
+/// act) run alone ([`alone`]); the others may share the machine ([`shared`]).
+static MACHINE: RwLock<()> = RwLock::const_new(());
+
+async fn shared() -> RwLockReadGuard<'static, ()> {
+    MACHINE.read().await
+}
+
+async fn alone() -> RwLockWriteGuard<'static, ()> {
+    MACHINE.write().await
 }
 
 /// Runs the bridge on `session` with `args` (tool, device, limits, …) until it exits,
@@ -62,6 +77,7 @@ fn trace(dir: &TempDir) -> Vec<(f64, f64, bool, bool)> {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn five_seconds_of_contact_stay_within_the_force_and_rate_limits() {
+    let _machine = shared().await;
     let server = Server::start();
     let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let dir = TempDir::new("bridge");
@@ -69,9 +85,9 @@ async fn five_seconds_of_contact_stay_within_the_force_and_rate_limits() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
     let max_force = report["max_force_n"].as_f64().unwrap();
-    let max_step = report["max_force_step_n"].as_f64().unwrap();
+    let max_rate = report["max_force_rate_n_per_s"].as_f64().unwrap();
     assert!(max_force <= MAX_FORCE_N + 1e-12, "force {max_force} N above the {MAX_FORCE_N} N limit");
-    assert!(max_step <= MAX_RATE_N_PER_S * 0.001 + 1e-12, "a {max_step} N jump in one millisecond");
+    assert!(max_rate <= MAX_RATE_N_PER_S * (1.0 + 1e-9), "the force changed at {max_rate} N/s");
     assert!(report["clamped"].as_u64().unwrap() > 100, "pressing 3 mm in asks for more than the limit, which held");
     // The device loop ran for the whole run, and every tick it ran is in the trace (its
     // pace is a benchmark's business: `cargo bench -p cutsim-server --bench roundtrip`).
@@ -91,6 +107,7 @@ async fn five_seconds_of_contact_stay_within_the_force_and_rate_limits() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn killing_the_server_ramps_the_force_to_zero() {
+    let _machine = shared().await;
     let mut server = Server::start();
     let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let dir = TempDir::new("bridge-kill");
@@ -103,12 +120,13 @@ async fn killing_the_server_ramps_the_force_to_zero() {
     let last_fresh = rows.iter().rposition(|r| r.2).expect("fresh answers before the kill");
     assert!(rows[last_fresh].0 > 2.0 && rows[last_fresh].0 < 3.0, "answers stopped at the kill ({} s)", rows[last_fresh].0);
     assert!(rows[last_fresh].1 > 0.5 * MAX_FORCE_N, "in contact when the server died");
-    // From then on the force only falls, never by more than the rate limit, and is zero
-    // within the stale time plus the ramp (plus what the rate limit needs).
+    // From then on the force only falls, never faster than the rate limit (over the time
+    // between two ticks, written to the microsecond), and is zero within the stale time
+    // plus the ramp (plus what the rate limit needs).
     let after = &rows[last_fresh..];
     for w in after.windows(2) {
         assert!(w[1].1 <= w[0].1 + 1e-12, "the force rose after the server died: {w:?}");
-        assert!((w[0].1 - w[1].1) <= MAX_RATE_N_PER_S * 0.001 + 1e-9, "a jump: {w:?}");
+        assert!((w[0].1 - w[1].1) <= MAX_RATE_N_PER_S * (w[1].0 - w[0].0 + 2e-6), "a jump: {w:?}");
     }
     let zero = after.iter().position(|r| r.1 == 0.0).expect("the force reaches zero");
     let ms = (after[zero].0 - after[0].0) * 1e3;
@@ -121,6 +139,7 @@ async fn killing_the_server_ramps_the_force_to_zero() {
 /// forces back, as docs/haptic-bridge.md describes.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_udp_device_driver_gets_forces_back() {
+    let _machine = shared().await;
     let server = Server::start();
     let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
@@ -176,6 +195,7 @@ async fn a_udp_device_driver_gets_forces_back() {
 /// 1 ms (and a few steps' slack for early starts) after the client's last command.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_paused_client_has_its_tool_lifted_within_the_stale_time() {
+    let _machine = shared().await;
     let server = Server::start();
     let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let dir = TempDir::new("bridge-paused");
@@ -219,6 +239,7 @@ async fn a_paused_client_has_its_tool_lifted_within_the_stale_time() {
 /// what the device renders, steady while the blade moves.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
+    let _machine = shared().await;
     let server = Server::start();
     let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
     let dir = TempDir::new("bridge-cut");
@@ -246,6 +267,7 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
 /// bridge learns of the entry from the server's assessment and plays a pulse.
 #[tokio::test(flavor = "multi_thread")]
 async fn entering_a_no_go_region_plays_a_cue_pulse() {
+    let _machine = shared().await;
     let server = Server::start();
     let scene = inline("skin-patch", |s| {
         s["task"]["no_go"] = serde_json::json!([{ "name": "vessel", "min_m": [-0.012, -0.005, -0.02], "max_m": [-0.004, 0.005, 0.01] }]);
@@ -268,6 +290,7 @@ async fn entering_a_no_go_region_plays_a_cue_pulse() {
 /// has to cut it.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_multirate_session_renders_a_force_the_rate_limit_never_has_to_cut() {
+    let _machine = alone().await;
     let server = Server::start();
     let scene = serde_json::json!({
         "name": "block (multirate)",
@@ -292,7 +315,7 @@ async fn a_multirate_session_renders_a_force_the_rate_limit_never_has_to_cut() {
     let report = run_bridge(&server, &session, &dir, &["--tool", "1", "--device", "sim:press", "--duration-s", "3", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--offset-m", "0", "0", "0.012"]);
     let rows = trace(&dir);
     let pressed = rows.iter().filter(|r| r.0 > 1.2 && r.0 < 2.8).map(|r| r.1).fold(f64::INFINITY, f64::min);
-    println!("multirate through the bridge: largest force {:.3} N, at least {pressed:.3} N while pressed, largest change in 1 ms {:.4} N, rate-limited on {} of {} steps", report["max_force_n"], report["max_force_step_n"], report["rate_limited"], report["device_steps"]);
+    println!("multirate through the bridge: largest force {:.3} N, at least {pressed:.3} N while pressed, fastest change {:.1} N/s, rate-limited on {} of {} steps", report["max_force_n"], report["max_force_rate_n_per_s"], report["rate_limited"], report["device_steps"]);
     assert!(pressed > 0.1, "the probe pressed 3 mm into the block feels it: {pressed} N");
     assert!(report["max_force_n"].as_f64().unwrap() < max_force, "{report}");
     assert_eq!(report["rate_limited"], 0, "the limiter had to cut the force's rate: {report}");

@@ -63,7 +63,30 @@ impl Coupling {
         }
         -coupling
     }
+
+    /// The steps since the last tick, `elapsed_s` long, in which the device went from
+    /// `from` to `to`: its velocity is that distance over that time, and the proxy moves
+    /// in steps of at most `max_step_s` with the device between them. A tick the OS
+    /// delayed spans more than a millisecond; measuring its velocity over one
+    /// millisecond would multiply the damper's force (a jolt), and one long step of the
+    /// stiff spring is no longer stable. Returns the force to render now, N.
+    pub fn advance(&mut self, elapsed_s: f64, max_step_s: f64, from: V3, to: V3, tissue_force: V3, resistance: V3) -> V3 {
+        let velocity = (to - from) * (1.0 / elapsed_s);
+        // (A tick of 6.000000001 ms is six steps, not seven.)
+        let steps = (elapsed_s / max_step_s - 1e-6).ceil().clamp(1.0, MAX_STEPS_PER_TICK as f64) as usize;
+        let dt_s = elapsed_s / steps as f64;
+        let mut force = V3::default();
+        for i in 1..=steps {
+            let device = from + (to - from) * (i as f64 / steps as f64);
+            force = self.step(dt_s, device, velocity, tissue_force, resistance);
+        }
+        force
+    }
 }
+
+/// The most steps one tick takes the proxy through (a tick delayed by more than this
+/// many steps is stale anyway: the limiter fades the force out).
+const MAX_STEPS_PER_TICK: usize = 50;
 
 /// The proxy's velocity after the dissipative `resistance` acts for one step on the
 /// velocity `v` the other forces gave it (`dt_per_kg` = dt / m). Its share against the
@@ -122,6 +145,26 @@ mod tests {
         let mean = tail.iter().sum::<f64>() / tail.len() as f64;
         assert!((mean + 2.0).abs() < 0.1, "the device feels the resistance: {mean} N");
         assert!(steps < 0.02, "and smoothly: largest change {steps} N per ms");
+    }
+
+    #[test]
+    fn a_delayed_tick_renders_what_punctual_ticks_would_have() {
+        // The device moving at 10 mm/s into a 0.2 N tissue force; one run ticks every
+        // millisecond, the other misses four ticks at 50 ms and catches up in one.
+        let device = |t: f64| V3(0.01 * t, 0.0, 0.0);
+        let tissue = V3(-0.2, 0.0, 0.0);
+        let (mut punctual, mut delayed) = (Coupling::new(CouplingParams::default()), Coupling::new(CouplingParams::default()));
+        let (mut f_punctual, mut f_delayed) = (V3::default(), V3::default());
+        for i in 1..=60 {
+            let (t0, t1) = ((i - 1) as f64 * 1e-3, i as f64 * 1e-3);
+            f_punctual = punctual.advance(1e-3, 1e-3, device(t0), device(t1), tissue, V3::default());
+            if !(50..55).contains(&i) {
+                let t0 = if i == 55 { 49e-3 } else { t0 };
+                f_delayed = delayed.advance(t1 - t0, 1e-3, device(t0), device(t1), tissue, V3::default());
+            }
+        }
+        assert!((f_punctual - f_delayed).norm() < 1e-12, "{f_punctual:?} against {f_delayed:?}");
+        assert!((delayed.proxy - punctual.proxy).norm() < 1e-15);
     }
 
     #[test]

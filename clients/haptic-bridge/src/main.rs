@@ -33,6 +33,10 @@ use limiter::{Limiter, Limits};
 use mapping::Workspace;
 use vec::V3;
 
+/// The shortest time a device step is taken to cover, s (a guard: ticks are scheduled
+/// at least half a millisecond apart).
+const MIN_TICK_S: f64 = 1e-4;
+
 #[derive(Parser)]
 #[command(name = "haptic-bridge", version, about = "Joins a haptic device to a cutsim session")]
 struct Args {
@@ -109,12 +113,16 @@ struct Report {
     tool: u32,
     duration_s: f64,
     device_steps: u64,
-    /// Steps that started more than a millisecond late.
+    /// Steps that started more than a millisecond late (the coupling, the cues and the
+    /// rate limit then cover the time that passed, not one millisecond).
     late_steps: u64,
     forces_sent: u64,
     max_force_n: f64,
-    /// Largest change of the rendered force from one millisecond to the next, N.
+    /// Largest change of the rendered force from one step to the next, N.
     max_force_step_n: f64,
+    /// Largest rate of change of the rendered force, N/s: a step's change over the time
+    /// it covered (the rate limit bounds this).
+    max_force_rate_n_per_s: f64,
     /// Milliseconds with no fresh answer (stale or disconnected).
     stale_steps: u64,
     rtt_samples: usize,
@@ -215,6 +223,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let mut limiter = Limiter::new(config.limits);
     let mut report = Report { device: device.name(), session: args.session.clone(), tool: args.tool, config, ..Default::default() };
     let mut previous_device = None::<V3>;
+    let mut previous_tick = None::<Instant>;
     let mut previous_force = V3::default();
     let mut next = Instant::now();
     let deadline = args.duration_s.map(|s| origin + Duration::from_secs_f64(s));
@@ -233,7 +242,10 @@ fn run(args: &Args) -> anyhow::Result<()> {
         }
         let state = device.read(now - origin);
         let position = config.workspace.position(state.position_m);
-        let velocity = previous_device.map_or(V3::default(), |p| (position - p) * (1.0 / dt_s));
+        // The time this tick covers: a millisecond, or more where the OS delayed it.
+        let elapsed_s = previous_tick.map_or(dt_s, |t| (now - t).as_secs_f64()).max(MIN_TICK_S);
+        previous_tick = Some(now);
+        let from = previous_device.unwrap_or(position);
         previous_device = Some(position);
 
         let connected = link.connected.load(Ordering::Acquire);
@@ -242,11 +254,11 @@ fn run(args: &Args) -> anyhow::Result<()> {
             && connected
             && answer.as_ref().is_some_and(|a| now.duration_since(a.received).as_secs_f64() * 1e3 <= config.limits.stale_ms);
         let (tissue, resistance) = if fresh { answer.map_or_else(Default::default, |a| (a.force, a.resistance)) } else { Default::default() };
-        let mut wanted = if state.present { coupling.step(dt_s, position, velocity, tissue, resistance) } else { V3::default() };
+        let mut wanted = if state.present { coupling.advance(elapsed_s, dt_s, from, position, tissue, resistance) } else { V3::default() };
         if let Some(w) = watcher.as_ref().filter(|_| state.present && ramping_out_until.is_none()) {
-            wanted = wanted + pulse.step(dt_s, w.warnings.load(Ordering::Acquire), tissue);
+            wanted = wanted + pulse.step(elapsed_s, w.warnings.load(Ordering::Acquire), tissue);
         }
-        let force = limiter.apply(config.workspace.force_to_device(wanted), fresh, dt_s);
+        let force = limiter.apply(config.workspace.force_to_device(wanted), fresh, elapsed_s);
         device.write_force(force, fresh);
 
         if state.present && ramping_out_until.is_none() {
@@ -266,18 +278,25 @@ fn run(args: &Args) -> anyhow::Result<()> {
         report.forces_sent += 1;
         report.max_force_n = report.max_force_n.max(force.norm());
         report.max_force_step_n = report.max_force_step_n.max((force - previous_force).norm());
+        report.max_force_rate_n_per_s = report.max_force_rate_n_per_s.max((force - previous_force).norm() / elapsed_s);
         report.stale_steps += u64::from(!fresh);
         previous_force = force;
         if let Some(t) = trace.as_mut() {
-            writeln!(t, "{:.4},{},{},{},{},{},{}", (now - origin).as_secs_f64(), force.0, force.1, force.2, force.norm(), u8::from(fresh), u8::from(connected))?;
+            writeln!(t, "{:.6},{},{},{},{},{},{}", (now - origin).as_secs_f64(), force.0, force.1, force.2, force.norm(), u8::from(fresh), u8::from(connected))?;
         }
 
-        next += dt;
+        // Ticks are due every millisecond. After one the OS delayed by less than a tick
+        // the loop catches up with ticks half a millisecond apart, never closer (a
+        // velocity measured over a few microseconds is noise); after a longer delay it
+        // starts counting again from now.
         let after = Instant::now();
-        if after > next + dt {
+        next = if now > next + dt {
             report.late_steps += 1;
-            next = after;
-        } else if next > after {
+            now + dt
+        } else {
+            (next + dt).max(now + dt / 2)
+        };
+        if next > after {
             std::thread::sleep(next - after);
         }
     }
