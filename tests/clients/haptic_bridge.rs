@@ -6,11 +6,11 @@
 mod harness;
 
 use std::process::{Command, Stdio};
-use tokio::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::Duration;
 
 use cutsim_proto::v1 as pb;
 use harness::*;
+use tokio::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
 
 const BRIDGE: &str = env!("CARGO_BIN_EXE_haptic-bridge");
 const MAX_FORCE_N: f64 = 0.08;

@@ -123,7 +123,7 @@ struct Report {
     /// Largest rate of change of the rendered force, N/s: a step's change over the time
     /// it covered (the rate limit bounds this).
     max_force_rate_n_per_s: f64,
-    /// Milliseconds with no fresh answer (stale or disconnected).
+    /// Ticks with no fresh answer (stale or disconnected).
     stale_steps: u64,
     rtt_samples: usize,
     rtt_p50_us: u32,
@@ -222,8 +222,8 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let mut coupling = Coupling::new(config.coupling);
     let mut limiter = Limiter::new(config.limits);
     let mut report = Report { device: device.name(), session: args.session.clone(), tool: args.tool, config, ..Default::default() };
-    let mut previous_device = None::<V3>;
-    let mut previous_tick = None::<Instant>;
+    // The last tick's start and the device's position then.
+    let mut previous = None::<(Instant, V3)>;
     let mut previous_force = V3::default();
     let mut next = Instant::now();
     let deadline = args.duration_s.map(|s| origin + Duration::from_secs_f64(s));
@@ -242,11 +242,10 @@ fn run(args: &Args) -> anyhow::Result<()> {
         }
         let state = device.read(now - origin);
         let position = config.workspace.position(state.position_m);
-        // The time this tick covers: a millisecond, or more where the OS delayed it.
-        let elapsed_s = previous_tick.map_or(dt_s, |t| (now - t).as_secs_f64()).max(MIN_TICK_S);
-        previous_tick = Some(now);
-        let from = previous_device.unwrap_or(position);
-        previous_device = Some(position);
+        // The time this tick covers (a millisecond, or more where the OS delayed it) and
+        // where the device was when it began.
+        let (elapsed_s, from) = previous.map_or((dt_s, position), |(t, p)| ((now - t).as_secs_f64().max(MIN_TICK_S), p));
+        previous = Some((now, position));
 
         let connected = link.connected.load(Ordering::Acquire);
         let answer = link.answer.load_full();
@@ -325,7 +324,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
     report.rtt_p99_us = quantile(0.99);
     report.rtt_max_us = rtt.last().copied().unwrap_or(0);
     eprintln!(
-        "{}: {} ms, round trip p50 {} µs / p99 {} µs, max force {:.3} N, max step {:.4} N, stale {} ms, reconnects {}",
+        "{}: {} ticks, round trip p50 {} µs / p99 {} µs, max force {:.3} N, max step {:.4} N, stale {} ticks, reconnects {}",
         report.device, report.device_steps, report.rtt_p50_us, report.rtt_p99_us, report.max_force_n, report.max_force_step_n, report.stale_steps, report.reconnects
     );
     if let Some(path) = &args.report {
