@@ -99,7 +99,7 @@ mod tests {
             prev = f;
         }
         assert!((prev.norm() - 1.0).abs() < 1e-12);
-        assert_eq!(l.apply(V3(f64::NAN, 0.0, 0.0), true, 0.001).is_finite(), true);
+        assert!(l.apply(V3(f64::NAN, 0.0, 0.0), true, 0.001).is_finite());
         // Stale: down to zero within the ramp (plus what the rate limit needs), never
         // growing even when more is asked for.
         let mut steps = 0;

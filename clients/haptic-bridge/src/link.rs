@@ -104,7 +104,7 @@ async fn run(
         let outgoing = futures_util::stream::unfold(pose_rx.clone(), |mut rx| async move {
             loop {
                 rx.changed().await.ok()?;
-                let command = rx.borrow_and_update().clone();
+                let command = *rx.borrow_and_update();
                 if let Some(command) = command {
                     return Some((command, rx));
                 }

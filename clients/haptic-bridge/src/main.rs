@@ -235,10 +235,10 @@ fn run(args: &Args) -> anyhow::Result<()> {
             report.ended_by = if interrupted.load(Ordering::Acquire) { "interrupted".into() } else { "duration".into() };
             ramping_out_until = Some(now + Duration::from_secs_f64(config.limits.ramp_ms / 1e3 + 0.5));
         }
-        if let Some(until) = ramping_out_until {
-            if previous_force.norm() == 0.0 || now >= until {
-                break;
-            }
+        if let Some(until) = ramping_out_until
+            && (previous_force.norm() == 0.0 || now >= until)
+        {
+            break;
         }
         let state = device.read(now - origin);
         let position = config.workspace.position(state.position_m);
