@@ -27,7 +27,17 @@ phase "scikit-fem reference solutions (tools/reference; a virtual environment ma
 tools/reference/run.sh
 
 phase "cargo test (unit, integration and end-to-end tests)"
-cargo test --workspace --locked
+# CI's log keeps the head and the tail of a long run: a failing test's message, printed
+# where its binary ran, can fall in the cut middle. On failure the failures are printed
+# again at the end.
+mkdir -p target
+cargo_log=target/cargo-test.log
+if ! cargo test --workspace --locked 2>&1 | tee "$cargo_log"; then
+    echo "==> cargo test failed; its failures again (the whole output is above and in $cargo_log):"
+    grep -E -A40 '^---- .* stdout ----$' "$cargo_log" | head -400 || true
+    grep -E '^test .* FAILED$|^error: test failed' "$cargo_log" || true
+    exit 1
+fi
 
 phase "fuzzing: every cargo-fuzz target for 20,000 inputs (docs/fuzzing.md)"
 fuzz/run.sh 20000
