@@ -121,8 +121,7 @@ async fn a_recorded_haptic_session_becomes_a_regression_script() {
     let recording = server.recordings.0.join(format!("{}.jsonl", session.id));
     let dir = TempDir::new("record");
     let script = dir.0.join("trainee.json");
-    // The recorder writes every few milliseconds.
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    wait_for_checkpoint(&recording, info.state_hash_step).await;
     let out = cut_bot(&["record", recording.to_str().unwrap(), "-o", script.to_str().unwrap()]);
     assert!(out.status.success(), "{}", text(&out));
     let parsed: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&script).unwrap()).unwrap();

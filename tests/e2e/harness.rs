@@ -247,3 +247,17 @@ pub async fn http_request(addr: &str, method: &str, path: &str, token: Option<&s
     let r = http_call(addr, method, path, &headers, "").await;
     (r.status, r.body)
 }
+
+/// Waits until a session's recording holds the checkpoint of `step` (at most 10 s). The
+/// recorder's thread flushes every few milliseconds, but on a loaded two-core machine it
+/// can be held up longer than any fixed wait (a fixed 200 ms once lost the checkpoint).
+pub async fn wait_for_checkpoint(recording: &Path, step: u64) {
+    let holds_it = |text: String| {
+        text.lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).any(|l| l["t"] == "check" && l["step"] == step)
+    };
+    let waited = std::time::Instant::now();
+    while !std::fs::read_to_string(recording).is_ok_and(holds_it) {
+        assert!(waited.elapsed() < Duration::from_secs(10), "the checkpoint of step {step} never reached the recording {}", recording.display());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}

@@ -34,15 +34,9 @@ async fn recording_replays_to_the_same_hash_after_sigkill() {
         .into_inner();
     assert!(info.counters.unwrap().cuts >= 1, "the trainee cut");
     assert_eq!(info.state_hash.len(), 16);
-    // Let the recorder write the checkpoint (it flushes every 5 ms, but on a loaded
-    // two-core machine its thread can be held up longer than a fixed wait), then kill
-    // the server without any cleanup.
+    // The checkpoint in the recording, then the server killed without any cleanup.
     let recording = server.recordings.0.join(format!("{}.jsonl", s.id));
-    let waited = std::time::Instant::now();
-    while !std::fs::read_to_string(&recording).is_ok_and(|text| text.contains(r#""t":"check""#)) {
-        assert!(waited.elapsed() < Duration::from_secs(10), "the checkpoint never reached the recording {}", recording.display());
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_for_checkpoint(&recording, info.state_hash_step).await;
     server.kill();
 
     let out = std::process::Command::new(server_binary()).args(["replay", "--json"]).arg(&recording).output().unwrap();
