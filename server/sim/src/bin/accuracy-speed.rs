@@ -424,11 +424,12 @@ fn schedules(quick: bool, out: &Path) -> Result<(), String> {
     Ok(())
 }
 
-/// The rms of `u` over that of `reference`: how far the body deflects against how far it
-/// should (below 1 too stiff).
+/// The rms of `u` over that of `reference` at the same points: how far the body deflects
+/// against how far it should (below 1 too stiff). The point counts cancel, so the ratio
+/// of the fields' norms.
 fn deflection_ratio(u: &[Vec3], reference: &[Vec3]) -> f64 {
-    let rms = |f: &[Vec3]| f.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt();
-    rms(u) / rms(reference)
+    let norm = |f: &[Vec3]| f.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt();
+    norm(u) / norm(reference)
 }
 
 /// The two support rules side by side: each bundled volumetric scene's linear static
