@@ -14,6 +14,7 @@ pub mod preconditioning;
 mod model;
 pub mod shared_stiffness;
 pub mod solver;
+mod statics;
 pub mod support;
 pub mod surface;
 pub mod topology;

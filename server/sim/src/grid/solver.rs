@@ -32,6 +32,7 @@ use crate::solver::multigrid::VCycle;
 use crate::solver::preconditioner::BlockJacobi;
 use super::factorization::Factorization;
 use super::preconditioning::Multigrid;
+pub use super::statics::solve_static;
 
 type Vec24 = SVector<f64, 24>;
 
@@ -577,10 +578,6 @@ impl LinearOperator for Assembled<'_> {
     }
 }
 
-fn safe_div(a: f64, b: f64) -> f64 {
-    if b > 0.0 { a / b } else { 0.0 }
-}
-
 /// The rotation of an element: the polar rotation of its deformation gradient at the
 /// centre, `F = [Σ x-edges / 4a, Σ y-edges / 4b, Σ z-edges / 4c]` for a cell of sides
 /// (a, b, c); `x(n)` is corner n's position. See [`nearest_rotation`].
@@ -775,74 +772,6 @@ pub fn mass_times(topo: &Topology, model: MassModel, x: &[Vec3], out: &mut [Vec3
             }
         }
     }
-}
-
-/// Solves the linear static problem K u = f for the free nodes (no rotation; small
-/// displacements), with fixed nodes held at their current displacement and the
-/// supports' embedded points on their springs. Returns the
-/// CG iterations taken and the relative residual. Used by tests and accuracy studies.
-pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_iterations: u32) -> (u32, f64) {
-    let n = topo.nodes.len();
-    let rotations = vec![Matrix3::identity(); topo.elements.len()];
-    let free: Vec<bool> = (0..n).map(|i| topo.nodes.alive[i] && !topo.nodes.fixed[i]).collect();
-    let u0: Vec<Vec3> = (0..n).map(|i| topo.nodes.x[i] - topo.nodes.rest[i]).collect();
-    // Residual r = f − K u for the free nodes.
-    let mut ku = vec![Vec3::zeros(); n];
-    stiffness_times(topo, &rotations, &u0, &mut ku);
-    topo.supports.add_stiffness_times(topo, &u0, &mut ku);
-    let mut diag = vec![Vec3::zeros(); n];
-    topo.supports.add_diagonal(topo, &mut diag);
-    for e in 0..topo.elements.len() {
-        if topo.elements.alive[e] {
-            for c in 0..8 {
-                let k = &topo.elements.stiffness[e];
-                diag[topo.elements.nodes[e][c] as usize] += Vec3::new(k[(3 * c, 3 * c)], k[(3 * c + 1, 3 * c + 1)], k[(3 * c + 2, 3 * c + 2)]);
-            }
-        }
-    }
-    let mut u = u0;
-    let mut r: Vec<Vec3> = (0..n).map(|i| if free[i] { loads[i] - ku[i] } else { Vec3::zeros() }).collect();
-    let precondition = |r: &[Vec3]| -> Vec<Vec3> {
-        (0..n).map(|i| if free[i] { Vec3::new(safe_div(r[i].x, diag[i].x), safe_div(r[i].y, diag[i].y), safe_div(r[i].z, diag[i].z)) } else { Vec3::zeros() }).collect()
-    };
-    let b_norm2: f64 = (0..n).filter(|&i| free[i]).map(|i| loads[i].norm_squared()).sum::<f64>().max(r.iter().map(|v| v.norm_squared()).sum());
-    let mut z = precondition(&r);
-    let mut p = z.clone();
-    let mut rz: f64 = (0..n).map(|i| r[i].dot(&z[i])).sum();
-    let mut q = vec![Vec3::zeros(); n];
-    let mut iterations = 0;
-    let mut r2: f64 = r.iter().map(|v| v.norm_squared()).sum();
-    while iterations < max_iterations && r2 > tolerance * tolerance * b_norm2 {
-        stiffness_times(topo, &rotations, &p, &mut q);
-        topo.supports.add_stiffness_times(topo, &p, &mut q);
-        for i in 0..n {
-            if !free[i] {
-                q[i] = Vec3::zeros();
-            }
-        }
-        let pq: f64 = (0..n).map(|i| p[i].dot(&q[i])).sum();
-        if !(pq > 0.0) {
-            break;
-        }
-        let alpha = rz / pq;
-        for i in 0..n {
-            u[i] += p[i] * alpha;
-            r[i] -= q[i] * alpha;
-        }
-        r2 = r.iter().map(|v| v.norm_squared()).sum();
-        z = precondition(&r);
-        let rz_next: f64 = (0..n).map(|i| r[i].dot(&z[i])).sum();
-        let beta = rz_next / rz;
-        rz = rz_next;
-        for i in 0..n {
-            p[i] = z[i] + p[i] * beta;
-        }
-        iterations += 1;
-    }
-    for i in 0..n {
-        topo.nodes.x[i] = topo.nodes.rest[i] + u[i];
-    }
-    (iterations, if b_norm2 > 0.0 { (r2 / b_norm2).sqrt() } else { 0.0 })
 }
 
 #[cfg(test)]

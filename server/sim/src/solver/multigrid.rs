@@ -8,13 +8,16 @@
 //! it likes (for the branched grid, the coarser grid's own corotational system: the
 //! condensation is a Galerkin projection, so this is the fine operator projected, with
 //! each coarse element's own rotation). The fine level always smooths with the current
-//! system. The coarsest level is solved exactly (dense Cholesky).
+//! system.
 //!
 //! Smoothing is block Gauss–Seidel: a forward sweep on the way down, a backward one on
 //! the way up, which makes the V-cycle symmetric — a valid CG preconditioner — and
 //! contracts for any symmetric positive definite operator, with nothing to tune. The
 //! coarsest level gets [`COARSEST_SWEEPS`] symmetric sweeps (also a symmetric operator):
-//! no factorization, so refreshing a level never makes a step wait.
+//! no factorization, so refreshing a level never makes a step wait. A static problem
+//! (no mass: its slowest modes are what a few sweeps leave alone) may instead solve its
+//! coarsest level exactly ([`Hierarchy::factor_coarsest`]) and hold the coarse unknowns
+//! that coincide with held fine ones ([`Hierarchy::holding`]).
 
 use super::block_sparse::BlockMatrix;
 use super::kernels::{self, RowProduct};
@@ -104,6 +107,41 @@ struct Level {
 #[derive(Debug, Clone)]
 pub struct Hierarchy {
     levels: Vec<Level>,
+    /// The coarsest level solved exactly, where [`Hierarchy::factor_coarsest`] made it so.
+    coarsest: Option<DenseSolve>,
+}
+
+/// A dense Cholesky factor of a block matrix's active unknowns: a small system solved
+/// exactly.
+#[derive(Debug, Clone)]
+pub struct DenseSolve {
+    /// The active unknowns, in the factor's order.
+    unknowns: Vec<usize>,
+    factor: nalgebra::Cholesky<f64, nalgebra::Dyn>,
+}
+
+impl DenseSolve {
+    /// None where `matrix` has more than `max_unknowns` active scalar unknowns or is not
+    /// positive definite on them.
+    pub fn new<T: super::block_sparse::Scalar>(matrix: &BlockMatrix<T>, active: &[bool], max_unknowns: usize) -> Option<Self> {
+        let unknowns: Vec<usize> = (0..active.len()).filter(|&i| active[i]).collect();
+        if 3 * unknowns.len() > max_unknowns {
+            return None;
+        }
+        let dense = matrix.to_dense();
+        let k = unknowns.len();
+        let a = nalgebra::DMatrix::from_fn(3 * k, 3 * k, |r, c| dense[(3 * unknowns[r / 3] + r % 3, 3 * unknowns[c / 3] + c % 3)]);
+        nalgebra::Cholesky::new(a).map(|factor| DenseSolve { unknowns, factor })
+    }
+
+    /// `z = A⁻¹ r` on the active unknowns (the others of `z` are left as they are).
+    pub fn solve(&self, r: &[Vec3], z: &mut [Vec3]) {
+        let b = nalgebra::DVector::from_fn(3 * self.unknowns.len(), |k, _| r[self.unknowns[k / 3]][k % 3]);
+        let x = self.factor.solve(&b);
+        for (k, &i) in self.unknowns.iter().enumerate() {
+            z[i] = Vec3::new(x[3 * k], x[3 * k + 1], x[3 * k + 2]);
+        }
+    }
 }
 
 impl Hierarchy {
@@ -111,8 +149,19 @@ impl Hierarchy {
     /// per prolongation, of its coarse size), each coarse unknown active when it feeds an
     /// active fine one.
     pub fn new(prolongations: Vec<Prolongation>, matrices: Vec<BlockMatrix<f64>>, fine_active: &[bool]) -> Self {
+        Self::holding(prolongations, matrices, fine_active, None)
+    }
+
+    /// As [`Hierarchy::new`], and where `fine_held` is given, a coarse unknown that
+    /// coincides with a held fine one (its weight there is 1) is held too (inactive), as
+    /// are those below it likewise. A coarse operator of the whole body with no mass is
+    /// singular, and its rigid motions are what the fine level's support forbids: a
+    /// static problem's coarse levels need the support to correct its slowest modes
+    /// (on a clamped bar, 123 iterations to 1e-12 without it; `grid::statics`).
+    pub fn holding(prolongations: Vec<Prolongation>, matrices: Vec<BlockMatrix<f64>>, fine_active: &[bool], fine_held: Option<&[bool]>) -> Self {
         let mut levels: Vec<Level> = Vec::with_capacity(prolongations.len());
         let mut above = fine_active.to_vec();
+        let mut held_above = fine_held.map(<[bool]>::to_vec);
         for (prolongation, matrix) in prolongations.into_iter().zip(matrices) {
             let n = prolongation.coarse_rows;
             assert_eq!(matrix.rows(), n, "a coarse matrix of the prolongation's size");
@@ -124,10 +173,24 @@ impl Hierarchy {
                     }
                 }
             }
+            if let Some(fine_held) = &held_above {
+                let mut held = vec![false; n];
+                for i in (0..prolongation.fine_rows()).filter(|&i| fine_held[i]) {
+                    for (c, w) in prolongation.row(i) {
+                        if (w - 1.0).abs() < 1e-12 {
+                            held[c] = true;
+                        }
+                    }
+                }
+                for c in 0..n {
+                    active[c] &= !held[c];
+                }
+                held_above = Some(held);
+            }
             above = active.clone();
             levels.push(Level { prolongation, matrix, active, smoother: BlockJacobi::default(), r: vec![Vec3::zeros(); n], z: vec![Vec3::zeros(); n], t: vec![Vec3::zeros(); n] });
         }
-        let mut h = Hierarchy { levels };
+        let mut h = Hierarchy { levels, coarsest: None };
         h.update();
         h
     }
@@ -148,6 +211,22 @@ impl Hierarchy {
         for level in &mut self.levels {
             level.smoother.update(&level.matrix, &level.active);
         }
+    }
+
+    /// Solves the coarsest level exactly from now on (a dense Cholesky factor of its
+    /// matrix as it stands: call again after re-assembling it) instead of by
+    /// [`COARSEST_SWEEPS`]; for a static problem, whose slowest modes a few sweeps leave
+    /// as they are. False, and sweeps kept, where the coarsest level has more than
+    /// `max_unknowns` active unknowns or its matrix is not positive definite (a piece no
+    /// support holds).
+    pub fn factor_coarsest(&mut self, max_unknowns: usize) -> bool {
+        self.coarsest = self.levels.last().and_then(|level| DenseSolve::new(&level.matrix, &level.active, max_unknowns));
+        self.coarsest.is_some()
+    }
+
+    /// The prolongations and coarse matrices, finest first (to make a hierarchy anew).
+    pub fn into_parts(self) -> (Vec<Prolongation>, Vec<BlockMatrix<f64>>) {
+        self.levels.into_iter().map(|l| (l.prolongation, l.matrix)).unzip()
     }
 
     pub fn depth(&self) -> usize {
@@ -187,6 +266,10 @@ impl Hierarchy {
         level.prolongation.restrict(fine_residual, &mut level.r);
         level.z.iter_mut().for_each(|v| *v = Vec3::zeros());
         if tail.is_empty() {
+            if let Some(exact) = &self.coarsest {
+                exact.solve(&level.r, &mut level.z);
+                return;
+            }
             for _ in 0..COARSEST_SWEEPS {
                 forward_sweep(&level.matrix, &level.smoother, &level.active, &level.r, &mut level.z);
                 backward_sweep(&level.matrix, &level.smoother, &level.active, &level.r, &mut level.z);
