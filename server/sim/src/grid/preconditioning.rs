@@ -126,7 +126,7 @@ pub fn static_hierarchy(topo: &Topology, active: &[bool]) -> Hierarchy {
 }
 
 /// A static problem's coarsest level is solved exactly up to this many unknowns (a
-/// dense factor of 3,000 unknowns: 72 MB, a second or two).
+/// dense factor of 3,000 unknowns: 72 MB, seconds to make).
 pub const STATIC_COARSEST_UNKNOWNS: usize = 3_000;
 
 /// The multigrid preconditioner's state (see the module docs).

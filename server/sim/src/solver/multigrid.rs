@@ -128,9 +128,21 @@ impl DenseSolve {
         if 3 * unknowns.len() > max_unknowns {
             return None;
         }
-        let dense = matrix.to_dense();
-        let k = unknowns.len();
-        let a = nalgebra::DMatrix::from_fn(3 * k, 3 * k, |r, c| dense[(3 * unknowns[r / 3] + r % 3, 3 * unknowns[c / 3] + c % 3)]);
+        // The active rows' blocks at the active columns (not the whole matrix made dense:
+        // the active part may be a small share of it).
+        let mut position = vec![usize::MAX; active.len()];
+        for (k, &i) in unknowns.iter().enumerate() {
+            position[i] = k;
+        }
+        let mut a = nalgebra::DMatrix::zeros(3 * unknowns.len(), 3 * unknowns.len());
+        for (k, &i) in unknowns.iter().enumerate() {
+            for b in matrix.pattern.start[i] as usize..matrix.pattern.start[i + 1] as usize {
+                let l = position[matrix.pattern.cols[b] as usize];
+                if l != usize::MAX {
+                    a.fixed_view_mut::<3, 3>(3 * k, 3 * l).copy_from(&matrix.block(b));
+                }
+            }
+        }
         nalgebra::Cholesky::new(a).map(|factor| DenseSolve { unknowns, factor })
     }
 
@@ -156,8 +168,9 @@ impl Hierarchy {
     /// coincides with a held fine one (its weight there is 1) is held too (inactive), as
     /// are those below it likewise. A coarse operator of the whole body with no mass is
     /// singular, and its rigid motions are what the fine level's support forbids: a
-    /// static problem's coarse levels need the support to correct its slowest modes
-    /// (on a clamped bar, 123 iterations to 1e-12 without it; `grid::statics`).
+    /// static problem's coarse levels need the support to correct its slowest modes (a
+    /// clamped bar of 3,321 nodes: 56 iterations to 1e-12 with its coarsest level held
+    /// and solved exactly, 123 without either; `grid::statics`).
     pub fn holding(prolongations: Vec<Prolongation>, matrices: Vec<BlockMatrix<f64>>, fine_active: &[bool], fine_held: Option<&[bool]>) -> Self {
         let mut levels: Vec<Level> = Vec::with_capacity(prolongations.len());
         let mut above = fine_active.to_vec();
