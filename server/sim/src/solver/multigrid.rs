@@ -111,6 +111,10 @@ pub struct Hierarchy {
     coarsest: Option<DenseSolve>,
 }
 
+/// A pivot below this share of the largest diagonal entry makes a matrix singular for
+/// [`DenseSolve`] (round-off leaves about 1e-16 where a body is free to move).
+const SINGULAR_PIVOT: f64 = 1e-13;
+
 /// A dense Cholesky factor of a block matrix's active unknowns: a small system solved
 /// exactly.
 #[derive(Debug, Clone)]
@@ -122,7 +126,7 @@ pub struct DenseSolve {
 
 impl DenseSolve {
     /// None where `matrix` has more than `max_unknowns` active scalar unknowns or is not
-    /// positive definite on them.
+    /// positive definite on them (to round-off: [`SINGULAR_PIVOT`]).
     pub fn new<T: super::block_sparse::Scalar>(matrix: &BlockMatrix<T>, active: &[bool], max_unknowns: usize) -> Option<Self> {
         let unknowns: Vec<usize> = (0..active.len()).filter(|&i| active[i]).collect();
         if 3 * unknowns.len() > max_unknowns {
@@ -143,7 +147,13 @@ impl DenseSolve {
                 }
             }
         }
-        nalgebra::Cholesky::new(a).map(|factor| DenseSolve { unknowns, factor })
+        // Singular to round-off (a piece free to move), a factor may still come out, of
+        // pivots near zero, and its solve is noise: refused.
+        let largest = (0..a.nrows()).map(|i| a[(i, i)]).fold(0.0, f64::max);
+        let factor = nalgebra::Cholesky::new(a)?;
+        let l = factor.l_dirty();
+        let smallest = (0..l.nrows()).map(|i| l[(i, i)] * l[(i, i)]).fold(f64::INFINITY, f64::min);
+        (smallest > SINGULAR_PIVOT * largest).then_some(DenseSolve { unknowns, factor })
     }
 
     /// `z = A⁻¹ r` on the active unknowns (the others of `z` are left as they are).
@@ -195,8 +205,8 @@ impl Hierarchy {
                         }
                     }
                 }
-                for c in 0..n {
-                    active[c] &= !held[c];
+                for (active, held) in active.iter_mut().zip(&held) {
+                    *active &= !held;
                 }
                 held_above = Some(held);
             }
