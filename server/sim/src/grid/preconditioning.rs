@@ -57,6 +57,11 @@ pub struct Levels {
 /// the fine grid's ghost material, scaled to their size (a box's stiffness grows with
 /// its side).
 fn build(coarsening: &Coarsening, fine_active: &[bool]) -> Levels {
+    build_holding(coarsening, fine_active, None)
+}
+
+/// As [`build`], the coarse unknowns on held fine ones held (`Hierarchy::holding`).
+fn build_holding(coarsening: &Coarsening, fine_active: &[bool], fine_held: Option<&[bool]>) -> Levels {
     let (prolongations, topologies) = coarsening.levels(COARSEST_NODES);
     let mut grids = Vec::with_capacity(topologies.len());
     let mut matrices = Vec::with_capacity(topologies.len());
@@ -75,7 +80,7 @@ fn build(coarsening: &Coarsening, fine_active: &[bool]) -> Levels {
         matrices.push(BlockMatrix::<f64>::zeros(pattern));
         grids.push(CoarseGrid { topo, scatter, rotation_from });
     }
-    let hierarchy = Hierarchy::new(prolongations, matrices, fine_active);
+    let hierarchy = Hierarchy::holding(prolongations, matrices, fine_active, fine_held);
     Levels { grids, hierarchy }
 }
 
@@ -116,13 +121,12 @@ impl Levels {
 /// unrotated stiffness alone: no mass, no damping), for a V-cycle that preconditions it
 /// (`grid::statics`); `active` are `topo`'s unknowns the problem solves for.
 pub fn static_hierarchy(topo: &Topology, active: &[bool]) -> Hierarchy {
-    let mut levels = build(&Coarsening::of(topo), active);
+    let mut levels = build_holding(&Coarsening::of(topo), active, Some(&topo.nodes.fixed));
     let identity = vec![Matrix3::identity(); topo.elements.len()];
     levels.assemble(&identity, 0.0, 1.0, &mut [[F8::default(); 3]; 24]);
-    let (prolongations, matrices) = levels.hierarchy.into_parts();
-    let mut hierarchy = Hierarchy::holding(prolongations, matrices, active, Some(&topo.nodes.fixed));
-    hierarchy.factor_coarsest(STATIC_COARSEST_UNKNOWNS);
-    hierarchy
+    levels.hierarchy.update();
+    levels.hierarchy.factor_coarsest(STATIC_COARSEST_UNKNOWNS);
+    levels.hierarchy
 }
 
 /// A static problem's coarsest level is solved exactly up to this many unknowns (a

@@ -247,11 +247,6 @@ impl Hierarchy {
         self.coarsest.is_some()
     }
 
-    /// The prolongations and coarse matrices, finest first (to make a hierarchy anew).
-    pub fn into_parts(self) -> (Vec<Prolongation>, Vec<BlockMatrix<f64>>) {
-        self.levels.into_iter().map(|l| (l.prolongation, l.matrix)).unzip()
-    }
-
     pub fn depth(&self) -> usize {
         self.levels.len()
     }
