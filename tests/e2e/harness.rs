@@ -261,3 +261,19 @@ pub async fn wait_for_checkpoint(recording: &Path, step: u64) {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
+
+/// Waits until a real-time session's step is past `target` (at most 10 s) and returns the
+/// step read. "The session still steps" is a fact about behaviour; how many steps a fixed
+/// sleep sees is one about the machine's load, so the tests poll for it instead.
+pub async fn wait_for_step_past(server: &Server, session: &Created, target: u64) -> u64 {
+    let waited = std::time::Instant::now();
+    loop {
+        let request = pb::GetSessionRequest { session_id: session.id.clone(), with_state_hash: false };
+        let step = server.sessions().await.get_session(authed(request, &session.observe)).await.expect("the session answers").into_inner().step;
+        if step > target {
+            return step;
+        }
+        assert!(waited.elapsed() < Duration::from_secs(10), "session {} stopped stepping: at step {step} after 10 s, waiting for {target}", session.id);
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
