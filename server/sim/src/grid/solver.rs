@@ -25,7 +25,7 @@ use super::hex::Mat24;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
 use crate::solver::block_sparse::{Block, BlockMatrix, Pattern, Scatter};
-use crate::solver::kernels::{Planar24, rotate_and_multiply, rotated_multiply, scatter_element};
+use crate::solver::kernels::{Planar24, RowProduct, rotate_and_multiply, rotated_multiply, scatter_element};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
 use crate::solver::predictor::Predictor;
 use crate::solver::multigrid::VCycle;
@@ -429,7 +429,7 @@ impl Dynamics {
         for i in 0..n {
             self.b[i] = if self.active[i] { (self.force[i] - self.q[i] * settings.alpha_per_s) * h } else { Vec3::zeros() };
         }
-        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: VELOCITY_FLOOR };
+        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance, floor: VELOCITY_FLOOR, stalled_after: 0 };
         self.predictor.predict(&mut self.dv[..n]);
         self.last = self.solve_b(topo, settings, step, &pcg_settings, Unknown::VelocityChange);
     }
@@ -448,7 +448,7 @@ impl Dynamics {
         // A compliance the haptic loop renders against needs three digits, not the
         // state's tolerance; and no absolute floor: a unit force's velocity change may be
         // far below the state's.
-        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance.max(COMPLIANCE_TOLERANCE), floor: 0.0 };
+        let pcg_settings = PcgSettings { max_iterations: settings.cg_max_iterations, tolerance: settings.cg_tolerance.max(COMPLIANCE_TOLERANCE), floor: 0.0, stalled_after: 0 };
         let convergence = self.solve_b(topo, settings, step, &pcg_settings, Unknown::Scratch);
         for (x, q) in x.iter_mut().zip(&self.q) {
             *x = q * h;
@@ -566,13 +566,14 @@ pub fn system_pattern(topo: &Topology) -> Pattern {
     Pattern::from_elements_coupling(topo.nodes.len(), live, |n| topo.nodes.alive[n as usize] && !topo.nodes.fixed[n as usize])
 }
 
-/// The assembled system as the solver's operator.
-struct Assembled<'a> {
-    matrix: &'a BlockMatrix<f32>,
-    active: &'a [bool],
+/// An assembled system as the solver's operator, on its active rows: the step's (in
+/// single precision) and the static problem's (`super::statics`, in double).
+pub(super) struct Assembled<'a, T: RowProduct> {
+    pub matrix: &'a BlockMatrix<T>,
+    pub active: &'a [bool],
 }
 
-impl LinearOperator for Assembled<'_> {
+impl<T: RowProduct> LinearOperator for Assembled<'_, T> {
     fn apply(&self, x: &[Vec3], y: &mut [Vec3]) -> f64 {
         self.matrix.multiply(x, y, self.active)
     }

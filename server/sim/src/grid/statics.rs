@@ -12,12 +12,15 @@
 //! reference (170,000 nodes) had run over half an hour when it was stopped.
 
 use super::preconditioning::{STATIC_COARSEST_UNKNOWNS, static_hierarchy};
-use super::solver::{stiffness_times, system_pattern};
+use super::solver::{Assembled, stiffness_times, system_pattern};
 use super::support::held_pieces;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
+use std::cell::RefCell;
+
 use crate::solver::block_sparse::{BlockMatrix, Scatter};
-use crate::solver::multigrid::{DenseSolve, Hierarchy};
+use crate::solver::multigrid::{DenseSolve, VCycle};
+use crate::solver::pcg::{Pcg, PcgSettings};
 use crate::solver::preconditioner::BlockJacobi;
 
 /// A solve whose residual has not halved for this many iterations has stalled: the
@@ -33,9 +36,11 @@ const NO_SOLUTION: f64 = 1e-6;
 /// Solves the linear static problem K u = f for the free nodes (no rotation; small
 /// displacements), with fixed nodes held at their current displacement and the
 /// supports' embedded points on their springs; the nodes are left at the solution.
-/// Returns the CG iterations taken and the relative residual (|f − K u| / |f|, or over
-/// the first residual where the held nodes' displacements load the body more), which
-/// is above `tolerance` where the solve stopped at `max_iterations` or stalled.
+/// Returns the CG iterations taken and the relative residual |b − K u| / |b|, with b
+/// the loads less what the held nodes' displacements pull, which is above `tolerance`
+/// where the solve stopped at `max_iterations` or stalled. The conjugate gradient is
+/// the dynamics' (`solver::pcg`), in the Euclidean norm (the references are asserted
+/// to a relative residual in it) and stopped when it stalls.
 pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_iterations: u32) -> (u32, f64) {
     let n = topo.nodes.len();
     // Pieces that touch no hold have no static answer but where nothing loads them:
@@ -46,56 +51,35 @@ pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_ite
     let loose_unloaded = (0..n).all(|i| held[i] || loads[i] == Vec3::zeros());
     let free: Vec<bool> = (0..n).map(|i| topo.nodes.alive[i] && !topo.nodes.fixed[i] && (held[i] || !loose_unloaded)).collect();
     let u0: Vec<Vec3> = (0..n).map(|i| topo.nodes.x[i] - topo.nodes.rest[i]).collect();
-    let mut r = residual(topo, loads, &free, &u0);
+    let r = residual(topo, loads, &free, &u0);
     let k = assemble(topo);
+    // CG starts from the free nodes' displacements u₀ and solves K u = b on the free
+    // rows, b = f − K_free,held u_held: the warm start's residual r plus K u₀ (the
+    // assembled K couples free nodes only).
+    let mut u: Vec<Vec3> = (0..n).map(|i| if free[i] { u0[i] } else { Vec3::zeros() }).collect();
+    let mut b = vec![Vec3::zeros(); n];
+    k.multiply(&u, &mut b, &free);
+    for i in 0..n {
+        b[i] += r[i];
+    }
+    let b_norm2 = b.iter().map(Vec3::norm_squared).sum::<f64>();
     // A problem as small as a coarsest level is solved exactly (CG then checks it in one
     // iteration); any other, by V-cycles.
-    let mut preconditioner = match DenseSolve::new(&k, &free, STATIC_COARSEST_UNKNOWNS) {
-        Some(exact) => Preconditioner::Exact(exact),
-        None => Preconditioner::VCycle(static_hierarchy(topo, &free), BlockJacobi::new(&k, &free)),
+    let settings = PcgSettings { max_iterations, tolerance, floor: 0.0, stalled_after: STALLED_AFTER };
+    let euclidean = vec![Vec3::repeat(1.0); n];
+    let operator = Assembled { matrix: &k, active: &free };
+    let convergence = match DenseSolve::new(&k, &free, STATIC_COARSEST_UNKNOWNS) {
+        Some(exact) => Pcg::default().solve(&operator, &exact, &b, &mut u, &free, &euclidean, &settings),
+        None => {
+            let (mut hierarchy, smoother, mut scratch) = (static_hierarchy(topo, &free), BlockJacobi::new(&k, &free), Vec::new());
+            let v_cycle = VCycle { hierarchy: RefCell::new(&mut hierarchy), matrix: &k, smoother: &smoother, active: &free, scratch: RefCell::new(&mut scratch) };
+            Pcg::default().solve(&operator, &v_cycle, &b, &mut u, &free, &euclidean, &settings)
+        }
     };
-    let mut scratch = vec![Vec3::zeros(); n];
-    let mut precondition = |r: &[Vec3], z: &mut [Vec3]| match &mut preconditioner {
-        Preconditioner::Exact(exact) => exact.solve(r, z),
-        Preconditioner::VCycle(hierarchy, smoother) => hierarchy.apply(&k, smoother, &free, r, z, &mut scratch),
-    };
-
-    let dot = |a: &[Vec3], b: &[Vec3]| -> f64 { a.iter().zip(b).map(|(a, b)| a.dot(b)).sum() };
-    let b_norm2 = (0..n).filter(|&i| free[i]).map(|i| loads[i].norm_squared()).sum::<f64>().max(dot(&r, &r));
-    let mut u = u0;
-    let mut z = vec![Vec3::zeros(); n];
-    precondition(&r, &mut z);
-    let mut p = z.clone();
-    let mut q = vec![Vec3::zeros(); n];
-    let mut rz = dot(&r, &z);
-    let mut r2 = dot(&r, &r);
-    let mut iterations = 0;
-    // The last iteration at which the residual fell below half the least before it.
-    let (mut least_r2, mut fell_at) = (r2, 0);
-    while iterations < max_iterations && r2 > tolerance * tolerance * b_norm2 && iterations - fell_at < STALLED_AFTER {
-        let pq = k.multiply(&p, &mut q, &free);
-        // Not a descent direction (or NaN): the problem has no solution.
-        if pq.is_nan() || pq <= 0.0 {
-            break;
-        }
-        let alpha = rz / pq;
-        for i in 0..n {
-            u[i] += p[i] * alpha;
-            r[i] -= q[i] * alpha;
-        }
-        r2 = dot(&r, &r);
-        precondition(&r, &mut z);
-        let rz_next = dot(&r, &z);
-        let beta = rz_next / rz;
-        rz = rz_next;
-        for i in 0..n {
-            p[i] = z[i] + p[i] * beta;
-        }
-        iterations += 1;
-        if r2 < 0.25 * least_r2 {
-            (least_r2, fell_at) = (r2, iterations);
-        }
+    for i in (0..n).filter(|&i| !free[i]) {
+        u[i] = u0[i];
     }
+    let mut r2 = convergence.residual * convergence.residual * b_norm2;
     // The recursion's residual drifts from the answer's own: by round-off (the answer's
     // own cannot go below about 1e-11 on the cantilever, 2e-9 near incompressibility),
     // and, where K is singular (a loaded piece free to move), without bound: the
@@ -109,7 +93,7 @@ pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_ite
     for ((x, rest), u) in topo.nodes.x.iter_mut().zip(&topo.nodes.rest).zip(&u) {
         *x = rest + u;
     }
-    (iterations, if b_norm2 > 0.0 { (r2 / b_norm2).sqrt() } else { 0.0 })
+    (convergence.iterations, if b_norm2 > 0.0 { (r2 / b_norm2).sqrt() } else { 0.0 })
 }
 
 /// `f − K u` on the free nodes (zero on the others), element by element: the assembled
@@ -123,12 +107,6 @@ fn residual(topo: &Topology, loads: &[Vec3], free: &[bool], u: &[Vec3]) -> Vec<V
         *r = if free[i] { loads[i] - *r } else { Vec3::zeros() };
     }
     r
-}
-
-enum Preconditioner {
-    Exact(DenseSolve),
-    /// The coarse levels and the fine level's smoother.
-    VCycle(Hierarchy, BlockJacobi),
 }
 
 /// `K` over the free nodes' couplings (the step's pattern), with the supports' springs.

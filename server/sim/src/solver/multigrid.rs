@@ -339,6 +339,12 @@ impl<T: RowProduct> Preconditioner for VCycle<'_, T> {
     }
 }
 
+impl Preconditioner for DenseSolve {
+    fn apply(&self, r: &[Vec3], z: &mut [Vec3]) {
+        self.solve(r, z);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -399,7 +405,7 @@ mod tests {
             let jacobi = BlockJacobi::new(&a, &active);
             let diagonal: Vec<Vec3> = (0..n).map(|i| a.diagonal(i)).collect();
             let b: Vec<Vec3> = (0..n).map(|i| if i == 0 { Vec3::zeros() } else { Vec3::new(1.0, (i as f64 * 0.1).sin(), -0.5) }).collect();
-            let settings = PcgSettings { max_iterations: 500, tolerance: 1e-8, floor: 0.0 };
+            let settings = PcgSettings { max_iterations: 500, tolerance: 1e-8, floor: 0.0, stalled_after: 0 };
             let mut pcg = Pcg::default();
             let mut scratch = Vec::new();
             let mut x = vec![Vec3::zeros(); n];

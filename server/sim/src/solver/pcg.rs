@@ -31,6 +31,11 @@ pub struct PcgSettings {
     /// (estimated by its diagonal) is below this (0: never): a body at rest has round-off
     /// forces, not work to do.
     pub floor: f64,
+    /// Also stop when the residual has not halved for this many iterations (0: never):
+    /// a problem without a solution (a loaded piece free to turn) stalls, where a
+    /// solvable one halves it every few dozen V-cycles. A stalled solve reports its
+    /// residual, above the tolerance, without `cap_hit`.
+    pub stalled_after: u32,
 }
 
 /// How a solve went.
@@ -77,7 +82,8 @@ impl Pcg {
     }
 
     /// Solves `A x = b` on the active rows from the initial `x` (a warm start; inactive
-    /// rows of x are zeroed). `diagonal` is A's diagonal (the residual's metric).
+    /// rows of x are zeroed). `diagonal` is A's diagonal (the residual's metric; ones
+    /// measure it in the Euclidean norm).
     #[allow(clippy::too_many_arguments)]
     pub fn solve(
         &mut self,
@@ -120,7 +126,10 @@ impl Pcg {
         let target2 = settings.tolerance * settings.tolerance * b_norm2;
         let mut iterations = 0;
         let done = |r_norm2: f64, largest: f64| r_norm2 <= target2 || largest <= settings.floor;
-        while iterations < settings.max_iterations && !done(r_norm2, largest) {
+        // The last iteration at which the residual fell below half the least before it.
+        let (mut least_r_norm2, mut fell_at) = (r_norm2, 0);
+        let stalled = |iterations: u32, fell_at: u32| settings.stalled_after > 0 && iterations - fell_at >= settings.stalled_after;
+        while iterations < settings.max_iterations && !done(r_norm2, largest) && !stalled(iterations, fell_at) {
             let pq = a.apply(&self.p, &mut self.q);
             if !(pq > 0.0) || !(rz > 0.0) {
                 break;
@@ -128,6 +137,9 @@ impl Pcg {
             let alpha = rz / pq;
             (r_norm2, largest) = kernels::cg_update(flat_mut(x), flat(&self.p), flat_mut(&mut self.r), flat(&self.q), flat(&self.metric), alpha);
             iterations += 1;
+            if r_norm2 < 0.25 * least_r_norm2 {
+                (least_r_norm2, fell_at) = (r_norm2, iterations);
+            }
             if done(r_norm2, largest) {
                 break;
             }
@@ -186,7 +198,7 @@ mod tests {
         let jacobi = BlockJacobi::new(&a, &active);
         let mut pcg = Pcg::default();
         let mut x = vec![Vec3::zeros(); n];
-        let settings = PcgSettings { max_iterations: 1000, tolerance: 1e-10, floor: 0.0 };
+        let settings = PcgSettings { max_iterations: 1000, tolerance: 1e-10, floor: 0.0, stalled_after: 0 };
         let done = pcg.solve(&Op(&a, &active), &jacobi, &b, &mut x, &active, &diagonal, &settings);
         assert!(!done.cap_hit && done.residual <= 1e-10, "{done:?}");
         // The true residual agrees.
