@@ -119,10 +119,10 @@ pub enum Weighting {
 }
 
 /// Iterations a linear static solve may take: ten times the most a solvable bundled
-/// problem needed (the layered abdomen's level 0: 2,410 V-cycles; its level 3: 1,300);
-/// a problem with no solution (a piece held at a point, free to turn) stops here, and
-/// its residual says so.
-pub const LINEAR_SOLVE_CAP: u32 = 30_000;
+/// problem needed (the layered abdomen's level 3: 480 V-cycles; its level 0: 238); a
+/// problem with no solution (a piece held at a point, free to turn) stops here or
+/// stalls before (`grid::statics`), and its residual says so.
+pub const LINEAR_SOLVE_CAP: u32 = 5_000;
 
 /// The linear (small-strain) static solution of a problem at a level: K u = f by
 /// conjugate gradient in double precision (`grid::statics`), to `tolerance`, at most

@@ -57,11 +57,6 @@ pub struct Levels {
 /// the fine grid's ghost material, scaled to their size (a box's stiffness grows with
 /// its side).
 fn build(coarsening: &Coarsening, fine_active: &[bool]) -> Levels {
-    build_holding(coarsening, fine_active, None)
-}
-
-/// As [`build`], the coarse unknowns on held fine ones held (`Hierarchy::holding`).
-fn build_holding(coarsening: &Coarsening, fine_active: &[bool], fine_held: Option<&[bool]>) -> Levels {
     let (prolongations, topologies) = coarsening.levels(COARSEST_NODES);
     let mut grids = Vec::with_capacity(topologies.len());
     let mut matrices = Vec::with_capacity(topologies.len());
@@ -80,7 +75,7 @@ fn build_holding(coarsening: &Coarsening, fine_active: &[bool], fine_held: Optio
         matrices.push(BlockMatrix::<f64>::zeros(pattern));
         grids.push(CoarseGrid { topo, scatter, rotation_from });
     }
-    let hierarchy = Hierarchy::holding(prolongations, matrices, fine_active, fine_held);
+    let hierarchy = Hierarchy::new(prolongations, matrices, fine_active);
     Levels { grids, hierarchy }
 }
 
@@ -117,14 +112,15 @@ impl Levels {
     }
 }
 
-/// The coarse grids below `topo` with the operators of its linear static problem (the
-/// unrotated stiffness alone: no mass, no damping), for a V-cycle that preconditions it
-/// (`grid::statics`); `active` are `topo`'s unknowns the problem solves for.
-pub fn static_hierarchy(topo: &Topology, active: &[bool]) -> Hierarchy {
-    let mut levels = build_holding(&Coarsening::of(topo), active, Some(&topo.nodes.fixed));
-    let identity = vec![Matrix3::identity(); topo.elements.len()];
-    levels.assemble(&identity, 0.0, 1.0, &mut [[F8::default(); 3]; 24]);
-    levels.hierarchy.update();
+/// The coarse grids below `topo` with the operators of its linear static problem `k`
+/// (the unrotated stiffness alone: no mass, no damping, on the unknowns `active`), for
+/// a V-cycle that preconditions it (`grid::statics`): each coarse operator the Galerkin
+/// product of the one above, so that the support reaches every level as it is (the
+/// layered abdomen's level-0 reference: 105 s, against 10.5 min with the coarse grids'
+/// own operators and only the coarse nodes on held fine ones held).
+pub fn static_hierarchy(topo: &Topology, k: &BlockMatrix<f64>, active: &[bool]) -> Hierarchy {
+    let mut levels = build(&Coarsening::of(topo), active);
+    levels.hierarchy.galerkin(k, active);
     levels.hierarchy.factor_coarsest(STATIC_COARSEST_UNKNOWNS);
     levels.hierarchy
 }
