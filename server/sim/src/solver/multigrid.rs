@@ -442,6 +442,31 @@ mod tests {
     }
 
     #[test]
+    fn the_galerkin_product_is_pt_a_p_over_the_active_unknowns() {
+        let (n, held) = (9, 3);
+        let a = chain(n, 2.0);
+        let p = halving(n);
+        let active: Vec<bool> = (0..n).map(|i| i != held).collect();
+        let coarse = p.galerkin(&a, &active).to_dense();
+        // The same product in dense form, the held row and column of A zeroed.
+        let mut dense_p = nalgebra::DMatrix::<f64>::zeros(3 * n, 3 * p.coarse_rows);
+        for i in 0..n {
+            for (c, w) in p.row(i) {
+                for d in 0..3 {
+                    dense_p[(3 * i + d, 3 * c + d)] = w;
+                }
+            }
+        }
+        let mut dense_a = a.to_dense();
+        for d in 0..3 {
+            dense_a.row_mut(3 * held + d).fill(0.0);
+            dense_a.column_mut(3 * held + d).fill(0.0);
+        }
+        let expected = dense_p.transpose() * dense_a * &dense_p;
+        assert!((coarse - &expected).abs().max() < 1e-12 * expected.abs().max(), "{expected}");
+    }
+
+    #[test]
     fn a_v_cycle_keeps_the_iterations_flat_as_the_chain_grows() {
         let mut counts = Vec::new();
         for n in [65usize, 257, 1025] {
