@@ -119,10 +119,10 @@ impl Levels {
 /// layered abdomen's level-0 reference: 105 s, against 10.5 min with the coarse grids'
 /// own operators and only the coarse nodes on held fine ones held).
 pub fn static_hierarchy(topo: &Topology, k: &BlockMatrix<f64>, active: &[bool]) -> Hierarchy {
-    let mut levels = build(&Coarsening::of(topo), active);
-    levels.hierarchy.galerkin(k, active);
-    levels.hierarchy.factor_coarsest(STATIC_COARSEST_UNKNOWNS);
-    levels.hierarchy
+    let (prolongations, _) = Coarsening::of(topo).levels(COARSEST_NODES);
+    let mut hierarchy = Hierarchy::galerkin(prolongations, k, active);
+    hierarchy.factor_coarsest(STATIC_COARSEST_UNKNOWNS);
+    hierarchy
 }
 
 /// A static problem's coarsest level is solved exactly up to this many unknowns (a

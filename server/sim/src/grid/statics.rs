@@ -12,13 +12,13 @@
 //! body's size: 2,329 on the CT liver at level 0, and the layered abdomen's level-0
 //! reference (170,000 nodes) had run over half an hour when it was stopped.
 
+use std::cell::RefCell;
+
 use super::preconditioning::{STATIC_COARSEST_UNKNOWNS, static_hierarchy};
 use super::solver::{Assembled, stiffness_times, system_pattern};
 use super::support::held_pieces;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
-use std::cell::RefCell;
-
 use crate::solver::block_sparse::{BlockMatrix, Scatter};
 use crate::solver::multigrid::{DenseSolve, VCycle};
 use crate::solver::pcg::{Pcg, PcgSettings};
@@ -52,17 +52,12 @@ pub fn solve_static(topo: &mut Topology, loads: &[Vec3], tolerance: f64, max_ite
     let loose_unloaded = (0..n).all(|i| held[i] || loads[i] == Vec3::zeros());
     let free: Vec<bool> = (0..n).map(|i| topo.nodes.alive[i] && !topo.nodes.fixed[i] && (held[i] || !loose_unloaded)).collect();
     let u0: Vec<Vec3> = (0..n).map(|i| topo.nodes.x[i] - topo.nodes.rest[i]).collect();
-    let r = residual(topo, loads, &free, &u0);
+    // CG solves K u = b on the free rows from their displacements, b = f − K u_held:
+    // the loads less what the held nodes' displacements pull (the assembled K couples
+    // free nodes only).
+    let (mut u, held_only): (Vec<Vec3>, Vec<Vec3>) = (0..n).map(|i| if free[i] { (u0[i], Vec3::zeros()) } else { (Vec3::zeros(), u0[i]) }).unzip();
+    let b = residual(topo, loads, &free, &held_only);
     let k = assemble(topo);
-    // CG starts from the free nodes' displacements u₀ and solves K u = b on the free
-    // rows, b = f − K_free,held u_held: the warm start's residual r plus K u₀ (the
-    // assembled K couples free nodes only).
-    let mut u: Vec<Vec3> = (0..n).map(|i| if free[i] { u0[i] } else { Vec3::zeros() }).collect();
-    let mut b = vec![Vec3::zeros(); n];
-    k.multiply(&u, &mut b, &free);
-    for i in 0..n {
-        b[i] += r[i];
-    }
     let b_norm2 = b.iter().map(Vec3::norm_squared).sum::<f64>();
     // A problem as small as a coarsest level is solved exactly (CG then checks it in one
     // iteration); any other, by V-cycles.

@@ -25,9 +25,7 @@ use super::kernels::{self, RowProduct};
 use super::block_sparse::Pattern;
 use super::pcg::Preconditioner;
 use super::preconditioner::BlockJacobi;
-use crate::math::Vec3;
-#[cfg(test)]
-use crate::math::Matrix3;
+use crate::math::{Matrix3, Vec3};
 
 /// Symmetric Gauss–Seidel sweep pairs on the coarsest level.
 pub const COARSEST_SWEEPS: usize = 4;
@@ -88,6 +86,17 @@ impl Prolongation {
         }
     }
 
+    /// The coarse unknowns that feed an `active` fine one.
+    fn fed(&self, active: &[bool]) -> Vec<bool> {
+        let mut fed = vec![false; self.coarse_rows];
+        for i in (0..self.fine_rows()).filter(|&i| active[i]) {
+            for (c, _) in self.row(i) {
+                fed[c] = true;
+            }
+        }
+        fed
+    }
+
     /// `Pᵀ A P` over `a`'s active rows and columns: the coarse operator of a fine one
     /// whose inactive (held) unknowns are zero. Where the fine level holds unknowns that
     /// no coarse unknown coincides with, this is the only coarse operator that knows the
@@ -101,49 +110,38 @@ impl Prolongation {
                 feeds[c].push((i as u32, w));
             }
         }
-        // The pattern: coarse J is coupled to I where a fine unknown I feeds is coupled
-        // to one J feeds. `seen[J] == I` marks J found in row I.
-        let mut seen = vec![u32::MAX; n];
-        let (mut start, mut cols, mut diag) = (vec![0u32], Vec::new(), Vec::with_capacity(n));
+        // Row I sums w_iI w_jJ A_ij into block (I, J) over the fine couplings (i, j) of
+        // the rows I feeds: `sums[J]` is that block while `seen[J] == I`.
+        let (mut seen, mut sums) = (vec![u32::MAX; n], vec![Matrix3::zeros(); n]);
+        let (mut start, mut cols, mut diag, mut values) = (vec![0u32], Vec::new(), Vec::with_capacity(n), Vec::new());
         for (row, fed) in feeds.iter().enumerate() {
             let first = cols.len();
-            seen[row] = row as u32;
+            (seen[row], sums[row]) = (row as u32, Matrix3::zeros());
             cols.push(row as u32);
-            for &(i, _) in fed {
+            for &(i, wi) in fed {
                 for k in a.pattern.start[i as usize] as usize..a.pattern.start[i as usize + 1] as usize {
                     let j = a.pattern.cols[k] as usize;
-                    if active[j] {
-                        for (col, _) in self.row(j) {
-                            if seen[col] != row as u32 {
-                                seen[col] = row as u32;
-                                cols.push(col as u32);
-                            }
+                    if !active[j] {
+                        continue;
+                    }
+                    let block = a.block(k);
+                    for (col, wj) in self.row(j) {
+                        if seen[col] != row as u32 {
+                            (seen[col], sums[col]) = (row as u32, Matrix3::zeros());
+                            cols.push(col as u32);
                         }
+                        sums[col] += block * (wi * wj);
                     }
                 }
             }
             cols[first..].sort_unstable();
             diag.push((first + cols[first..].binary_search(&(row as u32)).expect("the diagonal block")) as u32);
+            values.extend(cols[first..].iter().map(|&col| sums[col as usize]));
             start.push(cols.len() as u32);
         }
         let mut coarse = BlockMatrix::<f64>::zeros(super::block_sparse::Pattern { start, cols, diag });
-        // The values, row by row: `at[J]` is block (I, J)'s index while row I is summed.
-        let mut at = vec![0u32; n];
-        for (row, fed) in feeds.iter().enumerate() {
-            for k in coarse.pattern.start[row]..coarse.pattern.start[row + 1] {
-                at[coarse.pattern.cols[k as usize] as usize] = k;
-            }
-            for &(i, wi) in fed {
-                for k in a.pattern.start[i as usize] as usize..a.pattern.start[i as usize + 1] as usize {
-                    let j = a.pattern.cols[k] as usize;
-                    if active[j] {
-                        let block = a.block(k);
-                        for (col, wj) in self.row(j) {
-                            coarse.add(at[col] as usize, &(block * (wi * wj)));
-                        }
-                    }
-                }
-            }
+        for (k, value) in values.iter().enumerate() {
+            coarse.add(k, value);
         }
         coarse
     }
@@ -161,6 +159,13 @@ struct Level {
     r: Vec<Vec3>,
     z: Vec<Vec3>,
     t: Vec<Vec3>,
+}
+
+impl Level {
+    fn new(prolongation: Prolongation, matrix: BlockMatrix<f64>, active: Vec<bool>) -> Self {
+        let n = prolongation.coarse_rows;
+        Level { prolongation, matrix, active, smoother: BlockJacobi::default(), r: vec![Vec3::zeros(); n], z: vec![Vec3::zeros(); n], t: vec![Vec3::zeros(); n] }
+    }
 }
 
 /// Transfer operators and coarse operators of a hierarchy.
@@ -232,46 +237,36 @@ impl Hierarchy {
     /// active fine one.
     pub fn new(prolongations: Vec<Prolongation>, matrices: Vec<BlockMatrix<f64>>, fine_active: &[bool]) -> Self {
         let mut levels: Vec<Level> = Vec::with_capacity(prolongations.len());
-        let mut above = fine_active.to_vec();
         for (prolongation, matrix) in prolongations.into_iter().zip(matrices) {
-            let n = prolongation.coarse_rows;
-            assert_eq!(matrix.rows(), n, "a coarse matrix of the prolongation's size");
-            let mut active = vec![false; n];
-            for i in 0..prolongation.fine_rows() {
-                if above[i] {
-                    for (c, _) in prolongation.row(i) {
-                        active[c] = true;
-                    }
-                }
-            }
-            above = active.clone();
-            levels.push(Level { prolongation, matrix, active, smoother: BlockJacobi::default(), r: vec![Vec3::zeros(); n], z: vec![Vec3::zeros(); n], t: vec![Vec3::zeros(); n] });
+            assert_eq!(matrix.rows(), prolongation.coarse_rows, "a coarse matrix of the prolongation's size");
+            let active = prolongation.fed(levels.last().map_or(fine_active, |above| &above.active));
+            levels.push(Level::new(prolongation, matrix, active));
         }
         let mut h = Hierarchy { levels, coarsest: None };
         h.update();
         h
     }
 
-    /// Replaces every coarse level's matrix by the Galerkin product of the level above
-    /// (`Pᵀ A P` over its active unknowns, from the fine level's `a`), and its
-    /// smoothers. For a static problem: a coarse operator of the whole body with no
-    /// mass is singular, its rigid motions being what the fine level's support forbids,
-    /// and a hold the coarse nodes do not coincide with (a support thinner than a cell,
-    /// points of it inside coarse cells) is carried down exactly only by the product.
-    /// Coarse unknowns that feed only held fine ones are inactive already (see
-    /// [`Hierarchy::new`]). A clamped bar of 3,321 nodes: 40 iterations to 1e-12
-    /// (`grid::statics`), against 56 with the assembled coarse operators and the coarse
-    /// nodes on held fine ones held, 123 with neither that hold nor an exact coarsest
-    /// solve.
-    pub fn galerkin(&mut self, a: &BlockMatrix<f64>, active: &[bool]) {
-        for l in 0..self.levels.len() {
-            let coarse = match l {
-                0 => self.levels[0].prolongation.galerkin(a, active),
-                _ => self.levels[l].prolongation.galerkin(&self.levels[l - 1].matrix, &self.levels[l - 1].active),
-            };
-            self.levels[l].matrix = coarse;
+    /// A hierarchy of the given prolongations whose coarse operators are the Galerkin
+    /// products of the level above (`Pᵀ A P` over its active unknowns, from the fine
+    /// level's `a`), coarse unknowns active as in [`Hierarchy::new`]. For a static
+    /// problem: a coarse operator of the whole body with no mass is singular, its rigid
+    /// motions being what the fine level's support forbids, and a hold the coarse nodes
+    /// do not coincide with (a support thinner than a cell, points of it inside coarse
+    /// cells) is carried down exactly only by the product. A clamped bar of 3,321
+    /// nodes: 40 iterations to 1e-12 (`grid::statics`), against 56 with the coarse
+    /// grids' own operators and the coarse nodes on held fine ones held, 123 with
+    /// neither that hold nor an exact coarsest solve.
+    pub fn galerkin(prolongations: Vec<Prolongation>, a: &BlockMatrix<f64>, fine_active: &[bool]) -> Self {
+        let mut levels: Vec<Level> = Vec::with_capacity(prolongations.len());
+        for prolongation in prolongations {
+            let (above, above_active) = levels.last().map_or((a, fine_active), |l| (&l.matrix, &l.active));
+            let (matrix, active) = (prolongation.galerkin(above, above_active), prolongation.fed(above_active));
+            levels.push(Level::new(prolongation, matrix, active));
         }
-        self.update();
+        let mut h = Hierarchy { levels, coarsest: None };
+        h.update();
+        h
     }
 
     /// Level `l`'s matrix, to re-assemble (then call [`Hierarchy::update`]).
