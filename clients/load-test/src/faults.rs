@@ -192,6 +192,27 @@ pub struct Checkpoint {
     pub hash: String,
 }
 
+/// Steps between the state hashes a real-time session writes into its recording, in
+/// the load's server (`server::write_config`): the SIGKILL case's session passes one.
+pub const CHECKPOINT_EVERY_STEPS: u64 = 1_000;
+
+/// The SIGKILL case's session: a real-time session of its own, driven by a haptic client
+/// for its first seconds, once it is half an interval past its recording's first
+/// checkpoint; returns its checkpoint (the state hash now). Not the load's sessions:
+/// they have stepped for as long as the load took, and on a slow host with the bot
+/// starved by them that was minutes (CI, 2026-11-28: about 500,000 steps), which the
+/// offline replay and the restarted server's seek must step through again (both seeks
+/// passed their 120 s).
+pub async fn session_past_a_checkpoint(server: &ServerProcess, scene: &str) -> anyhow::Result<Vec<Checkpoint>> {
+    let session = server::create(server, scene, pb::SessionMode::Realtime, "cutsim-load SIGKILL").await?;
+    let target = HapticTarget { grpc: server.grpc.clone(), session: session.id.clone(), token: session.control.clone(), trajectory: Trajectory::from_info(&session.info) };
+    let client = tokio::spawn(haptic::run(target, Instant::now() + Duration::from_secs(2), None));
+    let past = wait_for(server, &session, Duration::from_secs(120), |i| i.step >= CHECKPOINT_EVERY_STEPS * 3 / 2).await?;
+    client.await?;
+    past.with_context(|| format!("the SIGKILL case's session did not reach step {} in 120 s", CHECKPOINT_EVERY_STEPS * 3 / 2))?;
+    checkpoints(server, std::slice::from_ref(&session)).await
+}
+
 pub async fn checkpoints(server: &ServerProcess, sessions: &[Created]) -> anyhow::Result<Vec<Checkpoint>> {
     let mut out = Vec::new();
     for s in sessions {

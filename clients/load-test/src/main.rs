@@ -233,7 +233,7 @@ struct LoadPlan {
 
 /// Runs the load (and the faults that happen during it) on `server`; returns the figures
 /// and the sessions (still open) for the kill-and-restart case.
-async fn load(server: &ServerProcess, plan: &LoadPlan) -> anyhow::Result<(Vec<SessionFigures>, Vec<BotRun>, Vec<FaultOutcome>, Vec<Created>)> {
+async fn load(server: &ServerProcess, plan: &LoadPlan) -> anyhow::Result<(Vec<SessionFigures>, Vec<BotRun>, Vec<FaultOutcome>)> {
     let mut sessions = Vec::new();
     for k in 0..plan.sessions {
         sessions.push(server::create(server, &plan.scene, pb::SessionMode::Realtime, &format!("cutsim-load {k}")).await?);
@@ -318,7 +318,7 @@ async fn load(server: &ServerProcess, plan: &LoadPlan) -> anyhow::Result<(Vec<Se
         });
     }
     let bot_runs = bot_task.await?;
-    Ok((figures, bot_runs, fault_outcomes, sessions))
+    Ok((figures, bot_runs, fault_outcomes))
 }
 
 fn server_binary(given: Option<&Path>) -> anyhow::Result<PathBuf> {
@@ -371,13 +371,13 @@ async fn run(args: &Args) -> anyhow::Result<Report> {
 
     progress(&format!("{} real-time sessions of {} × {} viewers + a haptic client each, and a bot, for {} s", plan.sessions, plan.scene, plan.viewers, plan.seconds));
     let mut server = ServerProcess::start(&binary, &config, &recordings, None)?;
-    let (sessions, bot, mut fault_outcomes, created) = load(&server, &plan).await?;
+    let (sessions, bot, mut fault_outcomes) = load(&server, &plan).await?;
     if !server.alive() {
         bail!("the server died during the load");
     }
     if plan.faults {
         progress("fault: SIGKILL and restart");
-        let checkpoints = faults::checkpoints(&server, &created).await?;
+        let checkpoints = faults::session_past_a_checkpoint(&server, &plan.scene).await?;
         tokio::time::sleep(Duration::from_millis(300)).await;
         server.kill();
         let restarted = ServerProcess::start(&binary, &config, &recordings, None)?;
@@ -395,7 +395,7 @@ async fn run(args: &Args) -> anyhow::Result<Report> {
             progress(&format!("capacity: {n} real-time sessions, one viewer each, {} s", args.capacity_seconds));
             let server = ServerProcess::start(&binary, &config, &scratch.0.join(format!("capacity-{n}")), None)?;
             let sweep = LoadPlan { sessions: n, viewers: 1, seconds: args.capacity_seconds, scene: args.scene.clone(), scripts: Vec::new(), faults: false };
-            let (figures, _, _, _) = load(&server, &sweep).await?;
+            let (figures, _, _) = load(&server, &sweep).await?;
             let min_rate = figures.iter().map(|f| f.achieved_rate_hz).fold(f64::INFINITY, f64::min);
             let worst_p99 = figures.iter().map(|f| f.step_p99_us).fold(0.0, f64::max);
             let missed: u64 = figures.iter().map(|f| f.missed_deadlines).sum();

@@ -28,7 +28,8 @@ pub fn write_config(dir: &Path) -> anyhow::Result<PathBuf> {
             "max_realtime_sessions": 64,
             "requests_per_second_per_client": 100_000,
             "request_burst_per_client": 100_000,
-        }
+        },
+        "recordings": {"checkpoint_every_steps": crate::faults::CHECKPOINT_EVERY_STEPS},
     });
     std::fs::write(&path, serde_json::to_string_pretty(&config)?).with_context(|| format!("writing {}", path.display()))?;
     Ok(path)
