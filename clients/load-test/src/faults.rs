@@ -207,9 +207,10 @@ pub async fn session_past_a_checkpoint(server: &ServerProcess, scene: &str) -> a
     let session = server::create(server, scene, pb::SessionMode::Realtime, "cutsim-load SIGKILL").await?;
     let target = HapticTarget { grpc: server.grpc.clone(), session: session.id.clone(), token: session.control.clone(), trajectory: Trajectory::from_info(&session.info) };
     let client = tokio::spawn(haptic::run(target, Instant::now() + Duration::from_secs(2), None));
-    let past = wait_for(server, &session, Duration::from_secs(120), |i| i.step >= CHECKPOINT_EVERY_STEPS * 3 / 2).await?;
+    let target_step = CHECKPOINT_EVERY_STEPS * 3 / 2;
+    let past = wait_for(server, &session, Duration::from_secs(120), |i| i.step >= target_step).await?;
     client.await?;
-    past.with_context(|| format!("the SIGKILL case's session did not reach step {} in 120 s", CHECKPOINT_EVERY_STEPS * 3 / 2))?;
+    past.with_context(|| format!("the SIGKILL case's session did not reach step {target_step} in 120 s"))?;
     checkpoints(server, std::slice::from_ref(&session)).await
 }
 

@@ -231,8 +231,9 @@ struct LoadPlan {
     faults: bool,
 }
 
-/// Runs the load (and the faults that happen during it) on `server`; returns the figures
-/// and the sessions (still open) for the kill-and-restart case.
+/// Runs the load (and the faults that happen during it) on `server`; returns the
+/// sessions' figures, the bot's runs and the fault cases' outcomes. (The kill-and-restart
+/// case after it runs on a session of its own: `faults::session_past_a_checkpoint`.)
 async fn load(server: &ServerProcess, plan: &LoadPlan) -> anyhow::Result<(Vec<SessionFigures>, Vec<BotRun>, Vec<FaultOutcome>)> {
     let mut sessions = Vec::new();
     for k in 0..plan.sessions {
