@@ -128,6 +128,12 @@ pub fn segment_triangle_intersection(p0: &Vec3, p1: &Vec3, a: &Vec3, b: &Vec3, c
 
 /// Shortest distance between segments `p0`–`p1` and `q0`–`q1`.
 pub fn segment_segment_distance(p0: &Vec3, p1: &Vec3, q0: &Vec3, q1: &Vec3) -> f64 {
+    let (p, q) = segment_segment_closest(p0, p1, q0, q1);
+    (p - q).norm()
+}
+
+/// The closest points of segments `p0`–`p1` and `q0`–`q1` (on the first, on the second).
+pub fn segment_segment_closest(p0: &Vec3, p1: &Vec3, q0: &Vec3, q1: &Vec3) -> (Vec3, Vec3) {
     // Ericson 5.1.9, with the degenerate cases folded into clamps.
     let d1 = p1 - p0;
     let d2 = q1 - q0;
@@ -137,7 +143,7 @@ pub fn segment_segment_distance(p0: &Vec3, p1: &Vec3, q0: &Vec3, q1: &Vec3) -> f
     let f = d2.dot(&r);
     let (s, t);
     if a <= f64::MIN_POSITIVE && e <= f64::MIN_POSITIVE {
-        return r.norm();
+        return (*p0, *q0);
     }
     if a <= f64::MIN_POSITIVE {
         s = 0.0;
@@ -163,7 +169,21 @@ pub fn segment_segment_distance(p0: &Vec3, p1: &Vec3, q0: &Vec3, q1: &Vec3) -> f
             t = t0;
         }
     }
-    ((p0 + d1 * s) - (q0 + d2 * t)).norm()
+    (p0 + d1 * s, q0 + d2 * t)
+}
+
+/// The closest points of segment `a`–`b` and triangle `tri` (on the segment, on the
+/// triangle): where the segment crosses the triangle, that point twice.
+pub fn segment_triangle_closest(a: &Vec3, b: &Vec3, tri: &[Vec3; 3]) -> (Vec3, Vec3) {
+    let [p, q, r] = tri;
+    if let Some(t) = segment_triangle_intersection(a, b, p, q, r) {
+        let at = a + (b - a) * t;
+        return (at, at);
+    }
+    // Otherwise the closest pair has an end of the segment or an edge of the triangle.
+    let ends = [a, b].map(|x| (*x, closest_point_on_triangle(x, p, q, r)));
+    let edges = [(p, q), (q, r), (r, p)].map(|(u, v)| segment_segment_closest(a, b, u, v));
+    ends.into_iter().chain(edges).min_by(|x, y| (x.0 - x.1).norm_squared().total_cmp(&(y.0 - y.1).norm_squared())).expect("five candidates")
 }
 
 /// Area of triangle `a`,`b`,`c` in m².
@@ -237,6 +257,21 @@ mod tests {
             &Vec3::new(0.0, 1.0, 2.0),
         );
         assert!((d - 2.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_segment_meets_a_triangle_where_it_crosses_or_at_its_nearest_end_or_edge() {
+        let tri = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0)];
+        // Through the inside: the crossing point, twice.
+        let (s, t) = segment_triangle_closest(&Vec3::new(0.2, 0.3, 1.0), &Vec3::new(0.2, 0.3, -1.0), &tri);
+        assert!((s - Vec3::new(0.2, 0.3, 0.0)).norm() < 1e-12 && (s - t).norm() < 1e-12);
+        // Above the inside, not reaching it: its lower end and the point below.
+        let (s, t) = segment_triangle_closest(&Vec3::new(0.2, 0.3, 0.5), &Vec3::new(0.2, 0.3, 2.0), &tri);
+        assert!((s - Vec3::new(0.2, 0.3, 0.5)).norm() < 1e-12 && (t - Vec3::new(0.2, 0.3, 0.0)).norm() < 1e-12);
+        // Across, beyond the hypotenuse: its nearest point to that edge.
+        let (s, t) = segment_triangle_closest(&Vec3::new(1.0, 1.0, -1.0), &Vec3::new(1.0, 1.0, 1.0), &tri);
+        assert!((s - Vec3::new(1.0, 1.0, 0.0)).norm() < 1e-12 && (t - Vec3::new(0.5, 0.5, 0.0)).norm() < 1e-12);
+        assert!((segment_segment_distance(&Vec3::new(1.0, 1.0, -1.0), &Vec3::new(1.0, 1.0, 1.0), &tri[1], &tri[2]) - 0.5f64.sqrt()).abs() < 1e-12);
     }
 
     #[test]

@@ -746,10 +746,14 @@ fn forceps_closed_and_reopened_while_pressed_keep_holding_the_skin() {
     }
 }
 
-
 /// The height of the grid's surface on the vertical line through `xy` (its highest
 /// crossing), world, m.
 fn grid_surface_height(grid: &cutsim_sim::grid::BranchedGrid, xy: (f64, f64)) -> Option<f64> {
+    grid_surface_crossings(grid, xy).into_iter().reduce(f64::max)
+}
+
+/// The heights (m) where the vertical line through `xy` crosses the grid's surface.
+fn grid_surface_crossings(grid: &cutsim_sim::grid::BranchedGrid, xy: (f64, f64)) -> Vec<f64> {
     let s = grid.snapshot();
     let at: std::collections::HashMap<u32, Vec3> = s.vertices.iter().map(|v| (v.id, Vec3::new(f64::from(v.position_m[0]), f64::from(v.position_m[1]), f64::from(v.position_m[2])))).collect();
     let (top, bottom) = (Vec3::new(xy.0, xy.1, 1.0), Vec3::new(xy.0, xy.1, -1.0));
@@ -759,7 +763,7 @@ fn grid_surface_height(grid: &cutsim_sim::grid::BranchedGrid, xy: (f64, f64)) ->
             let [a, b, c] = t.vertices.map(|v| at[&v]);
             cutsim_sim::math::segment_triangle_intersection(&top, &bottom, &a, &b, &c).map(|s| 1.0 - 2.0 * s)
         })
-        .reduce(f64::max)
+        .collect()
 }
 
 /// Presses the grid scene's tool `tool` (upright, cut button up) straight down at
@@ -837,6 +841,48 @@ fn a_probe_pressed_into_the_grid_never_passes_through_its_surface() {
         // once the probe had slipped through).
         assert!(force >= 2.5, "{name}: pressed {:.1} mm deep with only {force:.2} N", depth * 1e3);
     }
+}
+
+/// A probe thinner than the surface's vertex spacing, pressed between four vertices (on
+/// the block's flat top, whose vertices stand 2 mm apart at its voxels' face centres,
+/// the probe's 0.5 mm ball 1.41 mm from each), is held by the face it presses on
+/// (grid::model::face_contact): its tip never enters the tissue (the vertical line
+/// through it crosses the surface an even number of times above it), the surface under
+/// it stays within the ball's radius and the penalty's give (force over contact
+/// stiffness), and the force builds. With contacts on vertices alone it met none: it
+/// went 30 mm into the block at 0 N.
+#[test]
+fn a_probe_thinner_than_the_grids_vertex_spacing_is_held_by_the_face_under_it() {
+    let (radius, stiffness) = (0.0005, 20_000.0);
+    let scene = grid_block_with_probe(radius, stiffness);
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+    let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
+    let top = grid.broad_top().unwrap();
+    let xy = (top.x + 0.001, top.y + 0.001);
+    let mut commands = vec![cutsim_sim::tool::ToolCommand::default(); 1];
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 1];
+    let (mut force, mut deepest_under, mut inside_steps) = (0.0, f64::NEG_INFINITY, 0);
+    // Down at 50 mm/s from 2 mm above to 30 mm in.
+    for step in 0..640 {
+        let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - 0.05 * 1e-3 * f64::from(step));
+        commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+        grid.step(&commands, &mut feedback);
+        force = feedback[0].force_n.z;
+        let crossings = grid_surface_crossings(&grid, xy);
+        if crossings.iter().filter(|&&z| z > tip.z).count() % 2 == 1 {
+            inside_steps += 1;
+        }
+        // The surface under the tip: how far the highest crossing below the top lies
+        // above the ball's underside, less the penalty's give.
+        if force > 0.05 {
+            let under = crossings.iter().copied().filter(|&z| z < top.z + 0.001 && z <= tip.z + radius).fold(f64::NEG_INFINITY, f64::max);
+            deepest_under = deepest_under.max(under - (tip.z - radius) - force / stiffness);
+        }
+    }
+    println!("block, 0.5 mm probe between vertices: {force:.2} N 30 mm in; steps with the tip inside the tissue: {inside_steps}; the surface under the tip at most {:.3} mm above the ball's underside beyond the penalty's give", deepest_under * 1e3);
+    assert_eq!(inside_steps, 0, "the tip went into the tissue");
+    assert!(deepest_under <= 2.0 * radius + 1e-4, "the surface under the tip {:.2} mm above the ball's underside beyond the give", deepest_under * 1e3);
+    assert!(force >= 2.5, "30 mm in with only {force:.2} N");
 }
 
 /// The multirate schedule's haptic loop renders the probe's contact against the patch

@@ -1,7 +1,8 @@
 //! [`BranchedGrid`]: the branched-grid tissue behind the session's [`Tissue`] interface.
 //!
 //! One step: place the tools in the grid's frame; gather penalty contacts between each
-//! tool's outer capsule and the surface vertices near it; take one implicit step with
+//! tool's outer capsule and the surface vertices near it (and, for a tool thinner than
+//! the vertex spacing, the insides of triangles: face_contact); take one implicit step with
 //! those contacts (their forces at the step's end, as solved, are the haptic force);
 //! contain a blow-up if one shows;
 //! then let every cutting tool remove the voxels whose deformed centres its inner
@@ -10,6 +11,7 @@
 //! grown to its working size.
 
 mod contact_patch;
+mod face_contact;
 
 use super::solver::{Dynamics, PointContact, SolverSettings};
 use super::surface::GridSurface;
@@ -58,6 +60,28 @@ struct Stroke {
     resistance: super::cut_resistance::CutResistance,
 }
 
+/// A tool placed in the grid's frame for a step: its tip, orientation and velocity,
+/// its outer capsule, the deepest one contact may be held, and the box its contacts
+/// are searched in.
+#[derive(Debug, Clone, Copy)]
+struct ToolPlacement {
+    tip: Vec3,
+    tool_to_grid: Matrix3<f64>,
+    tool_velocity: Vec3,
+    moved: Option<Vec3>,
+    capsule: super::hold::Capsule,
+    max_depth: f64,
+    lo: Vec3,
+    hi: Vec3,
+}
+
+impl ToolPlacement {
+    /// Tool `i` so placed, as the face contact reads it.
+    fn at(&self, i: usize) -> face_contact::ToolAt<'_> {
+        face_contact::ToolAt { tool: i, capsule: &self.capsule, tool_to_grid: &self.tool_to_grid, moved: self.moved, max_depth: self.max_depth, lo: &self.lo, hi: &self.hi }
+    }
+}
+
 /// The branched-grid tissue.
 #[derive(Debug, Clone)]
 pub struct BranchedGrid {
@@ -76,8 +100,11 @@ pub struct BranchedGrid {
     contact_ranges: Vec<(usize, usize)>,
     /// Per contact: from its tool's tip to the contact point, m (grid frame).
     contact_levers: Vec<Vec3>,
-    /// Per contact: its surface vertex.
+    /// Per contact: its surface vertex (for a contact on a triangle's inside, the
+    /// triangle's vertex nearest it).
     contact_vertices: Vec<u32>,
+    /// Per contact: whether it is on a triangle's inside (face_contact; frictionless).
+    contact_on_face: Vec<bool>,
     /// Per tool: its tip last step (grid frame), for its velocity.
     previous_tips: Vec<Option<Vec3>>,
     /// Per surface vertex: where it stuck to a tool (super::friction); cleared when the
@@ -86,8 +113,13 @@ pub struct BranchedGrid {
     /// Per surface vertex: how it touches a tool (super::hold); kept across cuts (a
     /// vertex's id is never reused).
     touches: Vec<Option<super::hold::Touch>>,
-    /// The vertices a tool touches this step (scratch).
+    /// The vertices a tool touches this step, the triangles near it and the insides of
+    /// triangles it reaches (scratch).
     touching_scratch: Vec<(u32, super::hold::Contact)>,
+    triangle_scratch: Vec<u32>,
+    face_scratch: Vec<face_contact::FaceContact>,
+    /// Per tool: the point on a triangle's inside it holds (face_contact).
+    held_faces: Vec<Option<face_contact::HeldFace>>,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -180,10 +212,14 @@ impl BranchedGrid {
             contact_ranges: vec![(0, 0); tool_count],
             contact_levers: Vec::new(),
             contact_vertices: Vec::new(),
+            contact_on_face: Vec::new(),
             previous_tips: vec![None; tool_count],
             anchors: Vec::new(),
             touches: Vec::new(),
             touching_scratch: Vec::new(),
+            triangle_scratch: Vec::new(),
+            face_scratch: Vec::new(),
+            held_faces: vec![None; tool_count],
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -229,6 +265,7 @@ impl BranchedGrid {
         self.contacts.clear();
         self.contact_levers.clear();
         self.contact_vertices.clear();
+        self.contact_on_face.clear();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
@@ -319,6 +356,9 @@ impl BranchedGrid {
         for (i, &(start, end)) in self.contact_ranges.iter().enumerate() {
             let tip = self.frame.to_local(&commands[i].pose.position_m);
             for c in start..end {
+                if self.contact_on_face[c] {
+                    continue;
+                }
                 let vertex = self.contact_vertices[c];
                 let friction = self.friction_at(vertex as usize);
                 if friction.static_coefficient <= 0.0 {
@@ -341,7 +381,9 @@ impl BranchedGrid {
     }
 
     /// Penalty contacts of tool `i`'s outer capsule with the surface vertices, each
-    /// pushed out on the side it came in from (super::hold); their count goes into `fb`.
+    /// pushed out on the side it came in from (super::hold), and, holding, with the
+    /// insides of triangles it reaches between vertices (face_contact); their count goes
+    /// into `fb`.
     fn add_tool_contacts(&mut self, i: usize, command: &ToolCommand, fb: &mut ToolFeedback) {
         use super::hold::Touch;
         if self.anchors.len() != self.surface.voxel.len() {
@@ -353,7 +395,10 @@ impl BranchedGrid {
             self.touches.resize(self.surface.voxel.len(), None);
         }
         let mut touching = std::mem::take(&mut self.touching_scratch);
-        let (tip, tool_to_grid, tool_velocity) = self.touching(i, command, &mut touching);
+        let mut triangles = std::mem::take(&mut self.triangle_scratch);
+        let mut faces = std::mem::take(&mut self.face_scratch);
+        let placed = self.touching(i, command, &mut touching);
+        let ToolPlacement { tip, tool_to_grid, tool_velocity, .. } = placed;
         let k = self.tools[i].contact_stiffness_n_per_m;
         let holding = !self.cutting(i, command);
         for &(v, super::hold::Contact { normal, depth, entry }) in &touching {
@@ -368,16 +413,33 @@ impl BranchedGrid {
             self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force, tool_velocity });
             self.contact_levers.push(p - tip);
             self.contact_vertices.push(v as u32);
+            self.contact_on_face.push(false);
+        }
+        if holding {
+            self.face_contacts(&placed.at(i), &touching, &mut triangles, &mut faces);
+        } else {
+            faces.clear();
+        }
+        self.held_faces[i] = faces.iter().find_map(|f| f.held);
+        for f in &faces {
+            let (normal, depth) = (f.contact.normal, f.contact.depth);
+            // The centring spring is the friction's stick spring, anchored on the axis.
+            let (stick_stiffness, stick_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
+            self.contacts.push(PointContact { element: f.element, weights: f.weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force, tool_velocity });
+            self.contact_levers.push(f.point - tip);
+            self.contact_vertices.push(f.vertex);
+            self.contact_on_face.push(true);
         }
         // The force the tool feels is the contacts' after the solve (solved_contact_forces).
-        fb.contacts = touching.len() as u32;
+        fb.contacts = (touching.len() + faces.len()) as u32;
         self.touching_scratch = touching;
+        self.triangle_scratch = triangles;
+        self.face_scratch = faces;
     }
 
     /// The surface vertices tool `i` at `command`'s pose touches, each with the normal it
-    /// is pushed out along and how far (super::hold), into `out`; and the tool's tip,
-    /// orientation and velocity (grid frame).
-    fn touching(&self, i: usize, command: &ToolCommand, out: &mut Vec<(u32, super::hold::Contact)>) -> (Vec3, Matrix3<f64>, Vec3) {
+    /// is pushed out along and how far (super::hold), into `out`; and where the tool is.
+    fn touching(&self, i: usize, command: &ToolCommand, out: &mut Vec<(u32, super::hold::Contact)>) -> ToolPlacement {
         use super::hold::{Capsule, contact};
         out.clear();
         let tool = &self.tools[i];
@@ -419,7 +481,7 @@ impl BranchedGrid {
                 }
             }
         }
-        (tip, tool_to_grid, tool_velocity)
+        ToolPlacement { tip, tool_to_grid, tool_velocity, moved, capsule, max_depth, lo, hi }
     }
 
     /// Whether tool `i` cuts under `command` (a cutting tool with its button held).
@@ -432,9 +494,14 @@ impl BranchedGrid {
     /// frame, N: what the step's fed-back force is checked against.
     pub fn penalty_now(&self, i: usize, command: &ToolCommand) -> Vec3 {
         let mut touching = Vec::new();
-        self.touching(i, command, &mut touching);
+        let placed = self.touching(i, command, &mut touching);
+        let mut faces = Vec::new();
+        if !self.cutting(i, command) {
+            self.face_contacts(&placed.at(i), &touching, &mut Vec::new(), &mut faces);
+        }
         let k = self.tools[i].contact_stiffness_n_per_m;
-        self.frame.rotation * touching.iter().map(|(_, c)| -c.normal * (k * c.depth)).sum::<Vec3>()
+        let contacts = touching.iter().map(|(_, c)| c).chain(faces.iter().map(|f| &f.contact));
+        self.frame.rotation * contacts.map(|c| -c.normal * (k * c.depth)).sum::<Vec3>()
     }
 
     /// The friction of surface vertex `v`'s material.

@@ -367,6 +367,12 @@ impl GridSurface {
         p
     }
 
+    /// The triangles vertex `v` is a corner of (live ones only: a removed triangle is
+    /// taken off its vertices' lists).
+    pub fn triangles_of(&self, v: usize) -> &[u32] {
+        &self.vertex_triangles[v]
+    }
+
     /// Live triangles (id, vertices).
     pub fn live_triangles(&self) -> impl Iterator<Item = (u32, [u32; 3])> + '_ {
         self.triangles.iter().enumerate().filter(|(t, _)| self.triangle_alive[*t]).map(|(t, tri)| (t as u32, *tri))

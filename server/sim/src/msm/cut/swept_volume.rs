@@ -7,7 +7,7 @@
 //! springs and triangles; springs (edges) the volume touches are removed with their
 //! triangles. What is removed is the paper's grey "incision generation area".
 
-use crate::math::{Vec3, closest_point_on_triangle, segment_segment_distance, segment_triangle_intersection};
+use crate::math::{Vec3, closest_point_on_triangle, segment_triangle_closest};
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct SweptVolume {
@@ -60,16 +60,8 @@ impl SweptVolume {
 
 /// Distance between segment `a`–`b` and a triangle (0 when they intersect).
 pub fn segment_triangle_distance(a: &Vec3, b: &Vec3, tri: &[Vec3; 3]) -> f64 {
-    let [p, q, r] = tri;
-    if segment_triangle_intersection(a, b, p, q, r).is_some() {
-        return 0.0;
-    }
-    let to_tri = |x: &Vec3| (closest_point_on_triangle(x, p, q, r) - x).norm();
-    to_tri(a)
-        .min(to_tri(b))
-        .min(segment_segment_distance(a, b, p, q))
-        .min(segment_segment_distance(a, b, q, r))
-        .min(segment_segment_distance(a, b, r, p))
+    let (on_segment, on_triangle) = segment_triangle_closest(a, b, tri);
+    (on_segment - on_triangle).norm()
 }
 
 #[cfg(test)]

@@ -1,0 +1,241 @@
+//! Contact on the insides of surface triangles, for a tool thinner than the surface's
+//! vertex spacing: such a tool fits between the vertices (they stand at the voxels'
+//! face centres), so vertex contacts alone (crate::grid::hold) let it into the tissue
+//! with no force: a 0.5 mm probe pressed between the 2 mm vertices of a block went
+//! 30 mm in at 0 N. A wider tool meets vertices first and is held by them alone (see
+//! `fits_between_vertices`), so nothing here changes its contacts.
+//!
+//! - **Under the tip**: while no vertex is held under the tool's tip (along its axis),
+//!   the point of a triangle the tool reaches nearest its tip is taken as a material
+//!   point (the triangle and barycentric weights) and held by the vertices' rule
+//!   (`hold::contact`): pushed out of the tool along the normal it came in with, kept in
+//!   the tool's frame while the contact lasts (a face the axis crossed within the step
+//!   is held on its outer side, the side the tool came from). It is centred on the
+//!   tool's axis by a spring of the contact's stiffness (friction's stick spring,
+//!   anchored on the axis): it stands for the dent that rings a thin tip, whose walls
+//!   push it back under the tip; alone and frictionless it slid off sideways and the
+//!   probe went in. It lets go as a vertex does (the ray along its normal misses the
+//!   tool, or it alone would push with more than the tool's rated force) or when its
+//!   triangle is cut away; then the next is taken.
+//! - **Beside the shaft**: each other triangle the capsule reaches into, none of whose
+//!   vertices the tool touches, is pushed straight away from the axis at its point
+//!   nearest it (where that point lies inside the face, along the face's normal), by
+//!   the capsule's radius less its distance; a face the axis has crossed is skipped
+//!   (which side it belongs on is not known). Without these the walls of the dent
+//!   around a deep thin probe folded across its shaft. Frictionless, no state.
+
+use super::BranchedGrid;
+use crate::grid::hold::{Capsule, Contact, contact};
+use crate::grid::surface::cell_weights;
+use crate::grid::topology::NONE;
+use crate::math::{Matrix3, Vec3, barycentric_closest, segment_triangle_closest, triangle_normal};
+
+/// A material point on a triangle's inside that a tool holds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct HeldFace {
+    pub triangle: u32,
+    pub barycentric: [f64; 3],
+    /// The normal it came in with, in the tool's frame.
+    pub normal_in_tool: Vec3,
+    /// The step it was last held.
+    pub step: u64,
+}
+
+/// A tool's contact on a triangle's inside this step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct FaceContact {
+    /// The point held under the tip (None: a point the shaft pushes this step only).
+    pub held: Option<HeldFace>,
+    /// The point (grid frame), m.
+    pub point: Vec3,
+    /// The element the point moves with, and its weights there.
+    pub element: u32,
+    pub weights: [f64; 8],
+    /// The triangle's vertex nearest the point (it stands for the contact where
+    /// per-vertex data are asked for: the multirate patch's shares).
+    pub vertex: u32,
+    pub contact: Contact,
+    /// Under the tip: from the point to the tool's axis across the normal (m), which a
+    /// spring of the contact's stiffness closes (see `hold_face`).
+    pub centring: Option<Vec3>,
+}
+
+/// Where a tool is this step, as the face contact needs it.
+pub(super) struct ToolAt<'a> {
+    pub tool: usize,
+    pub capsule: &'a Capsule,
+    pub tool_to_grid: &'a Matrix3<f64>,
+    /// The tool's motion over the step (grid frame), if it moved from a known pose.
+    pub moved: Option<Vec3>,
+    pub max_depth: f64,
+    pub lo: &'a Vec3,
+    pub hi: &'a Vec3,
+}
+
+impl BranchedGrid {
+    /// The face contacts of the tool at `at`, which touches the vertices `touching`, into
+    /// `out`: none for a tool too wide to fit between the vertices (see
+    /// [`Self::fits_between_vertices`]); else the point held under its tip, if any, then
+    /// the triangles its shaft reaches into (by id). `candidates`: scratch.
+    pub(super) fn face_contacts(&self, at: &ToolAt<'_>, touching: &[(u32, Contact)], candidates: &mut Vec<u32>, out: &mut Vec<FaceContact>) {
+        out.clear();
+        if !self.fits_between_vertices(at.capsule.radius) {
+            return;
+        }
+        self.triangles_near(at.lo, at.hi, candidates);
+        let tip = self.tip_face(at, touching, candidates);
+        let held = tip.and_then(|f| f.held).map(|h| h.triangle);
+        out.extend(tip);
+        for &t in candidates.iter() {
+            if Some(t) == held || !self.live_triangle(t) {
+                continue;
+            }
+            let vertices = self.surface.triangles[t as usize];
+            if vertices.iter().any(|&v| touching.iter().any(|&(w, _)| w == v)) {
+                continue;
+            }
+            let corners = self.corners(t);
+            let (on_axis, point) = segment_triangle_closest(&at.capsule.a, &at.capsule.b, &corners);
+            let distance = (point - on_axis).norm();
+            // A face the axis crosses has been passed: which side it belongs on is not
+            // known (only the point held under the tip remembers it).
+            if distance >= at.capsule.radius || distance <= 1e-9 * at.capsule.radius {
+                continue;
+            }
+            let normal = (point - on_axis) / distance;
+            let barycentric = barycentric_closest(&point, &corners[0], &corners[1], &corners[2]);
+            let (element, weights, vertex) = self.embed_on_triangle(vertices, barycentric);
+            let contact = Contact { normal, depth: at.capsule.radius - distance, entry: normal };
+            out.push(FaceContact { held: None, point, element, weights, vertex, contact, centring: None });
+        }
+    }
+
+    /// Whether a tool of `radius` can touch the surface between its vertices: a ball
+    /// narrower than half the diagonal of a voxel's largest face rests on a flat face of
+    /// the surface without touching a vertex (they stand at the voxels' face centres).
+    /// Wider tools meet vertices first and are held by them alone.
+    pub(super) fn fits_between_vertices(&self, radius: f64) -> bool {
+        let mut sides = self.topo.layout.spacing_m;
+        sides.sort_by(f64::total_cmp);
+        radius < 0.5 * sides[1].hypot(sides[2])
+    }
+
+    /// The point the tool holds under its tip: the one it held last step if it still
+    /// holds it, else (no vertex held under its tip) the point of a triangle among
+    /// `candidates` it reaches nearest its tip.
+    fn tip_face(&self, at: &ToolAt<'_>, touching: &[(u32, Contact)], candidates: &[u32]) -> Option<FaceContact> {
+        let kept = self.held_faces.get(at.tool).copied().flatten().filter(|h| h.step + 1 >= self.step_index);
+        if let Some(face) = kept.and_then(|held| self.hold_face(at, held, Some(at.tool_to_grid * held.normal_in_tool))) {
+            return Some(face);
+        }
+        // A vertex held by the tip face (along the axis) holds the tool; vertices
+        // beside it (pushed off the shaft) do not.
+        let out_of_tip = (at.capsule.a - at.capsule.b).try_normalize(1e-12).unwrap_or(Vec3::zeros());
+        if touching.iter().any(|(_, c)| c.entry.dot(&out_of_tip) > 0.5) {
+            return None;
+        }
+        let triangle = self.face_nearest_tip(at.capsule, candidates)?;
+        let corners = self.corners(triangle);
+        let (on_axis, point) = segment_triangle_closest(&at.capsule.a, &at.capsule.b, &corners);
+        let barycentric = barycentric_closest(&point, &corners[0], &corners[1], &corners[2]);
+        // A face the axis crosses (the tool came through it within the step, or a
+        // point held before let go) is held on its outer side, the side the tool came
+        // from: along the face's inward normal (along the axis, where the tip faces
+        // it), not across the axis as a point on it would be by the vertices' rule.
+        let crossed = (on_axis - point).norm() <= 1e-9 * at.capsule.radius;
+        let inward = -triangle_normal(&corners[0], &corners[1], &corners[2]).try_normalize(1e-18)?;
+        let remembered = crossed.then(|| at.capsule.face_normal(&inward));
+        self.hold_face(at, HeldFace { triangle, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index }, remembered)
+    }
+
+    /// `held`'s point under the vertices' rule: with the normal it came in with
+    /// (`remembered`, grid frame), or as a new contact.
+    fn hold_face(&self, at: &ToolAt<'_>, held: HeldFace, remembered: Option<Vec3>) -> Option<FaceContact> {
+        if !self.live_triangle(held.triangle) {
+            return None;
+        }
+        let vertices = self.surface.triangles[held.triangle as usize];
+        let corners = self.corners(held.triangle);
+        let point: Vec3 = (0..3).map(|k| corners[k] * held.barycentric[k]).sum();
+        let contact = contact(at.capsule, &point, remembered, at.moved.map(|m| point + m), at.max_depth)?;
+        let (element, weights, vertex) = self.embed_on_triangle(vertices, held.barycentric);
+        let held = HeldFace { normal_in_tool: at.tool_to_grid.transpose() * contact.entry, step: self.step_index, ..held };
+        // Held under the tip (along the axis), the point is centred on the axis: it
+        // stands for the dent that rings a thin tip, whose walls push it back under the
+        // tip; alone and frictionless it slid off sideways (0.5 mm in 25 steps, the
+        // probe then went in).
+        let centring = (at.capsule.b - at.capsule.a).try_normalize(1e-12).filter(|w| contact.normal.dot(&-w) > 0.5).map(|w| {
+            let on_axis = at.capsule.a + w * (point - at.capsule.a).dot(&w);
+            crate::grid::friction::tangent_projection(&contact.normal) * (on_axis - point)
+        });
+        Some(FaceContact { held: Some(held), point, element, weights, vertex, contact, centring })
+    }
+
+    /// The surface triangles near [lo, hi] into `out`, each once, by id (the contacts'
+    /// order is part of the state): those of the vertices in the coarse cells
+    /// overlapping the box grown by a voxel (a triangle spans at most one, so one
+    /// reaching the box has its vertices within a voxel of it).
+    fn triangles_near(&self, lo: &Vec3, hi: &Vec3, out: &mut Vec<u32>) {
+        out.clear();
+        let voxel = Vec3::from(self.topo.layout.spacing_m);
+        let (lo, hi) = (lo - voxel, hi + voxel);
+        for cell in 0..self.surface.cell_vertices.len() {
+            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
+                continue;
+            }
+            for &v in &self.surface.cell_vertices[cell] {
+                out.extend_from_slice(self.surface.triangles_of(v as usize));
+            }
+        }
+        out.sort_unstable();
+        out.dedup();
+    }
+
+    /// Whether triangle `t` is on the surface with all its vertices in live elements.
+    fn live_triangle(&self, t: u32) -> bool {
+        self.surface.triangle_alive[t as usize] && self.surface.triangles[t as usize].iter().all(|&v| self.topo.voxel_element[self.surface.voxel[v as usize] as usize] != NONE)
+    }
+
+    /// Among `candidates`, the live triangle `capsule` reaches into whose point nearest
+    /// the capsule is nearest its tip (`capsule.a`; ties to the lowest id).
+    fn face_nearest_tip(&self, capsule: &Capsule, candidates: &[u32]) -> Option<u32> {
+        let mut best: Option<(f64, u32)> = None;
+        for &t in candidates {
+            if !self.live_triangle(t) {
+                continue;
+            }
+            let (on_axis, point) = segment_triangle_closest(&capsule.a, &capsule.b, &self.corners(t));
+            if (on_axis - point).norm() >= capsule.radius {
+                continue;
+            }
+            let from_tip = (point - capsule.a).norm();
+            if best.is_none_or(|(d, _)| from_tip < d) {
+                best = Some((from_tip, t));
+            }
+        }
+        best.map(|(_, t)| t)
+    }
+
+    /// Triangle `t`'s corners where they are now (grid frame).
+    fn corners(&self, t: u32) -> [Vec3; 3] {
+        self.surface.triangles[t as usize].map(|v| self.surface.position(&self.topo, v as usize))
+    }
+
+    /// The point of the triangle `vertices` at barycentric `b`: the element it moves
+    /// with, its weights there, and the vertex nearest it. Where the three vertices move
+    /// with one element the weights are theirs interpolated (the point stays on the
+    /// surface as drawn); else the point's rest position is embedded in the nearest
+    /// vertex's element, as a vertex is in its own.
+    fn embed_on_triangle(&self, vertices: [u32; 3], b: [f64; 3]) -> (u32, [f64; 8], u32) {
+        let nearest = (0..3).max_by(|&x, &y| b[x].total_cmp(&b[y])).expect("three vertices");
+        let voxel = |k: usize| self.surface.voxel[vertices[k] as usize] as usize;
+        let element = self.topo.voxel_element[voxel(nearest)];
+        let weights = if (0..3).all(|k| self.topo.voxel_element[voxel(k)] == element) {
+            std::array::from_fn(|n| (0..3).map(|k| b[k] * self.surface.weights[vertices[k] as usize][n]).sum())
+        } else {
+            let rest: Vec3 = (0..3).map(|k| self.surface.rest[vertices[k] as usize] * b[k]).sum();
+            cell_weights(&self.topo, voxel(nearest), rest)
+        };
+        (element, weights, vertices[nearest])
+    }
+}
