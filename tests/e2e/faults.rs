@@ -263,7 +263,9 @@ async fn a_real_time_recording_has_periodic_checkpoints_and_a_final_hash_that_re
     std::fs::write(&config, r#"{"recordings": {"checkpoint_every_steps": 500}}"#).unwrap();
     let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
     let s = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
-    tokio::time::sleep(Duration::from_millis(2500)).await;
+    // Four checkpoints' worth of steps, polled for: a fixed sleep counted the steps a
+    // loaded machine managed (the official CI run got fewer than 1,500 in 2.5 s).
+    wait_for_step_past(&server, &s, 2_100).await;
     server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: s.id.clone() }, &s.control)).await.unwrap();
     let path = server.recordings.0.join(format!("{}.jsonl", s.id));
     let text = std::fs::read_to_string(&path).unwrap();
