@@ -149,14 +149,16 @@ fn blade_in_the_skin_between_cut_updates_allocates_nothing() {
 /// buffers and reuses the job that came back (the first factor and the first job's
 /// buffers are made in the warm-up).
 /// A 40 × 20 × 10 mm block at level 1 held at its bottom, its grid's settings ending
-/// with `extra`, a probe pressed 2 mm into it over 100 steps; then the allocations of
-/// 200 steps with the probe held there, and the last force on it.
+/// with `extra`, a probe (its pose the centre of its tip's ball) pressed 2 mm into it
+/// over 100 steps; then the allocations of 200 steps with the probe held there, and the
+/// last force on it.
 fn grid_allocations_with_a_probe_held(extra: &str) -> (u64, f64) {
-    grid_allocations_with_a_probe_held_in("", extra)
+    grid_allocations_with_a_probe_held_in("", extra, 0.004)
 }
 
-/// [`grid_allocations_with_a_probe_held`] with `material` added to the block's material.
-fn grid_allocations_with_a_probe_held_in(material: &str, extra: &str) -> (u64, f64) {
+/// [`grid_allocations_with_a_probe_held`] with `material` added to the block's material
+/// and a probe of `radius_m`.
+fn grid_allocations_with_a_probe_held_in(material: &str, extra: &str, radius_m: f64) -> (u64, f64) {
     let text = format!(
         r#"{{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
         "model": {{ "branched-grid": {{
@@ -166,10 +168,10 @@ fn grid_allocations_with_a_probe_held_in(material: &str, extra: &str) -> (u64, f
             "level": 1,
             "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
             {extra} }} }},
-        "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": 0.004, "length_m": 0.06 }} }} }} ] }}"#
+        "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": {radius_m}, "length_m": 0.06 }} }} }} ] }}"#
     );
     let mut model = cutsim_sim::build_tissue(&scene(&text)).unwrap_or_else(|e| panic!("{e}"));
-    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.009 - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: false }];
+    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 + radius_m - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: false }];
     let mut feedback = [ToolFeedback::default()];
     for i in 0..100 {
         model.step(&press(i), &mut feedback);
@@ -191,13 +193,23 @@ fn grid_steps_with_a_probe_allocate_nothing_with_every_preconditioner() {
     }
 }
 
+/// A probe thinner than the block's vertex spacing (0.3 mm against vertices 1 mm apart,
+/// 0.71 mm from the probe's axis) is held by the faces under and beside it
+/// (grid::model::face_contact): their search and contacts reuse their buffers too.
+#[test]
+fn grid_steps_with_a_probe_held_by_the_faces_allocate_nothing() {
+    let (allocations, force) = grid_allocations_with_a_probe_held_in("", r#""solver": { "preconditioner": "cholesky" }"#, 0.0003);
+    assert!(force > 0.0, "the faces hold the thin probe");
+    assert_eq!(allocations, 0, "steps with a thin probe held by the faces allocated");
+}
+
 /// Under a multirate schedule the session's thread runs the haptic loop and swaps the
 /// deformation's results in: neither allocates (the deformation thread may), with or
 /// without friction's anchors to carry.
 #[test]
 fn multirate_haptic_steps_allocate_nothing() {
     for material in ["", r#", "friction": { "static_coefficient": 0.5, "dynamic_coefficient": 0.4 }"#] {
-        let (allocations, force) = grid_allocations_with_a_probe_held_in(material, r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#);
+        let (allocations, force) = grid_allocations_with_a_probe_held_in(material, r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#, 0.004);
         assert!(force > 0.0, "the probe presses the block");
         assert_eq!(allocations, 0, "multirate haptic steps allocated (material {material:?})");
     }

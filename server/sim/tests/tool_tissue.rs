@@ -881,7 +881,8 @@ fn a_probe_thinner_than_the_grids_vertex_spacing_is_held_by_the_face_under_it() 
     }
     println!("block, 0.5 mm probe between vertices: {force:.2} N 30 mm in; steps with the tip inside the tissue: {inside_steps}; the surface under the tip at most {:.3} mm above the ball's underside beyond the penalty's give", deepest_under * 1e3);
     assert_eq!(inside_steps, 0, "the tip went into the tissue");
-    assert!(deepest_under <= 2.0 * radius + 1e-4, "the surface under the tip {:.2} mm above the ball's underside beyond the give", deepest_under * 1e3);
+    // Never past the ball's centre beyond the give (0.27 mm measured, 2026-11-28).
+    assert!(deepest_under < radius, "the surface under the tip {:.2} mm above the ball's underside beyond the give (ball radius {:.1} mm)", deepest_under * 1e3, radius * 1e3);
     assert!(force >= 2.5, "30 mm in with only {force:.2} N");
 }
 

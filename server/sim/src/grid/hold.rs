@@ -121,8 +121,23 @@ impl Capsule {
     /// under it however deep the tool goes, where along the ball's inclined normal it
     /// would be pushed out sideways once the tool was a radius in), `n` elsewhere.
     pub fn face_normal(&self, n: &Vec3) -> Vec3 {
-        let out_of_tip = (self.a - self.b).try_normalize(1e-12).unwrap_or(*n);
-        if n.dot(&out_of_tip) > 1e-9 { out_of_tip } else { *n }
+        match self.out_of_tip() {
+            Some(out_of_tip) if n.dot(&out_of_tip) > 1e-9 => out_of_tip,
+            _ => *n,
+        }
+    }
+
+    /// The direction out of the tool's tip along its axis (None for a ball).
+    pub fn out_of_tip(&self) -> Option<Vec3> {
+        (self.a - self.b).try_normalize(1e-12)
+    }
+
+    /// Whether a contact pushed out along `normal` is held by the tip's face: pushed
+    /// along the tool's axis (a contact that came in through the tip is held along
+    /// exactly [`Self::out_of_tip`], see [`Self::face_normal`]; one beside the shaft
+    /// across it).
+    pub fn pushes_with_tip(&self, normal: &Vec3) -> bool {
+        self.out_of_tip().is_some_and(|out_of_tip| normal.dot(&out_of_tip) > 0.5)
     }
 }
 

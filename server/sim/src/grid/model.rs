@@ -456,29 +456,21 @@ impl BranchedGrid {
         // moved and up to a radius beside it: search that much further.
         let reach = 2.0 * tool.radius_m + moved.map_or(0.0, |m| m.norm());
         let (lo, hi) = (tip.inf(&top) - Vec3::repeat(reach), tip.sup(&top) + Vec3::repeat(reach));
-        for cell in 0..self.surface.cell_vertices.len() {
-            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
+        for v in self.surface_vertices_near(lo, hi) {
+            let p = self.surface.position(&self.topo, v as usize);
+            if cutting {
+                // The cut parts the tissue in front of the blade: it must reach the
+                // cutting shape, so nothing holds it out (the cut resists through the
+                // material's toughness instead, super::cut_resistance).
+                let (normal, depth) = capsule.radial(&p);
+                if depth > 0.0 {
+                    out.push((v, super::hold::Contact { normal, depth, entry: normal }));
+                }
                 continue;
             }
-            for &v in &self.surface.cell_vertices[cell] {
-                if self.topo.voxel_element[self.surface.voxel[v as usize] as usize] == NONE {
-                    continue;
-                }
-                let p = self.surface.position(&self.topo, v as usize);
-                if cutting {
-                    // The cut parts the tissue in front of the blade: it must reach the
-                    // cutting shape, so nothing holds it out (the cut resists through the
-                    // material's toughness instead, super::cut_resistance).
-                    let (normal, depth) = capsule.radial(&p);
-                    if depth > 0.0 {
-                        out.push((v, super::hold::Contact { normal, depth, entry: normal }));
-                    }
-                    continue;
-                }
-                let remembered = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step + 1 >= self.step_index).map(|t| tool_to_grid * t.normal_in_tool);
-                if let Some(touch) = contact(&capsule, &p, remembered, moved.map(|m| p + m), max_depth) {
-                    out.push((v, touch));
-                }
+            let remembered = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step + 1 >= self.step_index).map(|t| tool_to_grid * t.normal_in_tool);
+            if let Some(touch) = contact(&capsule, &p, remembered, moved.map(|m| p + m), max_depth) {
+                out.push((v, touch));
             }
         }
         ToolPlacement { tip, tool_to_grid, tool_velocity, moved, capsule, max_depth, lo, hi }
@@ -528,6 +520,17 @@ impl BranchedGrid {
         let anchor = if sliding { slid_anchor(p, &force, k) } else { anchor };
         anchors[v] = Some(Anchor { tool: i, from_tip: anchor - tip, step: step_index });
         (if sliding { 0.0 } else { k }, force)
+    }
+
+    /// The surface vertices that move with an element in the coarse cells whose current
+    /// box overlaps [lo, hi], cell by cell in order (the contacts' order is part of the
+    /// state): the one search of the surface near a tool, for its vertex contacts, its
+    /// face contacts and its multirate patch.
+    fn surface_vertices_near(&self, lo: Vec3, hi: Vec3) -> impl Iterator<Item = u32> + '_ {
+        (0..self.surface.cell_vertices.len())
+            .filter(move |&cell| !self.surface.cell_vertices[cell].is_empty() && self.cell_overlaps(cell, &lo, &hi))
+            .flat_map(move |cell| self.surface.cell_vertices[cell].iter().copied())
+            .filter(move |&v| self.surface.in_element(&self.topo, v as usize))
     }
 
     /// Whether the box around cell `cell`'s current nodes overlaps [lo, hi].

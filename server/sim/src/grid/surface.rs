@@ -352,6 +352,12 @@ impl GridSurface {
         moved
     }
 
+    /// Whether vertex `v` moves with an element: its voxel's element is live (a vertex
+    /// whose voxel was cut away stands still at its rest position and touches nothing).
+    pub fn in_element(&self, topo: &Topology, v: usize) -> bool {
+        topo.voxel_element[self.voxel[v] as usize] != NONE
+    }
+
     /// The vertex's position from its element's nodes (grid frame), m.
     pub fn position(&self, topo: &Topology, v: usize) -> Vec3 {
         let e = topo.voxel_element[self.voxel[v] as usize];

@@ -7,7 +7,6 @@ use super::BranchedGrid;
 use crate::math::{Matrix3, Vec3, closest_point_on_segment};
 use crate::multirate::patch::{ContactPatch, MAX_PATCH_VERTICES};
 use crate::tool::ToolCommand;
-use crate::grid::topology::NONE;
 
 /// A tool's patch compliance being kept up to date (see `patch_compliance`): where its
 /// tip was and the topology when its columns were first solved, the columns (grid
@@ -35,16 +34,11 @@ impl BranchedGrid {
         let top = tip + self.frame.rotation.transpose() * command.pose.axis() * tool.length_m;
         let reach = tool.radius_m + margin_m;
         let (lo, hi) = (tip.inf(&top) - Vec3::repeat(reach), tip.sup(&top) + Vec3::repeat(reach));
-        for cell in 0..self.surface.cell_vertices.len() {
-            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
-                continue;
-            }
-            for &v in &self.surface.cell_vertices[cell] {
-                let p = self.surface.position(&self.topo, v as usize);
-                let distance = (p - closest_point_on_segment(&p, &tip, &top).1).norm();
-                if distance < reach && self.topo.voxel_element[self.surface.voxel[v as usize] as usize] != NONE {
-                    out.push((v, distance));
-                }
+        for v in self.surface_vertices_near(lo, hi) {
+            let p = self.surface.position(&self.topo, v as usize);
+            let distance = (p - closest_point_on_segment(&p, &tip, &top).1).norm();
+            if distance < reach {
+                out.push((v, distance));
             }
         }
         out.sort_unstable_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));

@@ -27,7 +27,6 @@
 use super::BranchedGrid;
 use crate::grid::hold::{Capsule, Contact, contact};
 use crate::grid::surface::cell_weights;
-use crate::grid::topology::NONE;
 use crate::math::{Matrix3, Vec3, barycentric_closest, segment_triangle_closest, triangle_normal};
 
 /// A material point on a triangle's inside that a tool holds.
@@ -130,8 +129,7 @@ impl BranchedGrid {
         }
         // A vertex held by the tip face (along the axis) holds the tool; vertices
         // beside it (pushed off the shaft) do not.
-        let out_of_tip = (at.capsule.a - at.capsule.b).try_normalize(1e-12).unwrap_or(Vec3::zeros());
-        if touching.iter().any(|(_, c)| c.entry.dot(&out_of_tip) > 0.5) {
+        if touching.iter().any(|(_, c)| at.capsule.pushes_with_tip(&c.entry)) {
             return None;
         }
         let triangle = self.face_nearest_tip(at.capsule, candidates)?;
@@ -164,28 +162,23 @@ impl BranchedGrid {
         // stands for the dent that rings a thin tip, whose walls push it back under the
         // tip; alone and frictionless it slid off sideways (0.5 mm in 25 steps, the
         // probe then went in).
-        let centring = (at.capsule.b - at.capsule.a).try_normalize(1e-12).filter(|w| contact.normal.dot(&-w) > 0.5).map(|w| {
-            let on_axis = at.capsule.a + w * (point - at.capsule.a).dot(&w);
+        let centring = at.capsule.out_of_tip().filter(|_| at.capsule.pushes_with_tip(&contact.normal)).map(|axis| {
+            let on_axis = at.capsule.a + axis * (point - at.capsule.a).dot(&axis);
             crate::grid::friction::tangent_projection(&contact.normal) * (on_axis - point)
         });
         Some(FaceContact { held: Some(held), point, element, weights, vertex, contact, centring })
     }
 
     /// The surface triangles near [lo, hi] into `out`, each once, by id (the contacts'
-    /// order is part of the state): those of the vertices in the coarse cells
-    /// overlapping the box grown by a voxel (a triangle spans at most one, so one
-    /// reaching the box has its vertices within a voxel of it).
+    /// order is part of the state): those of the vertices near the box grown by a voxel
+    /// (a triangle spans at most one, so one reaching the box has its vertices within a
+    /// voxel of it). A triangle found through one live vertex may still have a dead one:
+    /// see [`Self::live_triangle`].
     fn triangles_near(&self, lo: &Vec3, hi: &Vec3, out: &mut Vec<u32>) {
         out.clear();
         let voxel = Vec3::from(self.topo.layout.spacing_m);
-        let (lo, hi) = (lo - voxel, hi + voxel);
-        for cell in 0..self.surface.cell_vertices.len() {
-            if self.surface.cell_vertices[cell].is_empty() || !self.cell_overlaps(cell, &lo, &hi) {
-                continue;
-            }
-            for &v in &self.surface.cell_vertices[cell] {
-                out.extend_from_slice(self.surface.triangles_of(v as usize));
-            }
+        for v in self.surface_vertices_near(lo - voxel, hi + voxel) {
+            out.extend_from_slice(self.surface.triangles_of(v as usize));
         }
         out.sort_unstable();
         out.dedup();
@@ -193,7 +186,7 @@ impl BranchedGrid {
 
     /// Whether triangle `t` is on the surface with all its vertices in live elements.
     fn live_triangle(&self, t: u32) -> bool {
-        self.surface.triangle_alive[t as usize] && self.surface.triangles[t as usize].iter().all(|&v| self.topo.voxel_element[self.surface.voxel[v as usize] as usize] != NONE)
+        self.surface.triangle_alive[t as usize] && self.surface.triangles[t as usize].iter().all(|&v| self.surface.in_element(&self.topo, v as usize))
     }
 
     /// Among `candidates`, the live triangle `capsule` reaches into whose point nearest
