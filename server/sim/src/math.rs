@@ -275,6 +275,23 @@ mod tests {
     }
 
     #[test]
+    fn the_stretch_of_a_segment_over_a_triangle_is_clipped_to_its_edges() {
+        let tri = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.0, 1.0, 0.0)];
+        let point = |b: [f64; 3]| tri[0] * b[0] + tri[1] * b[1] + tri[2] * b[2];
+        // Above the triangle along y = 0.25, from x = -1 to 2: over it from x = 0 to 0.75.
+        let (near, far) = segment_over_triangle(&Vec3::new(-1.0, 0.25, 0.3), &Vec3::new(2.0, 0.25, 0.3), &tri).unwrap();
+        assert!((point(near) - Vec3::new(0.0, 0.25, 0.0)).norm() < 1e-12 && (point(far) - Vec3::new(0.75, 0.25, 0.0)).norm() < 1e-12);
+        // Wholly over it (below the plane too): its own ends, projected.
+        let (near, far) = segment_over_triangle(&Vec3::new(0.1, 0.1, -0.5), &Vec3::new(0.3, 0.2, 0.5), &tri).unwrap();
+        assert!((point(near) - Vec3::new(0.1, 0.1, 0.0)).norm() < 1e-12 && (point(far) - Vec3::new(0.3, 0.2, 0.0)).norm() < 1e-12);
+        // Beside it, and along the plane's normal over a point: none, and that point twice.
+        assert!(segment_over_triangle(&Vec3::new(-1.0, 1.5, 0.0), &Vec3::new(2.0, 1.5, 0.0), &tri).is_none());
+        assert!(segment_over_triangle(&Vec3::new(-1.0, -0.1, 0.0), &Vec3::new(2.0, -0.1, 0.0), &tri).is_none());
+        let (near, far) = segment_over_triangle(&Vec3::new(0.2, 0.2, 1.0), &Vec3::new(0.2, 0.2, -1.0), &tri).unwrap();
+        assert!((point(near) - Vec3::new(0.2, 0.2, 0.0)).norm() < 1e-12 && (point(far) - point(near)).norm() < 1e-12);
+    }
+
+    #[test]
     fn equilateral_min_angle_is_sixty() {
         let a = Vec3::new(0.0, 0.0, 0.0);
         let b = Vec3::new(1.0, 0.0, 0.0);
@@ -285,10 +302,15 @@ mod tests {
 
 /// Barycentric coordinates of the point of triangle `a`,`b`,`c` closest to `p`.
 pub fn barycentric_closest(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> [f64; 3] {
-    let q = closest_point_on_triangle(p, a, b, c);
+    barycentric_in_plane(&closest_point_on_triangle(p, a, b, c), a, b, c).unwrap_or([1.0, 0.0, 0.0])
+}
+
+/// Barycentric coordinates of `p`'s projection onto the plane of triangle `a`,`b`,`c`,
+/// unclamped (negative outside the triangle); None for a degenerate triangle.
+pub fn barycentric_in_plane(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> Option<[f64; 3]> {
     let v0 = b - a;
     let v1 = c - a;
-    let v2 = q - a;
+    let v2 = p - a;
     let d00 = v0.dot(&v0);
     let d01 = v0.dot(&v1);
     let d11 = v1.dot(&v1);
@@ -296,9 +318,34 @@ pub fn barycentric_closest(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> [f64; 3] {
     let d21 = v2.dot(&v1);
     let denom = d00 * d11 - d01 * d01;
     if denom.abs() <= f64::MIN_POSITIVE {
-        return [1.0, 0.0, 0.0];
+        return None;
     }
     let v = (d11 * d20 - d01 * d21) / denom;
     let w = (d00 * d21 - d01 * d20) / denom;
-    [1.0 - v - w, v, w]
+    Some([1.0 - v - w, v, w])
+}
+
+/// The stretch of segment `a`–`b` that lies over triangle `tri` (its projection along
+/// the triangle's normal inside the triangle): the barycentric coordinates of the
+/// stretch's two ends on the triangle, the one nearer `a` first; None where no part of
+/// the segment lies over it. Barycentric coordinates are affine along the segment, so
+/// the stretch is the segment's parameters where all three stay non-negative.
+pub fn segment_over_triangle(a: &Vec3, b: &Vec3, tri: &[Vec3; 3]) -> Option<([f64; 3], [f64; 3])> {
+    let [p, q, r] = tri;
+    let (from, to) = (barycentric_in_plane(a, p, q, r)?, barycentric_in_plane(b, p, q, r)?);
+    let (mut lo, mut hi) = (0.0f64, 1.0f64);
+    for k in 0..3 {
+        let change = to[k] - from[k];
+        if change.abs() <= 1e-15 {
+            if from[k] < 0.0 {
+                return None;
+            }
+        } else if change > 0.0 {
+            lo = lo.max(-from[k] / change);
+        } else {
+            hi = hi.min(-from[k] / change);
+        }
+    }
+    let at = |t: f64| std::array::from_fn(|k| (from[k] + (to[k] - from[k]) * t).max(0.0));
+    (lo <= hi).then(|| (at(lo), at(hi)))
 }

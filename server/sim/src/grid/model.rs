@@ -118,8 +118,8 @@ pub struct BranchedGrid {
     touching_scratch: Vec<(u32, super::hold::Contact)>,
     triangle_scratch: Vec<u32>,
     face_scratch: Vec<face_contact::FaceContact>,
-    /// Per tool: the point on a triangle's inside it holds (face_contact).
-    held_faces: Vec<Option<face_contact::HeldFace>>,
+    /// Per tool: the points on triangles' insides it holds (face_contact).
+    held_faces: Vec<Vec<face_contact::HeldFace>>,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -219,7 +219,7 @@ impl BranchedGrid {
             touching_scratch: Vec::new(),
             triangle_scratch: Vec::new(),
             face_scratch: Vec::new(),
-            held_faces: vec![None; tool_count],
+            held_faces: vec![Vec::new(); tool_count],
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -420,7 +420,8 @@ impl BranchedGrid {
         } else {
             faces.clear();
         }
-        self.held_faces[i] = faces.iter().find_map(|f| f.held);
+        self.held_faces[i].clear();
+        self.held_faces[i].extend(faces.iter().map(|f| f.held));
         for f in &faces {
             let (normal, depth) = (f.contact.normal, f.contact.depth);
             // The centring spring is the friction's stick spring, anchored on the axis.

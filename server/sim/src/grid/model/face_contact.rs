@@ -17,17 +17,23 @@
 //!   probe went in. It lets go as a vertex does (the ray along its normal misses the
 //!   tool, or it alone would push with more than the tool's rated force) or when its
 //!   triangle is cut away; then the next is taken.
-//! - **Beside the shaft**: each other triangle the capsule reaches into, none of whose
-//!   vertices the tool touches, is pushed straight away from the axis at its point
-//!   nearest it (where that point lies inside the face, along the face's normal), by
-//!   the capsule's radius less its distance; a face the axis has crossed is skipped
-//!   (which side it belongs on is not known). Without these the walls of the dent
-//!   around a deep thin probe folded across its shaft. Frictionless, no state.
+//! - **Along the shaft**: on each other triangle the capsule reaches into, none of
+//!   whose vertices the tool touches, the ends of the axis's stretch over the triangle
+//!   (where the axis lies beside it, its point nearest the axis) are taken as material
+//!   points and held by the same rule, each kept while the contact lasts and drawn
+//!   towards the axis across its normal by the same spring as the tip's (the groove's
+//!   walls along a thin shaft). A flat triangle held at both ends of the stretch under
+//!   a shaft cannot tilt across it; pushed only away from the axis, with nothing kept,
+//!   a 0.5 mm shaft laid on a block and pressed in passed the faces once the penalty's
+//!   give exceeded its radius (1.34 N at 3 mm in, then 0.56 N). A face the axis
+//!   crosses is not taken anew (which side it belongs on is not known; a point taken
+//!   before it was crossed remembers), nor a point the tip's ball pushes along the axis
+//!   (that is the tip's). Frictionless but for the drawing spring.
 
 use super::BranchedGrid;
 use crate::grid::hold::{Capsule, Contact, contact};
 use crate::grid::surface::cell_weights;
-use crate::math::{Matrix3, Vec3, barycentric_closest, segment_triangle_closest, triangle_normal};
+use crate::math::{Matrix3, Vec3, barycentric_closest, segment_over_triangle, segment_triangle_closest, triangle_normal};
 
 /// A material point on a triangle's inside that a tool holds.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -43,8 +49,8 @@ pub(super) struct HeldFace {
 /// A tool's contact on a triangle's inside this step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(super) struct FaceContact {
-    /// The point held under the tip (None: a point the shaft pushes this step only).
-    pub held: Option<HeldFace>,
+    /// The material point, to hold next step.
+    pub held: HeldFace,
     /// The point (grid frame), m.
     pub point: Vec3,
     /// The element the point moves with, and its weights there.
@@ -74,19 +80,32 @@ pub(super) struct ToolAt<'a> {
 impl BranchedGrid {
     /// The face contacts of the tool at `at`, which touches the vertices `touching`, into
     /// `out`: none for a tool too wide to fit between the vertices (see
-    /// [`Self::fits_between_vertices`]); else the point held under its tip, if any, then
-    /// the triangles its shaft reaches into (by id). `candidates`: scratch.
+    /// [`Self::fits_between_vertices`]); else the points it held last step that it
+    /// still holds, a new point under its tip where nothing holds it there, then new
+    /// points along its shaft on the triangles it reaches into that hold none (by id).
+    /// `candidates`: scratch.
     pub(super) fn face_contacts(&self, at: &ToolAt<'_>, touching: &[(u32, Contact)], candidates: &mut Vec<u32>, out: &mut Vec<FaceContact>) {
         out.clear();
         if !self.fits_between_vertices(at.capsule.radius) {
             return;
         }
+        for held in self.held_faces[at.tool].iter().filter(|h| h.step + 1 >= self.step_index) {
+            out.extend(self.hold_face(at, *held, Some(at.tool_to_grid * held.normal_in_tool)));
+        }
         self.triangles_near(at.lo, at.hi, candidates);
-        let tip = self.tip_face(at, touching, candidates);
-        let held = tip.and_then(|f| f.held).map(|h| h.triangle);
-        out.extend(tip);
+        let holds = |faces: &[FaceContact], t: u32| faces.iter().any(|f| f.held.triangle == t);
+        // A vertex or a point held by the tip face (along the axis) holds the tool;
+        // those beside it (pushed off the shaft) do not.
+        let tip_held = touching.iter().any(|(_, c)| at.capsule.pushes_with_tip(&c.entry)) || out.iter().any(|f| at.capsule.pushes_with_tip(&f.contact.entry));
+        if !tip_held {
+            let free = candidates.iter().copied().filter(|&t| !holds(out, t));
+            if let Some(tip) = self.face_nearest_tip(at.capsule, free).and_then(|t| self.tip_face(at, t)) {
+                out.push(tip);
+            }
+        }
+        let taken = out.len();
         for &t in candidates.iter() {
-            if Some(t) == held || !self.live_triangle(t) {
+            if holds(&out[..taken], t) || !self.live_triangle(t) {
                 continue;
             }
             let vertices = self.surface.triangles[t as usize];
@@ -97,15 +116,29 @@ impl BranchedGrid {
             let (on_axis, point) = segment_triangle_closest(&at.capsule.a, &at.capsule.b, &corners);
             let distance = (point - on_axis).norm();
             // A face the axis crosses has been passed: which side it belongs on is not
-            // known (only the point held under the tip remembers it).
+            // known (a point taken before it was crossed remembers it).
             if distance >= at.capsule.radius || distance <= 1e-9 * at.capsule.radius {
                 continue;
             }
-            let normal = (point - on_axis) / distance;
-            let barycentric = barycentric_closest(&point, &corners[0], &corners[1], &corners[2]);
-            let (element, weights, vertex) = self.embed_on_triangle(vertices, barycentric);
-            let contact = Contact { normal, depth: at.capsule.radius - distance, entry: normal };
-            out.push(FaceContact { held: None, point, element, weights, vertex, contact, centring: None });
+            // A point the tip's ball reaches is the tip's to hold (above): held along
+            // the axis here, a wall's point would stand in for the tip's.
+            let new = |barycentric: [f64; 3]| {
+                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index };
+                self.hold_face(at, held, None).filter(|f| !at.capsule.pushes_with_tip(&f.contact.entry))
+            };
+            let before = out.len();
+            if let Some((near, far)) = segment_over_triangle(&at.capsule.a, &at.capsule.b, &corners) {
+                out.extend(new(near));
+                let apart = (0..3).map(|k| corners[k] * (far[k] - near[k])).sum::<Vec3>().norm();
+                if apart > 1e-3 * at.capsule.radius {
+                    out.extend(new(far));
+                }
+            }
+            // Neither end inside the tool (a wall beside it, the axis not over it): the
+            // point nearest the axis.
+            if out.len() == before {
+                out.extend(new(barycentric_closest(&point, &corners[0], &corners[1], &corners[2])));
+            }
         }
     }
 
@@ -119,20 +152,8 @@ impl BranchedGrid {
         radius < 0.5 * sides[1].hypot(sides[2])
     }
 
-    /// The point the tool holds under its tip: the one it held last step if it still
-    /// holds it, else (no vertex held under its tip) the point of a triangle among
-    /// `candidates` it reaches nearest its tip.
-    fn tip_face(&self, at: &ToolAt<'_>, touching: &[(u32, Contact)], candidates: &[u32]) -> Option<FaceContact> {
-        let kept = self.held_faces.get(at.tool).copied().flatten().filter(|h| h.step + 1 >= self.step_index);
-        if let Some(face) = kept.and_then(|held| self.hold_face(at, held, Some(at.tool_to_grid * held.normal_in_tool))) {
-            return Some(face);
-        }
-        // A vertex held by the tip face (along the axis) holds the tool; vertices
-        // beside it (pushed off the shaft) do not.
-        if touching.iter().any(|(_, c)| at.capsule.pushes_with_tip(&c.entry)) {
-            return None;
-        }
-        let triangle = self.face_nearest_tip(at.capsule, candidates)?;
+    /// A new point under the tip on `triangle`: its point nearest the tool.
+    fn tip_face(&self, at: &ToolAt<'_>, triangle: u32) -> Option<FaceContact> {
         let corners = self.corners(triangle);
         let (on_axis, point) = segment_triangle_closest(&at.capsule.a, &at.capsule.b, &corners);
         let barycentric = barycentric_closest(&point, &corners[0], &corners[1], &corners[2]);
@@ -156,17 +177,26 @@ impl BranchedGrid {
         let corners = self.corners(held.triangle);
         let point: Vec3 = (0..3).map(|k| corners[k] * held.barycentric[k]).sum();
         let contact = contact(at.capsule, &point, remembered, at.moved.map(|m| point + m), at.max_depth)?;
+        // Held along the normal it came in with even near the tool's surface (no
+        // shallow band, where a vertex is pushed out radially to slide round the tool):
+        // the drawing spring below acts across the normal, and a point that went in and
+        // out of the band each step was drawn and not drawn by turns (the force on a
+        // shaft laid on the block alternated step by step, growing to 0.4 N).
+        let contact = Contact { normal: contact.entry, depth: at.capsule.depth_along(&point, &contact.entry).filter(|&d| d <= at.max_depth)?, entry: contact.entry };
         let (element, weights, vertex) = self.embed_on_triangle(vertices, held.barycentric);
         let held = HeldFace { normal_in_tool: at.tool_to_grid.transpose() * contact.entry, step: self.step_index, ..held };
-        // Held under the tip (along the axis), the point is centred on the axis: it
-        // stands for the dent that rings a thin tip, whose walls push it back under the
-        // tip; alone and frictionless it slid off sideways (0.5 mm in 25 steps, the
-        // probe then went in).
-        let centring = at.capsule.out_of_tip().filter(|_| at.capsule.pushes_with_tip(&contact.normal)).map(|axis| {
+        // The point is drawn towards the axis across its normal: the spring stands for
+        // the dent that rings a thin tip (or the groove along a thin shaft), whose walls
+        // push the tissue back under the tool. Frictionless and alone, a point under the
+        // tip slid off sideways (0.5 mm in 25 steps, the probe then went in), and points
+        // under a shaft laid on the block slid off its side one after another (the
+        // elements, 4 mm there, shear under a 1 mm tool): the force fell and rose by
+        // turns (6.3, 4.9, 5.6, 3.7 N at 3, 4, 5, 6 mm in; docs/tool-tissue.md).
+        let centring = at.capsule.out_of_tip().map(|axis| {
             let on_axis = at.capsule.a + axis * (point - at.capsule.a).dot(&axis);
             crate::grid::friction::tangent_projection(&contact.normal) * (on_axis - point)
         });
-        Some(FaceContact { held: Some(held), point, element, weights, vertex, contact, centring })
+        Some(FaceContact { held, point, element, weights, vertex, contact, centring })
     }
 
     /// The surface triangles near [lo, hi] into `out`, each once, by id (the contacts'
@@ -191,9 +221,9 @@ impl BranchedGrid {
 
     /// Among `candidates`, the live triangle `capsule` reaches into whose point nearest
     /// the capsule is nearest its tip (`capsule.a`; ties to the lowest id).
-    fn face_nearest_tip(&self, capsule: &Capsule, candidates: &[u32]) -> Option<u32> {
+    fn face_nearest_tip(&self, capsule: &Capsule, candidates: impl Iterator<Item = u32>) -> Option<u32> {
         let mut best: Option<(f64, u32)> = None;
-        for &t in candidates {
+        for t in candidates {
             if !self.live_triangle(t) {
                 continue;
             }
