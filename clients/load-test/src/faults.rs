@@ -281,13 +281,16 @@ pub async fn disk_full(binary: &Path, config: &Path, recordings: &Path, scene: &
         };
         let session = server::create(&server, scene, pb::SessionMode::Realtime, "cutsim-load disk-full").await?;
         let target = HapticTarget { grpc: server.grpc.clone(), session: session.id.clone(), token: session.control.clone(), trajectory: Trajectory::from_info(&session.info) };
-        let until = Instant::now() + Duration::from_secs(4);
+        // The client's commands fill the disk (about 2 s at 1 kHz); a loaded machine
+        // steps slower, so the report is waited for up to 10 s (4 s was too short for
+        // this 2-core host at 600 Hz once), then the session must step on for a second.
+        let until = Instant::now() + Duration::from_secs(12);
         let client = tokio::spawn(haptic::run(target, until, None));
-        let reported = wait_for(&server, &session, Duration::from_secs(4), |i| !i.recording_problem.is_empty()).await?;
+        let reported = wait_for(&server, &session, Duration::from_secs(10), |i| !i.recording_problem.is_empty()).await?;
         let before = server::info(&server, &session.id, &session.observe, false).await?;
-        tokio::time::sleep_until(until.into()).await;
-        let stats = client.await?;
+        tokio::time::sleep(Duration::from_secs(1)).await;
         let after = server::info(&server, &session.id, &session.observe, false).await?;
+        let stats = client.await?;
         let rate = after.stats.as_ref().map_or(0.0, |s| s.achieved_rate_hz);
         let stepping = after.step > before.step;
         let passed = reported.is_some() && stepping && stats.errors.is_empty() && stats.feedback > 0;
