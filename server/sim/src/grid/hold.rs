@@ -179,14 +179,35 @@ pub struct Contact {
 /// was flung past it, which must not fling it back harder).
 pub fn contact(capsule: &Capsule, p: &Vec3, entry: Option<Vec3>, before: Option<Vec3>, max_depth: f64) -> Option<Contact> {
     let (radial, inside) = capsule.radial(p);
-    let entry = match entry {
-        Some(entry) => entry,
-        None if inside > 0.0 => capsule.face_normal(&before.and_then(|before| capsule.entry_normal(&before, p)).unwrap_or(radial)),
-        None => return None,
-    };
+    let entry = entry_of(capsule, p, entry, before, radial, inside)?;
     if inside > 0.0 && inside <= SHALLOW * capsule.radius && radial.dot(&entry) > 0.0 {
         return Some(Contact { normal: radial, depth: inside, entry });
     }
+    held_along(capsule, p, entry, max_depth)
+}
+
+/// [`contact`] without the shallow band: always pushed along the normal it came in
+/// with, however near the tool's surface. For a point that a spring across its normal
+/// also holds (grid::model::face_contact), which the band's radial normal would switch
+/// on and off step by step.
+pub fn contact_along_entry(capsule: &Capsule, p: &Vec3, entry: Option<Vec3>, before: Option<Vec3>, max_depth: f64) -> Option<Contact> {
+    let (radial, inside) = capsule.radial(p);
+    held_along(capsule, p, entry_of(capsule, p, entry, before, radial, inside)?, max_depth)
+}
+
+/// The normal a contact is held along: `entry` if it goes on, else (a new one, only if
+/// `p` is inside) where its path came in (see [`contact`]).
+fn entry_of(capsule: &Capsule, p: &Vec3, entry: Option<Vec3>, before: Option<Vec3>, radial: Vec3, inside: f64) -> Option<Vec3> {
+    match entry {
+        Some(entry) => Some(entry),
+        None if inside > 0.0 => Some(capsule.face_normal(&before.and_then(|before| capsule.entry_normal(&before, p)).unwrap_or(radial))),
+        None => None,
+    }
+}
+
+/// `p` pushed out along `entry` by the ray's exit from the capsule, unless deeper than
+/// `max_depth` (or the ray misses the tool): see [`contact`].
+fn held_along(capsule: &Capsule, p: &Vec3, entry: Vec3, max_depth: f64) -> Option<Contact> {
     capsule.depth_along(p, &entry).filter(|&depth| depth <= max_depth).map(|depth| Contact { normal: entry, depth, entry })
 }
 

@@ -31,7 +31,7 @@
 //!   (that is the tip's). Frictionless but for the drawing spring.
 
 use super::BranchedGrid;
-use crate::grid::hold::{Capsule, Contact, contact};
+use crate::grid::hold::{Capsule, Contact, contact_along_entry};
 use crate::grid::surface::cell_weights;
 use crate::math::{Matrix3, Vec3, barycentric_closest, segment_over_triangle, segment_triangle_closest, triangle_normal};
 
@@ -176,13 +176,12 @@ impl BranchedGrid {
         let vertices = self.surface.triangles[held.triangle as usize];
         let corners = self.corners(held.triangle);
         let point: Vec3 = (0..3).map(|k| corners[k] * held.barycentric[k]).sum();
-        let contact = contact(at.capsule, &point, remembered, at.moved.map(|m| point + m), at.max_depth)?;
         // Held along the normal it came in with even near the tool's surface (no
         // shallow band, where a vertex is pushed out radially to slide round the tool):
         // the drawing spring below acts across the normal, and a point that went in and
         // out of the band each step was drawn and not drawn by turns (the force on a
         // shaft laid on the block alternated step by step, growing to 0.4 N).
-        let contact = Contact { normal: contact.entry, depth: at.capsule.depth_along(&point, &contact.entry).filter(|&d| d <= at.max_depth)?, entry: contact.entry };
+        let contact = contact_along_entry(at.capsule, &point, remembered, at.moved.map(|m| point + m), at.max_depth)?;
         let (element, weights, vertex) = self.embed_on_triangle(vertices, held.barycentric);
         let held = HeldFace { normal_in_tool: at.tool_to_grid.transpose() * contact.entry, step: self.step_index, ..held };
         // The point is drawn towards the axis across its normal: the spring stands for
