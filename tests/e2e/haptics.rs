@@ -106,10 +106,15 @@ async fn stream_of_2000_poses_gets_force_in_contact_and_none_outside() {
     let elapsed = start.elapsed();
     // One feedback per step the server took meanwhile (however fast this machine steps).
     let steps = last_step - first_step.unwrap_or(last_step) + 1;
-    assert!(received as f64 >= 0.9 * steps as f64 && steps > 500, "feedback about every step: {received} for {steps} steps in {elapsed:?}");
-    // Feedback follows the server's steps, not the poses: on a loaded machine some poses are
-    // answered twice and some not at all, so the counts only need to show both phases were seen.
-    assert!(in_contact > 300 && above_checked > 300, "contact {in_contact}, above {above_checked}");
+    assert!(received as f64 >= 0.9 * steps as f64 && steps > 200, "feedback about every step: {received} for {steps} steps in {elapsed:?}");
+    // Feedback follows the server's steps, not the poses: on a loaded machine the session steps
+    // slower than the poses come (some are answered twice, some not at all), so each phase's
+    // count scales with the steps taken. Each checked phase is about 30 % of the stream's poses
+    // (pressing 901–1499, above 1–479 and 1901–2000); asking for half of that share shows both
+    // were seen without asserting how fast this machine steps (an absolute 300 failed on a
+    // loaded CI machine at 238 and 249).
+    let share = |count: usize| count as f64 / steps as f64;
+    assert!(share(in_contact) > 0.15 && share(above_checked) > 0.15, "contact {in_contact}, above {above_checked} of {steps} steps");
     assert!(pressed_force > 0.05 && pressed_force < 10.0, "pressing 3 mm into skin gives a force of {pressed_force} N");
 }
 
