@@ -932,9 +932,10 @@ fn a_thin_probe_pressed_in_on_its_side_is_held_along_its_shaft() {
     println!("0.5 mm probe on its side: {most:.2} N {:.1} mm in, its largest fall on the way {worst_fall:.2} N, steps with the shaft inside the tissue: {inside_steps}", depth * 1e3);
     assert_eq!(inside_steps, 0, "the shaft went into the tissue");
     assert!(most >= 9.9, "{:.1} mm in with only {most:.2} N", depth * 1e3);
-    // Points let go as the faces turn (a step down of about a quarter, measured); a
-    // shaft slipping through lost nearly all of it.
-    assert!(worst_fall < 0.5 * most, "the force fell by {worst_fall:.2} N from {most:.2} N: the shaft slipped through");
+    // Points let go as the faces turn (the largest step down 1.12 N on the way to
+    // 9.92 N, measured); points sliding off the shaft's side lost a quarter to a third
+    // of it by turns (6.3, 4.9, 5.6, 3.7 N), a shaft slipping through nearly all of it.
+    assert!(worst_fall < 0.2 * most, "the force fell by {worst_fall:.2} N from {most:.2} N: the shaft's points slid off or it slipped through");
 }
 
 /// The multirate schedule's haptic loop renders the probe's contact against the patch

@@ -65,6 +65,15 @@ pub(super) struct FaceContact {
     pub centring: Option<Vec3>,
 }
 
+/// A triangle a tool reaches into and where: its corners now, and the closest points of
+/// the tool's axis and of the triangle (grid frame).
+struct NearestFace {
+    triangle: u32,
+    corners: [Vec3; 3],
+    on_axis: Vec3,
+    point: Vec3,
+}
+
 /// Where a tool is this step, as the face contact needs it.
 pub(super) struct ToolAt<'a> {
     pub tool: usize,
@@ -99,7 +108,7 @@ impl BranchedGrid {
         let tip_held = touching.iter().any(|(_, c)| at.capsule.pushes_with_tip(&c.entry)) || out.iter().any(|f| at.capsule.pushes_with_tip(&f.contact.entry));
         if !tip_held {
             let free = candidates.iter().copied().filter(|&t| !holds(out, t));
-            if let Some(tip) = self.face_nearest_tip(at.capsule, free).and_then(|t| self.tip_face(at, t)) {
+            if let Some(tip) = self.face_nearest_tip(at.capsule, free).and_then(|nearest| self.tip_face(at, nearest)) {
                 out.push(tip);
             }
         }
@@ -152,10 +161,10 @@ impl BranchedGrid {
         radius < 0.5 * sides[1].hypot(sides[2])
     }
 
-    /// A new point under the tip on `triangle`: its point nearest the tool.
-    fn tip_face(&self, at: &ToolAt<'_>, triangle: u32) -> Option<FaceContact> {
-        let corners = self.corners(triangle);
-        let (on_axis, point) = segment_triangle_closest(&at.capsule.a, &at.capsule.b, &corners);
+    /// A new point under the tip on the triangle `nearest` names: its point nearest the
+    /// tool.
+    fn tip_face(&self, at: &ToolAt<'_>, nearest: NearestFace) -> Option<FaceContact> {
+        let NearestFace { triangle, corners, on_axis, point } = nearest;
         let barycentric = barycentric_closest(&point, &corners[0], &corners[1], &corners[2]);
         // A face the axis crosses (the tool came through it within the step, or a
         // point held before let go) is held on its outer side, the side the tool came
@@ -220,22 +229,23 @@ impl BranchedGrid {
 
     /// Among `candidates`, the live triangle `capsule` reaches into whose point nearest
     /// the capsule is nearest its tip (`capsule.a`; ties to the lowest id).
-    fn face_nearest_tip(&self, capsule: &Capsule, candidates: impl Iterator<Item = u32>) -> Option<u32> {
-        let mut best: Option<(f64, u32)> = None;
-        for t in candidates {
-            if !self.live_triangle(t) {
+    fn face_nearest_tip(&self, capsule: &Capsule, candidates: impl Iterator<Item = u32>) -> Option<NearestFace> {
+        let mut best: Option<(f64, NearestFace)> = None;
+        for triangle in candidates {
+            if !self.live_triangle(triangle) {
                 continue;
             }
-            let (on_axis, point) = segment_triangle_closest(&capsule.a, &capsule.b, &self.corners(t));
+            let corners = self.corners(triangle);
+            let (on_axis, point) = segment_triangle_closest(&capsule.a, &capsule.b, &corners);
             if (on_axis - point).norm() >= capsule.radius {
                 continue;
             }
             let from_tip = (point - capsule.a).norm();
-            if best.is_none_or(|(d, _)| from_tip < d) {
-                best = Some((from_tip, t));
+            if best.as_ref().is_none_or(|(d, _)| from_tip < *d) {
+                best = Some((from_tip, NearestFace { triangle, corners, on_axis, point }));
             }
         }
-        best.map(|(_, t)| t)
+        best.map(|(_, nearest)| nearest)
     }
 
     /// Triangle `t`'s corners where they are now (grid frame).
