@@ -35,13 +35,17 @@ pub const DEFORMATION_EVERY: u32 = 33;
 pub struct Script {
     pub hold_steps: usize,
     pub cut_steps: usize,
+    /// Stop early where the budget is clearly missed (the benchmark: a schedule that
+    /// cannot keep up is reported as such, not timed to the end); false runs every
+    /// step however late (a test of what the script does, on a machine of any speed).
+    pub stop_when_late: bool,
 }
 
 impl Script {
     /// The benchmark's script: held 1 s, cut for 2 s.
-    pub const FULL: Script = Script { hold_steps: 1000, cut_steps: 2000 };
+    pub const FULL: Script = Script { hold_steps: 1000, cut_steps: 2000, stop_when_late: true };
     /// A shorter one (0.3 s held, 0.5 s cutting).
-    pub const QUICK: Script = Script { hold_steps: 300, cut_steps: 500 };
+    pub const QUICK: Script = Script { hold_steps: 300, cut_steps: 500, stop_when_late: true };
 }
 
 /// A bundled scene's JSON at `level`, under a multirate schedule of `every` steps with
@@ -148,8 +152,9 @@ pub fn wait_until(deadline: Instant) {
 }
 
 /// Runs the script in real time, one step per millisecond. Stops early where the budget
-/// is clearly missed: a single-rate model whose median step after 50 steps is over three
-/// budgets, a multirate one after its tenth late job.
+/// is clearly missed and the script says so (`stop_when_late`): a single-rate model whose
+/// median step after 50 steps is over three budgets, a multirate one after its tenth late
+/// job.
 pub fn run_real_time(model: &mut Model, script: Script) -> RealTime {
     let top = model.broad_top().unwrap_or_else(Vec3::zeros);
     let tools = model.tissue().tools().to_vec();
@@ -193,12 +198,12 @@ pub fn run_real_time(model: &mut Model, script: Script) -> RealTime {
                 if step > 0 && (step as u64).is_multiple_of(u64::from(every.unwrap_or(1))) {
                     deformation.record_ns(m.last_deformation_ns());
                 }
-                if m.deformation_waits() >= 10 {
+                if script.stop_when_late && m.deformation_waits() >= 10 {
                     break;
                 }
             }
             Model::SingleRate(_) => {
-                if step >= 50 && ms(paced.quantile_ns(0.5)) > 3.0 * HAPTIC_BUDGET_MS {
+                if script.stop_when_late && step >= 50 && ms(paced.quantile_ns(0.5)) > 3.0 * HAPTIC_BUDGET_MS {
                     break;
                 }
             }
