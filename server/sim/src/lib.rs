@@ -9,6 +9,13 @@
 //!
 //! Units are SI everywhere: m, kg, s, Pa, N.
 
+// Numerical kernels walk parallel arrays (positions, velocities, masses…) by one index:
+// an iterator over one of them would hide that the others are indexed alike.
+#![allow(clippy::needless_range_loop)]
+// `!(x > 0.0)` is how the solvers and orderings treat NaN with the non-positive values
+// (a `<=` would let NaN through).
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod accuracy;
 pub mod assessment;
 pub mod broad_phase;

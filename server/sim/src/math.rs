@@ -217,6 +217,56 @@ pub fn any_perpendicular(axis: &Vec3) -> Vec3 {
     axis.cross(&helper).normalize()
 }
 
+/// Barycentric coordinates of the point of triangle `a`,`b`,`c` closest to `p`.
+pub fn barycentric_closest(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> [f64; 3] {
+    barycentric_in_plane(&closest_point_on_triangle(p, a, b, c), a, b, c).unwrap_or([1.0, 0.0, 0.0])
+}
+
+/// Barycentric coordinates of `p`'s projection onto the plane of triangle `a`,`b`,`c`,
+/// unclamped (negative outside the triangle); None for a degenerate triangle.
+pub fn barycentric_in_plane(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> Option<[f64; 3]> {
+    let v0 = b - a;
+    let v1 = c - a;
+    let v2 = p - a;
+    let d00 = v0.dot(&v0);
+    let d01 = v0.dot(&v1);
+    let d11 = v1.dot(&v1);
+    let d20 = v2.dot(&v0);
+    let d21 = v2.dot(&v1);
+    let denom = d00 * d11 - d01 * d01;
+    if denom.abs() <= f64::MIN_POSITIVE {
+        return None;
+    }
+    let v = (d11 * d20 - d01 * d21) / denom;
+    let w = (d00 * d21 - d01 * d20) / denom;
+    Some([1.0 - v - w, v, w])
+}
+
+/// The stretch of segment `a`–`b` that lies over triangle `tri` (its projection along
+/// the triangle's normal inside the triangle): the barycentric coordinates of the
+/// stretch's two ends on the triangle, the one nearer `a` first; None where no part of
+/// the segment lies over it. Barycentric coordinates are affine along the segment, so
+/// the stretch is the segment's parameters where all three stay non-negative.
+pub fn segment_over_triangle(a: &Vec3, b: &Vec3, tri: &[Vec3; 3]) -> Option<([f64; 3], [f64; 3])> {
+    let [p, q, r] = tri;
+    let (from, to) = (barycentric_in_plane(a, p, q, r)?, barycentric_in_plane(b, p, q, r)?);
+    let (mut lo, mut hi) = (0.0f64, 1.0f64);
+    for k in 0..3 {
+        let change = to[k] - from[k];
+        if change.abs() <= 1e-15 {
+            if from[k] < 0.0 {
+                return None;
+            }
+        } else if change > 0.0 {
+            lo = lo.max(-from[k] / change);
+        } else {
+            hi = hi.min(-from[k] / change);
+        }
+    }
+    let at = |t: f64| std::array::from_fn(|k| (from[k] + (to[k] - from[k]) * t).max(0.0));
+    (lo <= hi).then(|| (at(lo), at(hi)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -298,54 +348,4 @@ mod tests {
         let c = Vec3::new(0.5, 3f64.sqrt() / 2.0, 0.0);
         assert!((triangle_min_angle_deg(&a, &b, &c) - 60.0).abs() < 1e-9);
     }
-}
-
-/// Barycentric coordinates of the point of triangle `a`,`b`,`c` closest to `p`.
-pub fn barycentric_closest(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> [f64; 3] {
-    barycentric_in_plane(&closest_point_on_triangle(p, a, b, c), a, b, c).unwrap_or([1.0, 0.0, 0.0])
-}
-
-/// Barycentric coordinates of `p`'s projection onto the plane of triangle `a`,`b`,`c`,
-/// unclamped (negative outside the triangle); None for a degenerate triangle.
-pub fn barycentric_in_plane(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> Option<[f64; 3]> {
-    let v0 = b - a;
-    let v1 = c - a;
-    let v2 = p - a;
-    let d00 = v0.dot(&v0);
-    let d01 = v0.dot(&v1);
-    let d11 = v1.dot(&v1);
-    let d20 = v2.dot(&v0);
-    let d21 = v2.dot(&v1);
-    let denom = d00 * d11 - d01 * d01;
-    if denom.abs() <= f64::MIN_POSITIVE {
-        return None;
-    }
-    let v = (d11 * d20 - d01 * d21) / denom;
-    let w = (d00 * d21 - d01 * d20) / denom;
-    Some([1.0 - v - w, v, w])
-}
-
-/// The stretch of segment `a`–`b` that lies over triangle `tri` (its projection along
-/// the triangle's normal inside the triangle): the barycentric coordinates of the
-/// stretch's two ends on the triangle, the one nearer `a` first; None where no part of
-/// the segment lies over it. Barycentric coordinates are affine along the segment, so
-/// the stretch is the segment's parameters where all three stay non-negative.
-pub fn segment_over_triangle(a: &Vec3, b: &Vec3, tri: &[Vec3; 3]) -> Option<([f64; 3], [f64; 3])> {
-    let [p, q, r] = tri;
-    let (from, to) = (barycentric_in_plane(a, p, q, r)?, barycentric_in_plane(b, p, q, r)?);
-    let (mut lo, mut hi) = (0.0f64, 1.0f64);
-    for k in 0..3 {
-        let change = to[k] - from[k];
-        if change.abs() <= 1e-15 {
-            if from[k] < 0.0 {
-                return None;
-            }
-        } else if change > 0.0 {
-            lo = lo.max(-from[k] / change);
-        } else {
-            hi = hi.min(-from[k] / change);
-        }
-    }
-    let at = |t: f64| std::array::from_fn(|k| (from[k] + (to[k] - from[k]) * t).max(0.0));
-    (lo <= hi).then(|| (at(lo), at(hi)))
 }

@@ -238,10 +238,10 @@ impl CutScript {
                 if step > MAX_SCRIPT_STEPS {
                     return Err(err(path(""), format!("step {step} is beyond the limit of {MAX_SCRIPT_STEPS} steps")));
                 }
-                if let Some(prev) = keys.last().map(|p: &CompiledKey| p.step) {
-                    if step <= prev {
-                        return Err(err(path(""), format!("keyframes must be in increasing step order; step {step} follows step {prev}")));
-                    }
+                if let Some(prev) = keys.last().map(|p: &CompiledKey| p.step)
+                    && step <= prev
+                {
+                    return Err(err(path(""), format!("keyframes must be in increasing step order; step {step} follows step {prev}")));
                 }
                 let [w, x, y, z] = k.orientation_wxyz;
                 let norm = (w * w + x * x + y * y + z * z).sqrt();
@@ -269,10 +269,10 @@ impl CutScript {
                 return Err(err(format!("expect.{name}"), "give at least one of min, max, equals, approx".into()));
             }
         }
-        if let Some(h) = &self.expect.state_hash {
-            if h.len() != 16 || !h.chars().all(|c| c.is_ascii_hexdigit()) {
-                return Err(err("expect.state_hash".into(), format!("a state hash is 16 hexadecimal digits, got {h:?}")));
-            }
+        if let Some(h) = &self.expect.state_hash
+            && (h.len() != 16 || !h.chars().all(|c| c.is_ascii_hexdigit()))
+        {
+            return Err(err("expect.state_hash".into(), format!("a state hash is 16 hexadecimal digits, got {h:?}")));
         }
         Ok(CompiledScript { tracks, steps, expect: self.expect.clone() })
     }

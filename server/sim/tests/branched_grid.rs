@@ -359,7 +359,7 @@ fn largest_and_held_motion(topo: &cutsim_sim::grid::topology::Topology) -> (f64,
 fn an_embedded_support_holds_level_0_points_where_a_coarse_level_has_no_node() {
     // By the level's nodes, the region holds nothing at level 2, and the error says so
     // and names the rule that holds it.
-    let refused = bar_held_inside("coarse-nodes", 2).err().expect("no node in the region at level 2");
+    let refused = bar_held_inside("coarse-nodes", 2).expect_err("no node in the region at level 2");
     assert_eq!(refused.path, "model.branched-grid.fixed[0]");
     assert!(refused.message.contains("\"support\": \"embedded\""), "{}", refused.message);
     // Embedded, the same region holds the level-0 points in it: springs only (none is a

@@ -223,7 +223,7 @@ impl Problem {
                 let node = topo.elements.nodes[e as usize][corner] as usize;
                 if !named[node] {
                     named[node] = true;
-                    if seen % self.sample_stride == 0 {
+                    if seen.is_multiple_of(self.sample_stride) {
                         out.push((v, corner));
                     }
                     seen += 1;

@@ -429,7 +429,7 @@ impl Assessor {
             self.active_time_s += self.dt;
         }
         self.last_position = Some(p);
-        if self.steps % self.jerk_every == 0 {
+        if self.steps.is_multiple_of(self.jerk_every) {
             self.jerk_window.rotate_left(1);
             self.jerk_window[3] = p;
             self.jerk_filled = (self.jerk_filled + 1).min(4);

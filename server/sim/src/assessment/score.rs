@@ -32,20 +32,20 @@ pub fn score(task: &Task, a: &Assessment) -> Score {
     if let (Some(coverage), false) = (a.coverage, a.completed) {
         failures.push(format!("coverage {:.0} % of the plan is below the task's {:.0} %", coverage * 100.0, task.min_coverage * 100.0));
     }
-    if let (Some(plan), Some(max)) = (&task.plan, a.deviation_max_mm) {
-        if max > plan.band_m * 1e3 {
-            failures.push(format!("the cut strayed {max:.1} mm from the plan, outside its band of ±{:.1} mm", plan.band_m * 1e3));
-        }
+    if let (Some(plan), Some(max)) = (&task.plan, a.deviation_max_mm)
+        && max > plan.band_m * 1e3
+    {
+        failures.push(format!("the cut strayed {max:.1} mm from the plan, outside its band of ±{:.1} mm", plan.band_m * 1e3));
     }
-    if let (Some((_, tolerance)), Some(rms)) = (task.depth, a.depth_error_rms_mm) {
-        if rms > tolerance * 1e3 {
-            failures.push(format!("the depth was off by {rms:.1} mm RMS, beyond the tolerance of {:.1} mm", tolerance * 1e3));
-        }
+    if let (Some((_, tolerance)), Some(rms)) = (task.depth, a.depth_error_rms_mm)
+        && rms > tolerance * 1e3
+    {
+        failures.push(format!("the depth was off by {rms:.1} mm RMS, beyond the tolerance of {:.1} mm", tolerance * 1e3));
     }
-    if let (Some(limit), Some(time)) = (task.force_limit_n, a.time_above_force_limit_s) {
-        if time > 0.0 {
-            failures.push(format!("{time:.3} s above the force limit of {limit} N"));
-        }
+    if let (Some(limit), Some(time)) = (task.force_limit_n, a.time_above_force_limit_s)
+        && time > 0.0
+    {
+        failures.push(format!("{time:.3} s above the force limit of {limit} N"));
     }
     if a.no_go_entries > 0 {
         failures.push(format!("{} entr{} into no-go regions", a.no_go_entries, if a.no_go_entries == 1 { "y" } else { "ies" }));

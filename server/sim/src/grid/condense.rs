@@ -300,7 +300,7 @@ pub fn full_subcubes(voxels: &[CellVoxel], levels: u32) -> Vec<(u32, u32, u16)> 
         let mut level = 0;
         while level < levels {
             let size = 1usize << (3 * (level + 1));
-            let aligned = start as usize % size == 0;
+            let aligned = (start as usize).is_multiple_of(size);
             if !aligned || p + size - 1 > run_end[p] {
                 break;
             }

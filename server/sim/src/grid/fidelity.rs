@@ -139,10 +139,10 @@ pub fn time_probe_with(grid: &mut BranchedGrid, warmup: usize, steps: usize, sto
             histogram.record(elapsed);
             iterations += u64::from(grid.last_solve().0);
         }
-        if let Some(limit) = stop_above_us {
-            if index >= warmup + 20 && histogram.quantile_ns(0.5) as f64 / 1e3 > limit {
-                break;
-            }
+        if let Some(limit) = stop_above_us
+            && index >= warmup + 20 && histogram.quantile_ns(0.5) as f64 / 1e3 > limit
+        {
+            break;
         }
     }
     let n = histogram.count().max(1) as f64;

@@ -228,7 +228,7 @@ impl Multigrid {
         let levels = self.current.as_deref_mut()?;
         // A step may ask more than once (a multirate deformation step's compliance
         // solves before its own): the coarse operators are assembled once.
-        if fresh || (step % REFRESH_EVERY == 0 && self.assembled_at != Some(step)) {
+        if fresh || (step.is_multiple_of(REFRESH_EVERY) && self.assembled_at != Some(step)) {
             levels.assemble(rotations, a_mass, a_stiff, &mut self.rotated);
             levels.hierarchy.update();
             self.assembled_at = Some(step);

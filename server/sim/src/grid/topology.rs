@@ -430,9 +430,7 @@ impl Topology {
                 let n2 = n1 & !(1 << axis);
                 let Some(&(c2, _)) = around.iter().find(|&&(_, n)| n == n2) else { continue };
                 let key = (self.layout.cell_index(c1), axis);
-                if !faces.contains_key(&key) {
-                    faces.insert(key, self.face_pairs(c1, axis));
-                }
+                faces.entry(key).or_insert_with(|| self.face_pairs(c1, axis));
                 let _ = c2;
                 for &(a, b) in &faces[&key] {
                     classes.union(index_of(&slots, a), index_of(&slots, b));
@@ -754,7 +752,7 @@ mod tests {
                 panic!("step {s}: {diff} ({report:?})");
             }
             // Only the corners of the cells that held the voxels were re-decided.
-            let cells: BTreeSet<usize> = indices.iter().filter_map(|&i| (report.voxels_removed > 0).then(|| t.layout.cell_index(t.layout.cell_of_voxel(t.layout.voxel_coords(i))))).collect();
+            let cells: BTreeSet<usize> = if report.voxels_removed > 0 { indices.iter().map(|&i| t.layout.cell_index(t.layout.cell_of_voxel(t.layout.voxel_coords(i)))).collect() } else { BTreeSet::new() };
             assert!(report.points.len() <= 8 * cells.len());
             if s == 1 {
                 assert_eq!(t.pieces(), 2, "the slab separates the two halves");

@@ -134,18 +134,18 @@ impl Scene {
                         check_box(origin, &format!("model.msm.fixed[{i}].box"), min_m, max_m)?;
                     }
                 }
-                if let Some(friction) = &msm.material.friction {
-                    if friction.dynamic_coefficient.get() > friction.static_coefficient.get() {
-                        return Err(SceneError::new(
-                            origin,
-                            "model.msm.material.friction.dynamic_coefficient",
-                            format!(
-                                "the dynamic friction coefficient ({}) must not exceed the static one ({}): skin that slides would hold harder than skin that sticks",
-                                friction.dynamic_coefficient.get(),
-                                friction.static_coefficient.get()
-                            ),
-                        ));
-                    }
+                if let Some(friction) = &msm.material.friction
+                    && friction.dynamic_coefficient.get() > friction.static_coefficient.get()
+                {
+                    return Err(SceneError::new(
+                        origin,
+                        "model.msm.material.friction.dynamic_coefficient",
+                        format!(
+                            "the dynamic friction coefficient ({}) must not exceed the static one ({}): skin that slides would hold harder than skin that sticks",
+                            friction.dynamic_coefficient.get(),
+                            friction.static_coefficient.get()
+                        ),
+                    ));
                 }
                 if let Some(i) = self.tools.iter().position(|t| t.cutting_shape.is_some()) {
                     return Err(SceneError::new(

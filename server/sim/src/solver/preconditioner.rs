@@ -72,10 +72,10 @@ impl BlockJacobi {
 /// inverse of its diagonal (zero where that is zero).
 pub fn invert_spd(m: &Matrix3<f64>) -> Matrix3<f64> {
     let scale = m[(0, 0)].abs() + m[(1, 1)].abs() + m[(2, 2)].abs();
-    if scale > 0.0 && m.determinant().abs() > 1e-12 * scale * scale * scale {
-        if let Some(inverse) = m.try_inverse() {
-            return inverse;
-        }
+    if scale > 0.0 && m.determinant().abs() > 1e-12 * scale * scale * scale
+        && let Some(inverse) = m.try_inverse()
+    {
+        return inverse;
     }
     let inv = |d: f64| if d > 0.0 { 1.0 / d } else { 0.0 };
     Matrix3::from_diagonal(&Vec3::new(inv(m[(0, 0)]), inv(m[(1, 1)]), inv(m[(2, 2)])))

@@ -195,12 +195,11 @@ pub fn parse_vti(bytes: &[u8], wanted: Option<&str>, unit_m: f64) -> Result<Labe
         Some(other) => return Err(format!("compressor {other:?} is not supported; write the file uncompressed or with vtkZLibDataCompressor")),
     };
     let extent = numbers::<6>(image.attr("WholeExtent"), "WholeExtent")?.ok_or("ImageData has no WholeExtent")?;
-    if let Some(p) = &piece {
-        if let Some(pe) = numbers::<6>(p.attr("Extent"), "Piece Extent")? {
-            if pe != extent {
-                return Err(format!("the piece's extent {pe:?} is not the whole extent {extent:?}; only single-piece files are supported"));
-            }
-        }
+    if let Some(p) = &piece
+        && let Some(pe) = numbers::<6>(p.attr("Extent"), "Piece Extent")?
+        && pe != extent
+    {
+        return Err(format!("the piece's extent {pe:?} is not the whole extent {extent:?}; only single-piece files are supported"));
     }
     let origin = numbers::<3>(image.attr("Origin"), "Origin")?.unwrap_or([0.0; 3]);
     let spacing = numbers::<3>(image.attr("Spacing"), "Spacing")?.unwrap_or([1.0; 3]);
@@ -329,7 +328,7 @@ fn b64_split(text: &[u8], header: usize) -> Result<(Vec<u8>, Vec<u8>), String> {
     if text.len() < header_chars {
         return Err("the base64 data is truncated (shorter than its header)".into());
     }
-    if text[..header_chars].contains(&b'=') || header % 3 == 0 {
+    if text[..header_chars].contains(&b'=') || header.is_multiple_of(3) {
         // Encoded separately (padded), or a header whose encoding ends on a boundary.
         let head = b64(&text[..header_chars])?;
         Ok((head, b64(&text[header_chars..])?))

@@ -246,10 +246,10 @@ impl Cutter {
                     match lip.iter().rposition(|v| Some(v) == new.first()) {
                         Some(join) => lip.truncate(join),
                         None => {
-                            if let Anchor::Tip(old) = stroke.anchor {
-                                if lip.last() == Some(&old) {
-                                    lip.pop();
-                                }
+                            if let Anchor::Tip(old) = stroke.anchor
+                                && lip.last() == Some(&old)
+                            {
+                                lip.pop();
                             }
                         }
                     }

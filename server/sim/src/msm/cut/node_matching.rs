@@ -159,7 +159,7 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
         }
     }
     for (group, name) in [(&start_ends, "start"), (&end_ends, "end")] {
-        if group.len() != 0 && group.len() != 2 {
+        if !group.is_empty() && group.len() != 2 {
             return Err(MatchError::Unsupported(format!(
                 "the removed area meets the mesh border {} times near the incision's {name} (0 or 2 supported)",
                 group.len()
@@ -323,7 +323,7 @@ fn grey_chains(input: &MatchInput) -> Result<Vec<Chain>, MatchError> {
             let Some(o) = input.topo.across(t, a, b).filter(|&o| !removed(o)) else { continue };
             let ot = input.topo.tris[o as usize];
             let on_hole = (0..3)
-                .filter(|&j| input.topo.across(o, ot[j], ot[(j + 1) % 3]).is_some_and(|r| removed(r)))
+                .filter(|&j| input.topo.across(o, ot[j], ot[(j + 1) % 3]).is_some_and(&removed))
                 .count();
             if on_hole >= 2 {
                 ears.push(o);
@@ -349,7 +349,7 @@ fn grey_chains(input: &MatchInput) -> Result<Vec<Chain>, MatchError> {
     let follow = |start: u32, used: &mut Vec<bool>| -> Chain {
         let mut vertices = vec![start];
         let mut v = start;
-        while let Some(i) = edges.binary_search_by_key(&v, |e| e.0).ok() {
+        while let Ok(i) = edges.binary_search_by_key(&v, |e| e.0) {
             if used[i] {
                 return Chain { vertices, closed: true };
             }
