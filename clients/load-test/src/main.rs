@@ -318,6 +318,14 @@ async fn load(server: &ServerProcess, plan: &LoadPlan) -> anyhow::Result<(Vec<Se
             server_surface_hash: hash,
         });
     }
+    // The load is over and its figures are taken: the real-time sessions are closed, so
+    // that the bot's script in flight gets the cores. A lockstep script runs in the idle
+    // class, and beside two real-time sessions that saturate a 2-core machine it had
+    // almost none: this phase of CI waited about ten minutes for it.
+    for s in &sessions {
+        let close = server::authed(pb::CloseSessionRequest { session_id: s.id.clone() }, &s.control)?;
+        server.sessions().await?.close_session(close).await.map_err(|e| anyhow!("closing session {} after the load: {}", s.id, e.message()))?;
+    }
     let bot_runs = bot_task.await?;
     Ok((figures, bot_runs, fault_outcomes))
 }
