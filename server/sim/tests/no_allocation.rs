@@ -199,8 +199,8 @@ fn grid_steps_with_a_probe_allocate_nothing_with_every_preconditioner() {
 #[test]
 fn grid_steps_with_a_probe_held_by_the_faces_allocate_nothing() {
     let (allocations, force) = grid_allocations_with_a_probe_held_in("", r#""solver": { "preconditioner": "cholesky" }"#, 0.0003);
-    // Held under its tip, by a face: the vertices around the thin shaft push it sideways
-    // only (radially, and about evenly round it), and without the faces it went in at 0 N.
+    // Held up under its tip, not only pushed sideways by the vertices round its shaft
+    // (without the face contacts this probe went in at 0 N).
     assert!(force.z > 0.0 && force.z > 0.9 * force.norm(), "the face under the thin probe's tip holds it: {force:?}");
     assert_eq!(allocations, 0, "steps with a thin probe held by the faces allocated");
 }

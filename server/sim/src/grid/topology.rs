@@ -428,11 +428,12 @@ impl Topology {
                     continue; // c1 must be the lower cell along axis: its corner at p has bit 1
                 }
                 let n2 = n1 & !(1 << axis);
-                let Some(&(c2, _)) = around.iter().find(|&&(_, n)| n == n2) else { continue };
-                let key = (self.layout.cell_index(c1), axis);
-                faces.entry(key).or_insert_with(|| self.face_pairs(c1, axis));
-                let _ = c2;
-                for &(a, b) in &faces[&key] {
+                // The cell across the face must be one of the cells around p too.
+                if !around.iter().any(|&(_, n)| n == n2) {
+                    continue;
+                }
+                let pairs = faces.entry((self.layout.cell_index(c1), axis)).or_insert_with(|| self.face_pairs(c1, axis));
+                for &(a, b) in pairs.iter() {
                     classes.union(index_of(&slots, a), index_of(&slots, b));
                 }
             }
