@@ -14,7 +14,8 @@
 //! - [`Factor`]: the numeric factor of one system's values on that structure, computed
 //!   on a worker thread (the models schedule it: see `grid::factorization`);
 //! - [`FactorSolve`]: `z = A_old⁻¹ r` with buffers of its own: no allocation per solve;
-//!   a supernodal factor from its copy in bfloat16 (`super::compact_factor`), a
+//!   a supernodal factor from its compact copy (`super::compact_factor`: diagonal
+//!   blocks in bfloat16, the rest in 8 bits a column), a
 //!   simplicial one (small) by faer's solves.
 //!
 //! Everything runs on one thread per call (faer's `Par::Seq`): the physics thread keeps
@@ -31,7 +32,7 @@ use faer::perm::PermRef;
 use faer::{Conj, MatMut, Par, Side};
 
 use super::block_sparse::{Block, BlockMatrix, Pattern, Scalar, at};
-use super::compact_factor::Supernodes;
+use super::compact_factor::{Compact, Supernodes};
 use super::ordering::nested_dissection;
 use super::pcg::Preconditioner;
 use crate::math::{Matrix3, Vec3};
@@ -78,7 +79,7 @@ pub struct Structure {
     /// Per entry: the block it is read from, and the position in that block.
     source: Vec<(u32, u8)>,
     symbolic: SymbolicCholesky<u32>,
-    /// A supernodal factorization's layout, for the solves in bfloat16
+    /// A supernodal factorization's layout, for the solves from its compact copy
     /// (`super::compact_factor`); None for a simplicial one (small factors), which
     /// faer's solves apply in f32.
     supernodes: Option<Supernodes>,
@@ -182,13 +183,13 @@ pub struct Factor {
 }
 
 /// A factor's values as its solves read them: a simplicial one's as computed (f32), a
-/// supernodal one's in bfloat16 (`super::compact_factor`; its f32 values stay in the
+/// supernodal one's compact copy (`super::compact_factor`; its f32 values stay in the
 /// [`FactorScratch`] they were computed in). Recycled from a factor no longer in use
 /// into the next factorization.
 #[derive(Debug, Clone, Default)]
 pub struct FactorMemory {
     values: Vec<f32>,
-    compact: Vec<u16>,
+    compact: Compact,
 }
 
 impl Structure {
@@ -205,7 +206,7 @@ impl Structure {
 
 /// What a factorization works in, kept between factorizations by whoever makes them (a
 /// worker thread): the gathered lower triangle, faer's scratch, and a supernodal
-/// factor's f32 values (only their bfloat16 copy goes with the factor); grown, never
+/// factor's f32 values (only their compact copy goes with the factor); grown, never
 /// shrunk.
 #[derive(Default)]
 pub struct FactorScratch {
@@ -218,10 +219,10 @@ impl Factor {
     /// Factors the system whose lower triangle is `lower` (from [`Structure::gather`]),
     /// in single precision, into `memory` (a factor no longer used, recycled: no
     /// allocation where it has the size); a supernodal one into the scratch's buffer,
-    /// and from there into `memory` as the bfloat16 copy its solves read. The
+    /// and from there into `memory` as the compact copy its solves read. The
     /// triangular solves stream the factor from memory every iteration, so it is kept
-    /// in single precision (half their time), a supernodal one in bfloat16 (half
-    /// again). It is computed in single precision too, since 2026-11-26: 1.4–1.7×
+    /// in single precision (half their time), a supernodal one compact (bfloat16 and
+    /// 8-bit integers: a quarter of f32's bytes in most of it). It is computed in single precision too, since 2026-11-26: 1.4–1.7×
     /// faster than in double precision and converted (the level-0 cantilever's 2.99 M
     /// entries in 28 ms against 40 ms, the CT liver's level 1 in 88 ms against 151 ms,
     /// on this project's Xeon), with half the worker's memory and the same iteration
@@ -259,7 +260,7 @@ impl Factor {
             }
             None => {
                 memory.values = out;
-                memory.compact = Vec::new();
+                memory.compact = Compact::default();
             }
         }
         factored?;
@@ -396,7 +397,6 @@ impl Preconditioner for FactorPreconditioner<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solver::compact_factor::{from_bf16, to_bf16};
 
     /// A chain of `n` nodes, each coupled to the next: SPD, with a node held.
     fn chain(n: usize) -> (BlockMatrix<f64>, Vec<bool>) {
@@ -487,11 +487,11 @@ mod tests {
         assert!(by_position < by_degree, "nested dissection {by_position} entries, minimum degree {by_degree}");
     }
 
-    /// A supernodal factor is applied from its values in bfloat16: its solve is that of
-    /// those values (faer's, in f32) to single precision, and of the system itself to
-    /// the precision of 8 significant bits.
+    /// A supernodal factor is applied from its compact copy: its solve is that of the
+    /// values the copy stands for (faer's, in f32) to single precision, and of the
+    /// system itself to the precision of about 8 significant bits.
     #[test]
-    fn a_large_factor_solves_as_its_values_in_bfloat16_do() {
+    fn a_large_factor_solves_as_its_compact_values_do() {
         let (a, active) = lattice(11);
         let n = a.rows();
         let positions = lattice_positions(11);
@@ -509,7 +509,8 @@ mod tests {
         let mut z = vec![Vec3::zeros(); n];
         solve.with(&factor, None).apply(&b, &mut z);
 
-        let rounded: Vec<f32> = scratch.values.iter().map(|&v| from_bf16(to_bf16(v))).collect();
+        let supernodes = s.supernodes.as_ref().expect("supernodal");
+        let rounded = supernodes.expand(&factor.memory.compact, scratch.values.len());
         let mut rhs = vec![0f32; s.unknowns];
         for (i, &f) in s.first.iter().enumerate() {
             if f != INACTIVE {
