@@ -65,7 +65,7 @@ pub fn delay_for(factor_entries: usize, unknowns: usize, step_s: f64, work: &Ste
 /// entries of L; `compact_factor`) and system products a second (3×3 blocks in f32,
 /// scalar entries) on this project's Xeon, rounded up from what the level-0
 /// cantilever's steps measured (perf, 2026-11-27: 1.1 ms an application of 2.99 M
-/// entries in bfloat16, 0.23 ms a product of 0.72 M; the 8-bit rectangles since
+/// entries in bfloat16, 0.23 ms a product of 0.72 M; the 8-bit copy since
 /// 2026-11-28 made applications faster, so this bound is looser): a lower bound on a
 /// step's time.
 const APPLIED_ENTRIES_PER_S: f64 = 3e9;
@@ -96,9 +96,9 @@ impl StepWork {
 }
 
 /// The largest factor a scene may ask for (entries of L; about 1 s to compute on this
-/// project's machine): at 40 M the factors in use and in the making take about 55–80 MB
-/// each (the compact copy the solves read: diagonal blocks' triangles twice in
-/// bfloat16, the rectangles in 8 bits),
+/// project's machine): at 40 M the factors in use and in the making take about 40–55 MB
+/// each (the compact copy the solves read: 8 bits an entry, the diagonal blocks'
+/// triangles twice),
 /// and the worker 160 MB for the single-precision values it computes them from, beside
 /// its gathered system.
 pub const MAX_FACTOR_ENTRIES: usize = 40_000_000;

@@ -14,8 +14,8 @@
 //! - [`Factor`]: the numeric factor of one system's values on that structure, computed
 //!   on a worker thread (the models schedule it: see `grid::factorization`);
 //! - [`FactorSolve`]: `z = A_old⁻¹ r` with buffers of its own: no allocation per solve;
-//!   a supernodal factor from its compact copy (`super::compact_factor`: diagonal
-//!   blocks in bfloat16, the rest in 8 bits a column), a
+//!   a supernodal factor from its compact copy (`super::compact_factor`: 8 bits an
+//!   entry, a scale per column), a
 //!   simplicial one (small) by faer's solves.
 //!
 //! Everything runs on one thread per call (faer's `Par::Seq`): the physics thread keeps
@@ -221,8 +221,8 @@ impl Factor {
     /// allocation where it has the size); a supernodal one into the scratch's buffer,
     /// and from there into `memory` as the compact copy its solves read. The
     /// triangular solves stream the factor from memory every iteration, so it is kept
-    /// in single precision (half their time), a supernodal one compact (bfloat16 and
-    /// 8-bit integers: a quarter of f32's bytes in most of it). It is computed in single precision too, since 2026-11-26: 1.4–1.7×
+    /// in single precision (half their time), a supernodal one compact (8-bit
+    /// integers with a scale per column: a quarter of f32's bytes). It is computed in single precision too, since 2026-11-26: 1.4–1.7×
     /// faster than in double precision and converted (the level-0 cantilever's 2.99 M
     /// entries in 28 ms against 40 ms, the CT liver's level 1 in 88 ms against 151 ms,
     /// on this project's Xeon), with half the worker's memory and the same iteration

@@ -5,23 +5,25 @@
 //! the level-0 cantilever of docs/fem-comparison.md, 2.99 M entries, 12 MB in single
 //! precision, faer's solves took 40 % of the physics thread (perf), about 1 ms an
 //! application on this project's Xeon. The solves stream it from memory (this Xeon
-//! streams 6–8 GB/s to one core), so every byte left out is time saved:
+//! streams 6–8 GB/s to one core), so every byte left out is time saved. The copy the
+//! solves read keeps:
 //!
-//! - each supernode's diagonal block (a third of the cantilever's entries, its upper
-//!   half zeros) has its lower triangle kept in bfloat16 (the upper half of an f32:
-//!   its range, 8 significant bits), packed twice: by columns for the forward solve,
-//!   by rows for the backward one (see [`backward`]), so each reads its copy straight
-//!   through;
-//! - the rectangles below them (two thirds) in 8-bit integers, a scale per column
-//!   (its largest magnitude over 127): a quarter of single precision's bytes.
+//! - each column's diagonal entry in f32;
+//! - the rest of each column (below the diagonal: within its supernode's diagonal block,
+//!   then in the rectangle below it) in 8-bit integers with one scale per column (its
+//!   largest magnitude over 127): a quarter of single precision's bytes;
+//! - the diagonal blocks' strict lower triangles twice, packed by columns for the
+//!   forward solve and by rows for the backward one (see [`backward`]), so that each
+//!   solve reads its copy straight through.
 //!
 //! The precision costs little: the factor is of a system tens of steps old (other
 //! rotations, other contacts), so it preconditions to that age's accuracy, not to its
 //! digits. On that cantilever (600 sagging steps) the conjugate gradient took 2.32,
 //! 2.35 and 2.36 iterations a step with 10, 8 and 7 stored mantissa bits against f32's
-//! 23 (2.34); with the rectangles in 8 bits a column (2026-11-28), 2.08 against 2.055
-//! in bfloat16 (1.2 % more), while the bytes an application reads fell from 10 MB to
-//! 6 MB. The solve's tolerance, checked on the true residual, decides the answer.
+//! 23 (2.34); on 2026-11-28, 2.055 with the whole factor in bfloat16, 2.08 with the
+//! rectangles in 8 bits, 2.085 with the diagonal blocks' too, while the bytes an
+//! application reads fell from 10 MB to about 4 MB. The solve's tolerance, checked on
+//! the true residual, decides the answer.
 //!
 //! The solves are this module's own (faer's read f32 or f64): for each supernode, its
 //! dense diagonal block's triangle and its dense rectangle below, column-major, with
@@ -34,51 +36,40 @@ use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 
 use super::kernels::dispatch;
 
-/// `x` in bfloat16, rounded to nearest, ties to even (finite `x`).
-#[inline(always)]
-pub fn to_bf16(x: f32) -> u16 {
-    let bits = x.to_bits();
-    ((bits + 0x7fff + ((bits >> 16) & 1)) >> 16) as u16
-}
-
-/// The f32 a bfloat16 stands for (exact).
-#[inline(always)]
-pub fn from_bf16(h: u16) -> f32 {
-    f32::from_bits(u32::from(h) << 16)
-}
-
 /// The largest magnitude an 8-bit entry holds (symmetric: -127..=127).
 const LEVELS: f32 = 127.0;
 
-/// A column of a rectangle in 8 bits: `out` gets each entry over the column's scale,
-/// rounded; returns the scale (the largest magnitude over [`LEVELS`]; 0 for a column of
-/// zeros).
-fn quantize(column: &[f32], out: &mut Vec<i8>) -> f32 {
-    let largest = column.iter().fold(0f32, |m, v| m.max(v.abs()));
-    if !(largest > 0.0) {
-        out.extend(column.iter().map(|_| 0i8));
-        return 0.0;
-    }
-    let scale = largest / LEVELS;
-    // Rounded to nearest, ties to even, by adding and taking off 1.5·2²³ (exact for
-    // magnitudes under 2²²; `f32::round` is a library call on the baseline x86-64,
-    // a fifth of the worker's copy).
+/// The scale of a column's entries in 8 bits: the largest magnitude over [`LEVELS`]
+/// (0 for a column of zeros).
+fn scale_of(column: &[f32]) -> f32 {
+    column.iter().fold(0f32, |m, v| m.max(v.abs())) / LEVELS
+}
+
+/// Entries of a column in 8 bits at `scale` (from [`scale_of`]) into `out`: each over
+/// the scale, rounded to nearest, ties to even, by adding and taking off 1.5·2²³ (exact
+/// for magnitudes under 2²²; `f32::round` is a library call on the baseline x86-64,
+/// a fifth of the worker's copy).
+fn quantize(column: &[f32], scale: f32, out: &mut Vec<i8>) {
     const ROUND: f32 = 12_582_912.0;
+    if !(scale > 0.0) {
+        out.extend(column.iter().map(|_| 0i8));
+        return;
+    }
     out.extend(column.iter().map(|&v| (((v / scale) + ROUND) - ROUND).clamp(-LEVELS, LEVELS) as i8));
-    scale
 }
 
 /// A factor's values as the solves read them (see the module's doc).
 #[derive(Debug, Clone, Default)]
 pub struct Compact {
-    /// Per supernode: its diagonal block's lower triangle in bfloat16, packed by
-    /// columns (column j from the diagonal down), then packed by rows (row j up to the
-    /// diagonal): each solve reads its copy from start to end.
-    triangles: Vec<u16>,
+    /// Per supernode: its diagonal block's strict lower triangle in 8 bits, packed by
+    /// columns (column j below the diagonal), then packed by rows (row i left of it).
+    triangles: Vec<i8>,
     /// Per supernode: its rectangle (rows × columns, column-major) in 8 bits.
     rectangles: Vec<i8>,
-    /// Per column of the factor: the scale of its rectangle's entries.
+    /// Per column of the factor: the scale of its 8-bit entries.
     scales: Vec<f32>,
+    /// Per column of the factor: its diagonal entry.
+    diagonal: Vec<f32>,
 }
 
 /// What the solves need of a supernodal symbolic factorization (faer's), copied once
@@ -104,6 +95,11 @@ pub struct Supernodes {
     most_columns: usize,
 }
 
+/// Entries of a strict lower triangle of `columns` columns.
+fn strict_triangle(columns: usize) -> usize {
+    columns * (columns - 1) / 2
+}
+
 impl Supernodes {
     pub fn of(symbolic: &SymbolicSupernodalCholesky<u32>) -> Supernodes {
         let n = symbolic.n_supernodes();
@@ -123,7 +119,7 @@ impl Supernodes {
             rows_at.push(rows.len() as u32);
             rows.extend_from_slice(&symbolic.row_idx()[at..at + below]);
             triangles_at.push(triangles);
-            triangles += columns * (columns + 1);
+            triangles += 2 * strict_triangle(columns);
             rectangles_at.push(rectangles);
             rectangles += below * columns;
             widest = widest.max(below);
@@ -140,18 +136,26 @@ impl Supernodes {
         out.triangles.clear();
         out.rectangles.clear();
         out.scales.clear();
+        out.diagonal.clear();
         for s in 0..self.begin.len() - 1 {
             let (columns, height) = self.shape(s);
             let values = &values[self.values_at[s]..self.values_at[s + 1]];
+            let by_columns = out.triangles.len();
             for j in 0..columns {
-                out.triangles.extend(values[j * height + j..j * height + columns].iter().map(|&v| to_bf16(v)));
-            }
-            for i in 0..columns {
-                out.triangles.extend((0..=i).map(|j| to_bf16(values[j * height + i])));
-            }
-            for j in 0..columns {
-                let scale = quantize(&values[j * height + columns..(j + 1) * height], &mut out.rectangles);
+                let column = &values[j * height..(j + 1) * height];
+                let scale = scale_of(&column[j + 1..]);
+                out.diagonal.push(column[j]);
                 out.scales.push(scale);
+                quantize(&column[j + 1..columns], scale, &mut out.triangles);
+                quantize(&column[columns..], scale, &mut out.rectangles);
+            }
+            // Row i's entries left of the diagonal, from the copy by columns (the same
+            // 8-bit values: both solves apply one factor, so the preconditioner stays
+            // symmetric).
+            for i in 1..columns {
+                for j in 0..i {
+                    out.triangles.push(out.triangles[by_columns + triangle_at(columns, j) + (i - j - 1)]);
+                }
             }
         }
     }
@@ -164,15 +168,15 @@ impl Supernodes {
         for s in 0..self.begin.len() - 1 {
             let (columns, height) = self.shape(s);
             let (first, _, rows, triangles, rectangle) = self.supernode(s, compact);
-            let mut at = 0;
             for j in 0..columns {
+                let scale = compact.scales[first + j];
                 let column = &mut values[self.values_at[s] + j * height..self.values_at[s] + (j + 1) * height];
-                for i in j..columns {
-                    column[i] = from_bf16(triangles[at]);
-                    at += 1;
+                column[j] = compact.diagonal[first + j];
+                for i in j + 1..columns {
+                    column[i] = f32::from(triangles[triangle_at(columns, j) + (i - j - 1)]) * scale;
                 }
                 for k in 0..rows.len() {
-                    column[columns + k] = f32::from(rectangle[j * rows.len() + k]) * compact.scales[first + j];
+                    column[columns + k] = f32::from(rectangle[j * rows.len() + k]) * scale;
                 }
             }
         }
@@ -191,8 +195,8 @@ impl Supernodes {
         for s in 0..self.begin.len() - 1 {
             let (first, columns, rows, triangles, rectangle) = self.supernode(s, l);
             let t = &mut scratch[..rows.len()];
-            let scales = &l.scales[first..first + columns];
-            forward_supernode(&triangles[..triangles.len() / 2], rectangle, scales, &mut x[first..first + columns], t);
+            let column = Column { diagonal: &l.diagonal[first..first + columns], scales: &l.scales[first..first + columns] };
+            forward_supernode(column, &triangles[..triangles.len() / 2], rectangle, &mut x[first..first + columns], t);
             for (&row, &sum) in rows.iter().zip(t.iter()) {
                 x[row as usize] -= sum;
             }
@@ -203,8 +207,8 @@ impl Supernodes {
             for (g, &row) in g.iter_mut().zip(rows) {
                 *g = x[row as usize];
             }
-            let scales = &l.scales[first..first + columns];
-            backward_supernode(&triangles[triangles.len() / 2..], rectangle, scales, &mut x[first..first + columns], g, &mut below[..columns]);
+            let column = Column { diagonal: &l.diagonal[first..first + columns], scales: &l.scales[first..first + columns] };
+            backward_supernode(column, &triangles[triangles.len() / 2..], rectangle, &mut x[first..first + columns], g, &mut below[..columns]);
         }
     }
 
@@ -215,8 +219,8 @@ impl Supernodes {
     }
 
     /// Supernode `s`: its first column, its columns, its rectangle's rows, its diagonal
-    /// block's triangles (by columns, then by rows), its rectangle.
-    fn supernode<'a>(&'a self, s: usize, l: &'a Compact) -> (usize, usize, &'a [u32], &'a [u16], &'a [i8]) {
+    /// block's strict triangles (by columns, then by rows), its rectangle.
+    fn supernode<'a>(&'a self, s: usize, l: &'a Compact) -> (usize, usize, &'a [u32], &'a [i8], &'a [i8]) {
         let first = self.begin[s] as usize;
         let columns = self.shape(s).0;
         let rows = &self.rows[self.rows_at[s] as usize..self.rows_at[s + 1] as usize];
@@ -224,23 +228,37 @@ impl Supernodes {
     }
 }
 
-/// One supernode of `L y = b`: its diagonal block's triangle (`lower`, packed by
-/// columns) solved in place in `x` (its columns' entries), and `t = (rectangle) · x` (what the
-/// rows below take off). `rectangle`: t's rows × x's columns, column-major, in 8 bits
-/// with a scale per column (taken into x's entry, so each row's sum is one
-/// multiply-add per column).
+/// Where column `j`'s entries below the diagonal start in a strict lower triangle of
+/// `columns` columns packed by columns.
+fn triangle_at(columns: usize, j: usize) -> usize {
+    j * columns - j * (j + 1) / 2
+}
+
+/// A supernode's columns' diagonal entries and scales.
+#[derive(Clone, Copy)]
+pub struct Column<'a> {
+    pub diagonal: &'a [f32],
+    pub scales: &'a [f32],
+}
+
+/// One supernode of `L y = b`: its diagonal block's triangle solved in place in `x`
+/// (its columns' entries), and `t = (rectangle) · x` (what the rows below take off).
+/// `by_columns`: the block's strict lower triangle packed by columns; `rectangle`: t's
+/// rows × x's columns, column-major; both in 8 bits, each column's scale taken into
+/// its solved entry (so each update is one multiply-add).
 #[inline(always)]
-fn forward(lower: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], t: &mut [f32]) {
+fn forward(column: Column<'_>, by_columns: &[i8], rectangle: &[i8], x: &mut [f32], t: &mut [f32]) {
     let columns = x.len();
     let rows = t.len();
     let mut at = 0;
     for j in 0..columns {
-        let column = &lower[at..at + columns - j];
-        at += columns - j;
-        let xj = x[j] / from_bf16(column[0]);
+        let below = &by_columns[at..at + columns - 1 - j];
+        at += columns - 1 - j;
+        let xj = x[j] / column.diagonal[j];
         x[j] = xj;
-        for (xi, &l) in x[j + 1..].iter_mut().zip(&column[1..]) {
-            *xi = from_bf16(l).mul_add(-xj, *xi);
+        let s = xj * column.scales[j];
+        for (xi, &l) in x[j + 1..].iter_mut().zip(below) {
+            *xi = f32::from(l).mul_add(-s, *xi);
         }
     }
     // The rectangle, four columns at a time (each t[k] summed in column order).
@@ -248,7 +266,7 @@ fn forward(lower: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], t: &m
     let mut j = 0;
     while j + 4 <= columns {
         let c: [&[i8]; 4] = std::array::from_fn(|q| &rectangle[(j + q) * rows..(j + q + 1) * rows]);
-        let s: [f32; 4] = std::array::from_fn(|q| x[j + q] * scales[j + q]);
+        let s: [f32; 4] = std::array::from_fn(|q| x[j + q] * column.scales[j + q]);
         for (k, tk) in t.iter_mut().enumerate() {
             let sum = f32::from(c[0][k]).mul_add(s[0], *tk);
             let sum = f32::from(c[1][k]).mul_add(s[1], sum);
@@ -258,67 +276,67 @@ fn forward(lower: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], t: &m
         j += 4;
     }
     for j in j..columns {
-        let column = &rectangle[j * rows..(j + 1) * rows];
-        let s = x[j] * scales[j];
-        for (tk, &l) in t.iter_mut().zip(column) {
+        let c = &rectangle[j * rows..(j + 1) * rows];
+        let s = x[j] * column.scales[j];
+        for (tk, &l) in t.iter_mut().zip(c) {
             *tk = f32::from(l).mul_add(s, *tk);
         }
     }
 }
 
 /// One supernode of `Lᵀ x = y`: `x` holds its columns' entries of y, solved in place;
-/// `g` the rows below, already solved; `by_rows` its diagonal block's triangle packed
-/// by rows (row j: L's block's row j up to the diagonal); `rectangle` and `scales` as in
-/// [`forward`]; `below` (as long as `x`) scratch.
+/// `g` the rows below, already solved; `by_rows` its diagonal block's strict lower
+/// triangle packed by rows (row j: L's block's row j left of the diagonal);
+/// `rectangle` as in [`forward`]; `below` (as long as `x`) scratch.
 ///
 /// The rows below go first: each column's dot product with `g` (none waits for
 /// another). Then the triangle last column first, each solved entry taken off the
-/// entries before it (a row of L, contiguous in `by_rows`): one division and one
-/// multiply-add between an entry and the next, where a dot product per column (the
-/// first version) put a whole reduction on that path and took 1.6 times the forward
-/// solve's time (now about the same).
+/// entries before it (a row of L, contiguous in `by_rows`; each entry times its own
+/// column's scale): one division and one multiply-add between an entry and the next,
+/// where a dot product per column (the first version) put a whole reduction on that
+/// path and took 1.6 times the forward solve's time (now about the same).
 ///
 /// `WIDE`: with AVX2 and FMA (only from a function compiled for them, on a CPU that
 /// has them).
 #[inline(always)]
-fn backward<const WIDE: bool>(by_rows: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], g: &[f32], below: &mut [f32]) {
+fn backward<const WIDE: bool>(column: Column<'_>, by_rows: &[i8], rectangle: &[i8], x: &mut [f32], g: &[f32], below: &mut [f32]) {
     let columns = x.len();
     let rows = g.len();
     for (j, below) in below.iter_mut().enumerate() {
-        *below = scales[j] * dot::<WIDE>(&rectangle[j * rows..(j + 1) * rows], g);
+        *below = column.scales[j] * dot::<WIDE>(&rectangle[j * rows..(j + 1) * rows], g);
     }
     for j in (0..columns).rev() {
-        let row = &by_rows[j * (j + 1) / 2..(j + 1) * (j + 2) / 2];
-        let xj = (x[j] - below[j]) / from_bf16(row[j]);
+        let row = &by_rows[j * j.saturating_sub(1) / 2..j * (j + 1) / 2];
+        let xj = (x[j] - below[j]) / column.diagonal[j];
         x[j] = xj;
-        for (xi, &l) in x[..j].iter_mut().zip(&row[..j]) {
-            *xi = from_bf16(l).mul_add(-xj, *xi);
+        for ((xi, &l), &scale) in x[..j].iter_mut().zip(row).zip(&column.scales[..j]) {
+            *xi = (f32::from(l) * scale).mul_add(-xj, *xi);
         }
     }
 }
 
 dispatch! {
     /// [`forward`], vectorized where the CPU allows.
-    pub fn forward_supernode(lower: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], t: &mut [f32]) {
-        forward(lower, rectangle, scales, x, t)
+    pub fn forward_supernode(column: Column<'_>, by_columns: &[i8], rectangle: &[i8], x: &mut [f32], t: &mut [f32]) {
+        forward(column, by_columns, rectangle, x, t)
     }
 }
 
 /// [`backward`], vectorized where the CPU allows. (Not by `dispatch!`: its dot
 /// products are written in intrinsics for AVX2, since the compiler's own vectorization
 /// of them came and went with the code around them, 2.5 times slower when it went.)
-pub fn backward_supernode(by_rows: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], g: &[f32], below: &mut [f32]) {
+pub fn backward_supernode(column: Column<'_>, by_rows: &[i8], rectangle: &[i8], x: &mut [f32], g: &[f32], below: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn wide(by_rows: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], g: &[f32], below: &mut [f32]) {
-        backward::<true>(by_rows, rectangle, scales, x, g, below)
+    unsafe fn wide(column: Column<'_>, by_rows: &[i8], rectangle: &[i8], x: &mut [f32], g: &[f32], below: &mut [f32]) {
+        backward::<true>(column, by_rows, rectangle, x, g, below)
     }
     #[cfg(target_arch = "x86_64")]
     if super::kernels::has_avx2() {
         // SAFETY: the CPU was checked to have AVX2 and FMA.
-        return unsafe { wide(by_rows, rectangle, scales, x, g, below) };
+        return unsafe { wide(column, by_rows, rectangle, x, g, below) };
     }
-    backward::<false>(by_rows, rectangle, scales, x, g, below)
+    backward::<false>(column, by_rows, rectangle, x, g, below)
 }
 
 /// `Σ lₖ gₖ` in 32 lanes (four vectors, so that four multiply-adds are in flight
@@ -403,47 +421,44 @@ mod tests {
     use super::*;
 
     #[test]
-    fn bfloat16_rounds_to_nearest_even_and_back_exactly() {
-        assert_eq!(from_bf16(to_bf16(1.0)), 1.0);
-        assert_eq!(from_bf16(to_bf16(-2.5)), -2.5);
-        // 1 + 2⁻⁸ lies halfway between 1 and 1 + 2⁻⁷: to the even one, 1.
-        assert_eq!(from_bf16(to_bf16(1.0 + 2f32.powi(-8))), 1.0);
-        // 1 + 3·2⁻⁸ lies halfway between 1 + 2⁻⁷ and 1 + 2⁻⁶: to the even one.
-        assert_eq!(from_bf16(to_bf16(1.0 + 3.0 * 2f32.powi(-8))), 1.0 + 2f32.powi(-6));
-        for x in [0.1f32, 3.3e-7, -1234.5, 7.0e12] {
-            let back = from_bf16(to_bf16(x));
-            assert!(((back - x) / x).abs() <= 2f32.powi(-8), "{x} -> {back}");
-        }
-    }
-
-    #[test]
     fn a_column_in_eight_bits_keeps_its_largest_entry_and_rounds_the_rest_to_its_scale() {
         let column = [0.5f32, -2.54, 0.0, 1e-3, 2.54];
-        let mut q = Vec::new();
-        let scale = quantize(&column, &mut q);
+        let scale = scale_of(&column);
         assert_eq!(scale, 2.54 / 127.0);
+        let mut q = Vec::new();
+        quantize(&column, scale, &mut q);
         assert_eq!(q, vec![25, -127, 0, 0, 127]);
         for (&v, &q) in column.iter().zip(&q) {
             assert!((f32::from(q) * scale - v).abs() <= 0.5 * scale * 1.0001, "{v}");
         }
+        // Ties go to the even neighbour: 1.5 and 2.5 units of the scale to 2.
+        let mut ties = Vec::new();
+        quantize(&[1.5, 2.5, -127.0], 1.0, &mut ties);
+        assert_eq!(ties, vec![2, 2, -127]);
         let mut zeros = Vec::new();
-        assert_eq!(quantize(&[0.0, 0.0], &mut zeros), 0.0);
+        assert_eq!(scale_of(&[0.0, 0.0]), 0.0);
+        quantize(&[0.0, 0.0], 0.0, &mut zeros);
         assert_eq!(zeros, vec![0, 0]);
     }
 
     /// A supernode of 11 columns over 37 rows below: the solves compiled for the
-    /// baseline and for AVX2 and FMA give the same bits, and solve its block.
+    /// baseline and for AVX2 and FMA give the same bits, and solve the block its compact
+    /// copy stands for.
     #[test]
     fn a_supernode_solves_to_the_same_bits_with_and_without_avx2() {
         let (columns, below) = (11, 37);
         let entry = |i: usize, j: usize| if i == j { 2.0 + j as f32 * 0.1 } else if i < j { 0.0 } else { ((i * 7 + j * 3) % 11) as f32 * 0.05 - 0.2 };
-        let by_columns: Vec<u16> = (0..columns).flat_map(|j| (j..columns).map(move |i| (i, j))).map(|(i, j)| to_bf16(entry(i, j))).collect();
-        let by_rows: Vec<u16> = (0..columns).flat_map(|i| (0..=i).map(move |j| (i, j))).map(|(i, j)| to_bf16(entry(i, j))).collect();
-        let (mut rectangle, mut scales) = (Vec::new(), Vec::new());
+        let (mut by_columns, mut rectangle, mut scales, mut diagonal) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for j in 0..columns {
-            let column: Vec<f32> = (0..below).map(|k| entry(columns + k, j)).collect();
-            scales.push(quantize(&column, &mut rectangle));
+            let column: Vec<f32> = (0..columns + below).map(|i| entry(i, j)).collect();
+            let scale = scale_of(&column[j + 1..]);
+            quantize(&column[j + 1..columns], scale, &mut by_columns);
+            quantize(&column[columns..], scale, &mut rectangle);
+            scales.push(scale);
+            diagonal.push(column[j]);
         }
+        let by_rows: Vec<i8> = (1..columns).flat_map(|i| (0..i).map(move |j| (i, j))).map(|(i, j)| by_columns[triangle_at(columns, j) + i - j - 1]).collect();
+        let column = Column { diagonal: &diagonal, scales: &scales };
         let x0: Vec<f32> = (0..columns).map(|j| (j as f32 * 0.7).sin()).collect();
         let g: Vec<f32> = (0..below).map(|k| (k as f32 * 0.3).cos()).collect();
         let run = |forward_fn: &dyn Fn(&mut [f32], &mut [f32]), backward_fn: &dyn Fn(&mut [f32], &[f32], &mut [f32])| {
@@ -453,10 +468,20 @@ mod tests {
             backward_fn(&mut x, &g, &mut vec![0f32; columns]);
             (y, t, x)
         };
-        let baseline = run(&|x, t| forward(&by_columns, &rectangle, &scales, x, t), &|x, g, b| backward::<false>(&by_rows, &rectangle, &scales, x, g, b));
-        // What each solve solves, with the values the compact copy stands for:
-        // L₁₁ y = x0 and t = L₂₁ y; L₁₁ᵀ x + L₂₁ᵀ g = y.
-        let l = |i: usize, j: usize| if i < columns { f64::from(from_bf16(to_bf16(entry(i, j)))) } else { f64::from(rectangle[j * below + i - columns]) * f64::from(scales[j]) };
+        let baseline = run(&|x, t| forward(column, &by_columns, &rectangle, x, t), &|x, g, b| backward::<false>(column, &by_rows, &rectangle, x, g, b));
+        // What each solve solves, with the values the compact copy stands for (close
+        // to the block's own): L₁₁ y = x0 and t = L₂₁ y; L₁₁ᵀ x + L₂₁ᵀ g = y.
+        let l = |i: usize, j: usize| match i {
+            _ if i < j => 0.0,
+            _ if i == j => f64::from(diagonal[j]),
+            _ if i < columns => f64::from(by_columns[triangle_at(columns, j) + i - j - 1]) * f64::from(scales[j]),
+            _ => f64::from(rectangle[j * below + i - columns]) * f64::from(scales[j]),
+        };
+        for i in 0..columns + below {
+            for j in 0..columns {
+                assert!((l(i, j) - f64::from(entry(i, j))).abs() <= 0.5 * f64::from(scales[j]) * 1.0001, "entry {i}, {j}");
+            }
+        }
         let (y, t, x) = &baseline;
         for i in 0..columns {
             let lower: f64 = (0..=i).map(|j| l(i, j) * f64::from(y[j])).sum();
@@ -471,15 +496,15 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         if crate::solver::kernels::has_avx2() {
             #[target_feature(enable = "avx2,fma")]
-            unsafe fn forward_wide(lower: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], t: &mut [f32]) {
-                forward(lower, rectangle, scales, x, t)
+            unsafe fn forward_wide(column: Column<'_>, by_columns: &[i8], rectangle: &[i8], x: &mut [f32], t: &mut [f32]) {
+                forward(column, by_columns, rectangle, x, t)
             }
             #[target_feature(enable = "avx2,fma")]
-            unsafe fn backward_wide(by_rows: &[u16], rectangle: &[i8], scales: &[f32], x: &mut [f32], g: &[f32], below: &mut [f32]) {
-                backward::<true>(by_rows, rectangle, scales, x, g, below)
+            unsafe fn backward_wide(column: Column<'_>, by_rows: &[i8], rectangle: &[i8], x: &mut [f32], g: &[f32], below: &mut [f32]) {
+                backward::<true>(column, by_rows, rectangle, x, g, below)
             }
             // SAFETY: the CPU was checked to have AVX2 and FMA.
-            let wide = run(&|x, t| unsafe { forward_wide(&by_columns, &rectangle, &scales, x, t) }, &|x, g, b| unsafe { backward_wide(&by_rows, &rectangle, &scales, x, g, b) });
+            let wide = run(&|x, t| unsafe { forward_wide(column, &by_columns, &rectangle, x, t) }, &|x, g, b| unsafe { backward_wide(column, &by_rows, &rectangle, x, g, b) });
             let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&baseline.0), bits(&wide.0));
             assert_eq!(bits(&baseline.1), bits(&wide.1));

@@ -13,9 +13,9 @@
 //!   iteration count does not grow with resolution;
 //! - [`cholesky`]: a sparse Cholesky factor of a recent system (faer's), the other such
 //!   preconditioner: computed on a worker, reused for many steps;
-//! - [`compact_factor`]: its triangular solves, from a compact copy (diagonal blocks
-//!   in bfloat16, the rest in 8 bits a column: about a third of f32's memory
-//!   traffic per application);
+//! - [`compact_factor`]: its triangular solves, from a compact copy (8 bits an entry
+//!   with a scale per column, diagonals in f32: a fifth of f32's memory traffic per
+//!   application);
 //! - [`ordering`]: the order its factorization eliminates the nodes in (nested
 //!   dissection by position: a smaller factor than minimum degree);
 //! - [`kernels`]: the per-step kernels — element rotation and scatter, block-row products
