@@ -222,7 +222,8 @@ impl Factor {
     /// and from there into `memory` as the compact copy its solves read. The
     /// triangular solves stream the factor from memory every iteration, so it is kept
     /// in single precision (half their time), a supernodal one compact (8-bit
-    /// integers with a scale per column: a quarter of f32's bytes). It is computed in single precision too, since 2026-11-26: 1.4–1.7×
+    /// integers with a scale per column: a quarter of f32's bytes). It is computed in
+    /// single precision too, since 2026-11-26: 1.4–1.7×
     /// faster than in double precision and converted (the level-0 cantilever's 2.99 M
     /// entries in 28 ms against 40 ms, the CT liver's level 1 in 88 ms against 151 ms,
     /// on this project's Xeon), with half the worker's memory and the same iteration
