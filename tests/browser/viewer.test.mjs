@@ -323,6 +323,12 @@ test('a session named with markup runs no script in the viewer', async () => {
     const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
     page.on('console', (m) => m.type() === 'error' && consoleErrors.push(m.text()));
     page.on('pageerror', (e) => consoleErrors.push(String(e)));
+    // The schema arrives late, as on a slow host: the page's 'load' does not wait for it,
+    // and signing in at once must still work (the forms are wired before that fetch).
+    await page.route('**/cutsim.binpb', async (route) => {
+      await new Promise((r) => setTimeout(r, 2_000));
+      await route.continue();
+    });
     const response = await page.goto(`http://127.0.0.1:${httpPort}/?session=${id}&token=${created.observe_token}`);
     const csp = response.headers()['content-security-policy'] || '';
     assert.match(csp, /script-src 'self' 'sha256-/, 'a strict CSP: own scripts and the import map by hash');

@@ -80,7 +80,7 @@ async function refreshSessions() {
     status.dataset.state = 'up';
     list.replaceChildren(
       ...sessions.map((s) => {
-        const tr = row(button('open', s.id, () => open(s.id)), s.label, s.scene, formatAge(s.age_s), `${Math.round(s.achieved_rate_hz)} Hz`, s.status, s.viewers);
+        const tr = row(button('open', s.id, () => openWhenReady(s.id).catch(fail)), s.label, s.scene, formatAge(s.age_s), `${Math.round(s.achieved_rate_hz)} Hz`, s.status, s.viewers);
         tr.dataset.session = s.id;
         if (panels.has(s.id)) tr.classList.add('open');
         return tr;
@@ -155,15 +155,29 @@ async function replay(recorded) {
   }
   const created = await response.json();
   rememberToken(created.session_id, created.observe_token);
-  return open(created.session_id, created.observe_token, created.control_token);
+  return openWhenReady(created.session_id, created.observe_token, created.control_token);
+}
+
+// The schema loads in the background; whatever draws a session waits for it.
+let protocolReady = null;
+
+/** Opens a session once the schema has loaded (a panel decodes frames with it). */
+async function openWhenReady(id, token, controlToken) {
+  await protocolReady;
+  return open(id, token, controlToken);
 }
 
 async function main() {
-  await loadProtocol();
-  document.querySelector('#operator-token').value = operatorToken();
+  // Everything a user can touch is wired before the first await: the page's 'load'
+  // event does not wait for the schema's fetch, and a form submitted before its handler
+  // exists would reload the page (dropping the session in the address), while a token
+  // typed before this line ran would be overwritten by the stored one.
+  protocolReady = loadProtocol();
+  const operatorInput = document.querySelector('#operator-token');
+  if (!operatorInput.value) operatorInput.value = operatorToken();
   document.querySelector('#operator-form').onsubmit = (e) => {
     e.preventDefault();
-    sessionStorage.setItem('cutsim-operator', document.querySelector('#operator-token').value.trim());
+    sessionStorage.setItem('cutsim-operator', operatorInput.value.trim());
     refreshSessions();
   };
   document.querySelector('#recordings-form').onsubmit = (e) => {
@@ -176,7 +190,7 @@ async function main() {
     const token = document.querySelector('#token-value').value.trim();
     if (id && token) {
       rememberToken(id, token);
-      open(id, token);
+      openWhenReady(id, token).catch(fail);
     }
   };
   const params = new URLSearchParams(location.search);
@@ -190,12 +204,15 @@ async function main() {
     const rest = params.toString();
     history.replaceState(null, '', `${location.pathname}${rest ? `?${rest}` : ''}${location.hash}`);
   }
+  await protocolReady;
   await refreshSessions();
   if (id) open(id);
   setInterval(refreshSessions, 2000);
 }
 
-main().catch((e) => {
+function fail(e) {
   window.cutsimViewer.errors.push(String(e));
   document.querySelector('#server-status').textContent = `cannot start the viewer: ${e.message}`;
-});
+}
+
+main().catch(fail);
