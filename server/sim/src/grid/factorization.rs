@@ -308,10 +308,11 @@ impl Factorization {
     /// After step `step`'s solve: when `prepare` chose this step, hands `system`'s values
     /// to the worker (swapped for a spare buffer, which the next step's assembly
     /// overwrites), due after the factor's delay; after a cut, with the nodes' rest
-    /// `positions` to order the new structure by.
-    pub fn after_solve(&mut self, step: u64, system: &mut BlockMatrix<f32>, active: &[bool], positions: &[Vec3], rotations: &[Matrix3<f64>]) {
+    /// `positions` to order the new structure by. Returns whether it took `system`'s
+    /// values.
+    pub fn after_solve(&mut self, step: u64, system: &mut BlockMatrix<f32>, active: &[bool], positions: &[Vec3], rotations: &[Matrix3<f64>]) -> bool {
         if !std::mem::take(&mut self.hand_over) {
-            return;
+            return false;
         }
         // The factor in use fits this system (see `topology_changed`); without one (after
         // a cut) the worker makes the structure first.
@@ -353,6 +354,7 @@ impl Factorization {
             self.precomputed = Some(run(&job, &mut FactorScratch::default()));
         }
         self.pending = Some(Pending { due, generation: self.generation, job });
+        true
     }
 }
 

@@ -24,7 +24,7 @@ use nalgebra::SVector;
 use super::hex::Mat24;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
-use crate::solver::block_sparse::{Block, BlockMatrix, Pattern, Scatter};
+use crate::solver::block_sparse::{Block, BlockMatrix, BlockSet, Pattern, Scatter};
 use crate::solver::kernels::{Planar24, RowProduct, rotate_and_multiply, rotated_multiply, scatter_element};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
 use crate::solver::predictor::Predictor;
@@ -143,6 +143,17 @@ pub struct Dynamics {
     stiffness_scale: f64,
     /// `system` changed since `diagonal` and `jacobi` were taken from it.
     diagonal_stale: bool,
+    /// `system` holds the tissue's system for `stiffness` as it stands (the elements'
+    /// part, then the mass and the supports at `system_scales`) plus the contacts added
+    /// on the blocks in `contacted`: a step that changes few blocks of the elements'
+    /// part refreshes only those and the contacted ones (see `assemble`).
+    system_kept: bool,
+    /// (mass factor, supports' factor) the kept system was made with.
+    system_scales: (f64, f64),
+    /// The blocks the last step's contacts were added to.
+    contacted: BlockSet,
+    /// The blocks this step's assembly refreshes (scratch).
+    refresh: BlockSet,
     /// An element's stiffness in the world frame (scratch).
     rotated: Box<Planar24>,
     scatter: Scatter,
@@ -224,6 +235,9 @@ impl Dynamics {
         self.first_element = first_elements(topo);
         self.stiffness.clear();
         self.stiffness.resize(pattern.blocks(), [0.0; 12]);
+        self.contacted.reset(pattern.blocks());
+        self.refresh.reset(pattern.blocks());
+        self.system_kept = false;
         self.system = BlockMatrix::zeros(pattern);
         self.scattered.clear();
         self.scattered.resize(topo.elements.len(), None);
@@ -277,6 +291,15 @@ impl Dynamics {
         // step), and `stiffness` is remade when keeping pays again.
         let direct = remake && most_moved && self.most_moved_last;
         self.most_moved_last = most_moved;
+        // When the elements' part is only touched up (not remade), the step's system is
+        // the last one with the blocks that changed made again: those of the elements
+        // re-rotated now and those the last contacts were added to. Each is made as the
+        // whole assembly makes it (its part, its mass, its supports, in that order), so
+        // the bits are those of the whole assembly. The consistent mass touches every
+        // block: it takes the whole assembly.
+        let consistent = settings.mass == MassModel::Consistent;
+        let scales = (a_mass, a_contact);
+        let touch_up = !remake && !consistent && self.system_kept && self.system_scales == scales;
         if remake {
             // Not zeroed whole: every live element stores the blocks it writes first
             // (`Scatter::first`), and only the blocks none of them writes are zeroed
@@ -296,7 +319,6 @@ impl Dynamics {
         // One pass over the elements: f_el − (β + h) K_R v, and the element's blocks of
         // the system where they moved.
         let damping = settings.beta_s + h;
-        let consistent = settings.mass == MassModel::Consistent;
         let to_f32 = |r: &Matrix3<f64>| -> [[f32; 3]; 3] { std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32)) };
         for e in 0..topo.elements.len() {
             if !topo.elements.alive[e] {
@@ -324,6 +346,9 @@ impl Dynamics {
                     rotate_and_multiply(k, &rf, &d, rotated, &mut f);
                     scatter_element(part, blocks, rotated, a_stiff as f32, first);
                     self.scattered[e] = Some(r);
+                    if touch_up {
+                        blocks.iter().for_each(|&b| self.refresh.insert(b));
+                    }
                 }
             }
             for c in 0..8 {
@@ -331,8 +356,18 @@ impl Dynamics {
             }
         }
         // The step's system: the elements' part, then the mass, the supports and (later)
-        // the contacts.
-        if !direct {
+        // the contacts; touched up where few blocks changed (a quarter of the blocks
+        // costs about what a whole copy does).
+        if touch_up {
+            let (refresh, contacted) = (&mut self.refresh, &self.contacted);
+            contacted.iter().for_each(|b| refresh.insert(b));
+        }
+        let partial = touch_up && 4 * self.refresh.len() <= self.stiffness.len();
+        if partial {
+            for b in self.refresh.iter() {
+                self.system.values[b as usize] = self.stiffness[b as usize];
+            }
+        } else if !direct {
             self.system.values.copy_from_slice(&self.stiffness);
         }
         if consistent {
@@ -346,8 +381,10 @@ impl Dynamics {
             }
         } else {
             for i in 0..n {
-                let at = self.system.pattern.diag[i] as usize;
-                self.system.add_diagonal(at, Vec3::repeat(a_mass * topo.nodes.mass[i]));
+                let at = self.system.pattern.diag[i];
+                if !partial || self.refresh.contains(at) {
+                    self.system.add_diagonal(at as usize, Vec3::repeat(a_mass * topo.nodes.mass[i]));
+                }
             }
         }
         if let Some(g) = settings.gravity {
@@ -358,8 +395,17 @@ impl Dynamics {
         // The supports' springs at coarse levels (super::support), linearised like the
         // contacts: their stiffness in the element's blocks, −h K_s v in the force.
         topo.supports.add_forces(topo, h, &mut self.force);
-        let (system, scatter) = (&mut self.system, &self.scatter);
-        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| system.add(scatter.blocks[e][8 * i + j] as usize, &block));
+        let (system, scatter, refresh) = (&mut self.system, &self.scatter, &self.refresh);
+        topo.supports.for_each_block(topo, a_contact, |e, i, j, block| {
+            let b = scatter.blocks[e][8 * i + j];
+            if !partial || refresh.contains(b) {
+                system.add(b as usize, &block);
+            }
+        });
+        self.refresh.clear();
+        self.contacted.clear();
+        self.system_kept = true;
+        self.system_scales = scales;
     }
 
     /// The tools' contacts into the assembled system and force.
@@ -381,6 +427,7 @@ impl Dynamics {
                 self.force[nodes[i] as usize] += (c.force + approach) * c.weights[i];
                 for j in 0..8 {
                     self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
+                    self.contacted.insert(blocks[8 * i + j]);
                 }
             }
         }
@@ -516,7 +563,10 @@ impl Dynamics {
     /// blow-up).
     pub fn finish_step(&mut self, topo: &mut Topology, settings: &SolverSettings, step: u64) -> f64 {
         if settings.preconditioner == Preconditioning::Cholesky {
-            self.factorization.after_solve(step, &mut self.system, &self.active, &topo.nodes.rest, &self.node_rotations);
+            // A system handed to the worker leaves a spare buffer in its place.
+            if self.factorization.after_solve(step, &mut self.system, &self.active, &topo.nodes.rest, &self.node_rotations) {
+                self.system_kept = false;
+            }
         }
         let h = settings.dt_s;
         let mut max_dv: f64 = 0.0;
@@ -887,5 +937,44 @@ mod tests {
         assert_eq!(kept.system, direct, "the same bits either way");
         kept.assemble(&mut topo, &settings);
         assert_eq!((kept.stiffness_age, &kept.system), (2, &direct), "then kept");
+    }
+
+    #[test]
+    fn a_touched_up_system_has_the_bits_of_the_whole_assembly_and_writes_only_what_changed() {
+        let settings = SolverSettings { alpha_per_s: 2.0, ..settings() };
+        let mut topo = bar();
+        let mut kept = Dynamics::new(&topo);
+        kept.assemble(&mut topo, &settings);
+        kept.assemble(&mut topo, &settings);
+        // A contact on the first element, then the far end turned past the tolerance: the
+        // next assembly makes again the far elements' blocks and the contact's.
+        let contact = PointContact { element: 0, weights: [0.125; 8], normal: Vec3::z(), stiffness: 50.0, force: Vec3::zeros(), stick_stiffness: 20.0, stick_force: Vec3::zeros(), tool_velocity: Vec3::zeros() };
+        kept.add_contacts(&topo, &settings, &[contact]);
+        let r = nalgebra::Rotation3::from_axis_angle(&Vec3::z_axis(), 3.0 * ROTATION_KEPT);
+        for i in 0..topo.nodes.len() {
+            if topo.nodes.rest[i].x > 0.016 - 1e-9 {
+                topo.nodes.x[i] = r * topo.nodes.rest[i];
+            }
+        }
+        let mut whole = kept.clone();
+        whole.system_kept = false;
+        whole.assemble(&mut topo, &settings);
+        // A block neither the contact nor a turned element touches, marked: the touch-up
+        // leaves it as it was.
+        let middle = (0..topo.elements.len()).find(|&e| topo.elements.nodes[e].iter().all(|&n| (0.006..0.010).contains(&topo.nodes.rest[n as usize].x))).expect("an element mid-bar");
+        let untouched = kept.scatter.blocks[middle][0] as usize;
+        assert!(!kept.contacted.contains(untouched as u32));
+        let before = kept.system.values[untouched][0];
+        kept.system.values[untouched][0] = -1.0;
+        kept.assemble(&mut topo, &settings);
+        assert_eq!(kept.system.values[untouched][0], -1.0, "the touch-up wrote only the blocks that changed");
+        kept.system.values[untouched][0] = before;
+        assert_eq!(kept.system, whole.system, "the same bits as the whole assembly");
+        // A system handed to the Cholesky worker is assembled whole the next step.
+        kept.system_kept = false;
+        kept.system.values.iter_mut().for_each(|b| *b = [9.0; 12]);
+        kept.assemble(&mut topo, &settings);
+        whole.assemble(&mut topo, &settings);
+        assert_eq!(kept.system, whole.system);
     }
 }

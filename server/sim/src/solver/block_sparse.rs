@@ -212,6 +212,54 @@ impl Scalar for f32 {
     }
 }
 
+/// A set of block indices, for refreshing only the blocks that changed: a flag per
+/// block and the list of those set, so clearing costs what was marked. Marking
+/// [`NO_BLOCK`] does nothing. Allocates only when it grows (a new pattern, or more
+/// marks than ever before).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BlockSet {
+    flags: Vec<bool>,
+    list: Vec<u32>,
+}
+
+impl BlockSet {
+    /// Empties the set and sizes it to a pattern of `blocks` blocks.
+    pub fn reset(&mut self, blocks: usize) {
+        self.clear();
+        self.flags.resize(blocks, false);
+    }
+
+    pub fn insert(&mut self, block: u32) {
+        if block != NO_BLOCK && !std::mem::replace(&mut self.flags[block as usize], true) {
+            self.list.push(block);
+        }
+    }
+
+    pub fn contains(&self, block: u32) -> bool {
+        block != NO_BLOCK && self.flags[block as usize]
+    }
+
+    pub fn len(&self) -> usize {
+        self.list.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.list.is_empty()
+    }
+
+    /// The blocks in the order they were first inserted.
+    pub fn iter(&self) -> impl Iterator<Item = u32> + '_ {
+        self.list.iter().copied()
+    }
+
+    pub fn clear(&mut self) {
+        for &b in &self.list {
+            self.flags[b as usize] = false;
+        }
+        self.list.clear();
+    }
+}
+
 /// A block's 3×3 values, column-major, each column padded to 4 lanes (the fourth is
 /// always zero): a column is one vector register, so a block times a 3-vector is three
 /// vector multiply-adds.
@@ -316,6 +364,21 @@ impl BlockMatrix<f32> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_block_set_keeps_each_block_once_ignores_no_block_and_clears_what_it_marked() {
+        let mut set = BlockSet::default();
+        set.reset(5);
+        for b in [3, 1, 3, NO_BLOCK, 4] {
+            set.insert(b);
+        }
+        assert_eq!(set.iter().collect::<Vec<_>>(), vec![3, 1, 4]);
+        assert!(set.contains(1) && !set.contains(0) && !set.contains(NO_BLOCK));
+        set.clear();
+        assert!(set.is_empty() && (0..5).all(|b| !set.contains(b)));
+        set.insert(0);
+        assert_eq!(set.len(), 1);
+    }
+
     use super::*;
 
     #[test]
