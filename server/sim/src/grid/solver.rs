@@ -1,6 +1,7 @@
 //! Dynamics of the branched grid: corotational hexahedra, implicit Euler on the assembled
 //! block-sparse system (crate::solver; the elements' blocks kept while their rotations
-//! stay put) solved by preconditioned conjugate gradient from a guess extrapolated from
+//! stay put, and the step's system, its diagonal and block-Jacobi inverses made again
+//! only where they changed) solved by preconditioned conjugate gradient from a guess extrapolated from
 //! the last steps' solutions, Rayleigh damping, lumped or consistent mass, fixed nodes,
 //! and penalty contacts whose stiffness enters the solve.
 //!
@@ -141,8 +142,12 @@ pub struct Dynamics {
     /// made with.
     stiffness_age: u32,
     stiffness_scale: f64,
-    /// `system` changed since `diagonal` and `jacobi` were taken from it.
+    /// `system` changed since `diagonal` and `jacobi` were taken from it: in every
+    /// row's diagonal block (`diagonal_whole`) or only in `diagonal_rows`' (a touched-up
+    /// assembly, the contacts; repeats allowed).
     diagonal_stale: bool,
+    diagonal_whole: bool,
+    diagonal_rows: Vec<u32>,
     /// `system` holds the tissue's system for `stiffness` as it stands (the elements'
     /// part, then the mass and the supports at `system_scales`) plus the contacts added
     /// on the blocks in `contacted`: a step that changes few blocks of the elements'
@@ -238,6 +243,7 @@ impl Dynamics {
         self.contacted.reset(pattern.blocks());
         self.refresh.reset(pattern.blocks());
         self.system_kept = false;
+        self.diagonal_whole = true;
         self.system = BlockMatrix::zeros(pattern);
         self.scattered.clear();
         self.scattered.resize(topo.elements.len(), None);
@@ -363,6 +369,7 @@ impl Dynamics {
             contacted.iter().for_each(|b| refresh.insert(b));
         }
         let partial = touch_up && 4 * self.refresh.len() <= self.stiffness.len();
+        self.diagonal_whole |= !partial;
         if partial {
             for b in self.refresh.iter() {
                 self.system.values[b as usize] = self.stiffness[b as usize];
@@ -382,8 +389,11 @@ impl Dynamics {
         } else {
             for i in 0..n {
                 let at = self.system.pattern.diag[i];
-                if !partial || self.refresh.contains(at) {
+                if !partial {
                     self.system.add_diagonal(at as usize, Vec3::repeat(a_mass * topo.nodes.mass[i]));
+                } else if self.refresh.contains(at) {
+                    self.system.add_diagonal(at as usize, Vec3::repeat(a_mass * topo.nodes.mass[i]));
+                    self.diagonal_rows.push(i as u32);
                 }
             }
         }
@@ -424,6 +434,7 @@ impl Dynamics {
             let v = c.point_velocity(topo);
             let approach = -c.normal * (h * c.stiffness * v.dot(&c.normal)) + c.stick_force - across * (v - c.tool_velocity) * (h * c.stick_stiffness);
             for i in 0..8 {
+                self.diagonal_rows.push(nodes[i]);
                 self.force[nodes[i] as usize] += (c.force + approach) * c.weights[i];
                 for j in 0..8 {
                     self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
@@ -552,10 +563,18 @@ impl Dynamics {
     /// The system's diagonal (the residual's metric) and its block-Jacobi inverse, once
     /// per change of the system before a solve needs them.
     fn refresh_diagonal(&mut self, topo: &Topology) {
-        for i in 0..topo.nodes.len() {
-            self.diagonal[i] = self.system.diagonal(i);
+        if std::mem::take(&mut self.diagonal_whole) {
+            for i in 0..topo.nodes.len() {
+                self.diagonal[i] = self.system.diagonal(i);
+            }
+            self.jacobi.update(&self.system, &self.active);
+        } else {
+            for &i in &self.diagonal_rows {
+                self.diagonal[i as usize] = self.system.diagonal(i as usize);
+            }
+            self.jacobi.update_rows(&self.system, &self.active, self.diagonal_rows.iter().map(|&i| i as usize));
         }
-        self.jacobi.update(&self.system, &self.active);
+        self.diagonal_rows.clear();
     }
 
     /// The third part of a step: hands the system to the Cholesky worker when it is due
@@ -940,12 +959,13 @@ mod tests {
     }
 
     #[test]
-    fn a_touched_up_system_has_the_bits_of_the_whole_assembly_and_writes_only_what_changed() {
+    fn a_touched_up_system_and_its_diagonal_have_the_bits_of_the_whole_and_write_only_what_changed() {
         let settings = SolverSettings { alpha_per_s: 2.0, ..settings() };
         let mut topo = bar();
         let mut kept = Dynamics::new(&topo);
         kept.assemble(&mut topo, &settings);
         kept.assemble(&mut topo, &settings);
+        kept.refresh_diagonal(&topo);
         // A contact on the first element, then the far end turned past the tolerance: the
         // next assembly makes again the far elements' blocks and the contact's.
         let contact = PointContact { element: 0, weights: [0.125; 8], normal: Vec3::z(), stiffness: 50.0, force: Vec3::zeros(), stick_stiffness: 20.0, stick_force: Vec3::zeros(), tool_velocity: Vec3::zeros() };
@@ -970,6 +990,12 @@ mod tests {
         assert_eq!(kept.system.values[untouched][0], -1.0, "the touch-up wrote only the blocks that changed");
         kept.system.values[untouched][0] = before;
         assert_eq!(kept.system, whole.system, "the same bits as the whole assembly");
+        // The diagonal and the block-Jacobi inverses, refreshed only in the rows that
+        // changed, are those of the whole system.
+        assert!(!kept.diagonal_whole && !kept.diagonal_rows.is_empty());
+        kept.refresh_diagonal(&topo);
+        whole.refresh_diagonal(&topo);
+        assert_eq!((&kept.diagonal, &kept.jacobi.inverse), (&whole.diagonal, &whole.jacobi.inverse));
         // A system handed to the Cholesky worker is assembled whole the next step.
         kept.system_kept = false;
         kept.system.values.iter_mut().for_each(|b| *b = [9.0; 12]);

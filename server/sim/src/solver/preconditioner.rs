@@ -32,7 +32,13 @@ impl BlockJacobi {
     pub fn update<T: Scalar>(&mut self, a: &BlockMatrix<T>, active: &[bool]) {
         let n = a.rows();
         self.inverse.resize(n, Matrix3::zeros());
-        for i in 0..n {
+        self.update_rows(a, active, 0..n);
+    }
+
+    /// Recomputes the inverses of `rows` only, when no other row's diagonal block (or
+    /// active flag) changed since the last update.
+    pub fn update_rows<T: Scalar>(&mut self, a: &BlockMatrix<T>, active: &[bool], rows: impl IntoIterator<Item = usize>) {
+        for i in rows {
             self.inverse[i] = if active[i] { invert_spd(&a.block(a.pattern.diag[i] as usize)) } else { Matrix3::zeros() };
         }
     }
