@@ -16,6 +16,7 @@ const tokens = JSON.parse(sessionStorage.getItem('cutsim-tokens') || '{}');
 // Test hooks (read-only): the browser tests read state from here.
 window.cutsimViewer = { panels, errors: [] };
 window.addEventListener('error', (e) => window.cutsimViewer.errors.push(String(e.message)));
+window.addEventListener('unhandledrejection', (e) => window.cutsimViewer.errors.push(String(e.reason)));
 
 function rememberToken(id, token) {
   tokens[id] = token;
@@ -80,7 +81,7 @@ async function refreshSessions() {
     status.dataset.state = 'up';
     list.replaceChildren(
       ...sessions.map((s) => {
-        const tr = row(button('open', s.id, () => openWhenReady(s.id).catch(fail)), s.label, s.scene, formatAge(s.age_s), `${Math.round(s.achieved_rate_hz)} Hz`, s.status, s.viewers);
+        const tr = row(button('open', s.id, () => openWhenReady(s.id)), s.label, s.scene, formatAge(s.age_s), `${Math.round(s.achieved_rate_hz)} Hz`, s.status, s.viewers);
         tr.dataset.session = s.id;
         if (panels.has(s.id)) tr.classList.add('open');
         return tr;
@@ -161,9 +162,14 @@ async function replay(recorded) {
 // The schema loads in the background; whatever draws a session waits for it.
 let protocolReady = null;
 
-/** Opens a session once the schema has loaded (a panel decodes frames with it). */
+/** Opens a session once the schema has loaded (a panel decodes frames with it); a
+ * schema that failed to load is reported by `main`, so here it only stops the panel. */
 async function openWhenReady(id, token, controlToken) {
-  await protocolReady;
+  try {
+    await protocolReady;
+  } catch {
+    return null;
+  }
   return open(id, token, controlToken);
 }
 
@@ -190,7 +196,7 @@ async function main() {
     const token = document.querySelector('#token-value').value.trim();
     if (id && token) {
       rememberToken(id, token);
-      openWhenReady(id, token).catch(fail);
+      openWhenReady(id, token);
     }
   };
   const params = new URLSearchParams(location.search);
@@ -210,9 +216,7 @@ async function main() {
   setInterval(refreshSessions, 2000);
 }
 
-function fail(e) {
+main().catch((e) => {
   window.cutsimViewer.errors.push(String(e));
   document.querySelector('#server-status').textContent = `cannot start the viewer: ${e.message}`;
-}
-
-main().catch(fail);
+});

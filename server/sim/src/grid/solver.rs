@@ -25,7 +25,7 @@ use nalgebra::SVector;
 use super::hex::Mat24;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
-use crate::solver::block_sparse::{Block, BlockMatrix, BlockSet, Pattern, Scatter};
+use crate::solver::block_sparse::{Block, BlockMatrix, IndexSet, Pattern, Scatter};
 use crate::solver::kernels::{Planar24, RowProduct, rotate_and_multiply, rotated_multiply, scatter_element};
 use crate::solver::pcg::{Convergence, LinearOperator, Pcg, PcgSettings};
 use crate::solver::predictor::Predictor;
@@ -144,10 +144,10 @@ pub struct Dynamics {
     stiffness_scale: f64,
     /// `system` changed since `diagonal` and `jacobi` were taken from it: in every
     /// row's diagonal block (`diagonal_whole`) or only in `diagonal_rows`' (a touched-up
-    /// assembly, the contacts; repeats allowed).
+    /// assembly, the contacts).
     diagonal_stale: bool,
     diagonal_whole: bool,
-    diagonal_rows: Vec<u32>,
+    diagonal_rows: IndexSet,
     /// `system` holds the tissue's system for `stiffness` as it stands (the elements'
     /// part, then the mass and the supports at `system_scales`) plus the contacts added
     /// on the blocks in `contacted`: a step that changes few blocks of the elements'
@@ -156,9 +156,9 @@ pub struct Dynamics {
     /// (mass factor, supports' factor) the kept system was made with.
     system_scales: (f64, f64),
     /// The blocks the last step's contacts were added to.
-    contacted: BlockSet,
+    contacted: IndexSet,
     /// The blocks this step's assembly refreshes (scratch).
-    refresh: BlockSet,
+    refresh: IndexSet,
     /// An element's stiffness in the world frame (scratch).
     rotated: Box<Planar24>,
     scatter: Scatter,
@@ -242,6 +242,7 @@ impl Dynamics {
         self.stiffness.resize(pattern.blocks(), [0.0; 12]);
         self.contacted.reset(pattern.blocks());
         self.refresh.reset(pattern.blocks());
+        self.diagonal_rows.reset(topo.nodes.len());
         self.system_kept = false;
         self.diagonal_whole = true;
         self.system = BlockMatrix::zeros(pattern);
@@ -389,11 +390,11 @@ impl Dynamics {
         } else {
             for i in 0..n {
                 let at = self.system.pattern.diag[i];
-                if !partial {
+                if !partial || self.refresh.contains(at) {
                     self.system.add_diagonal(at as usize, Vec3::repeat(a_mass * topo.nodes.mass[i]));
-                } else if self.refresh.contains(at) {
-                    self.system.add_diagonal(at as usize, Vec3::repeat(a_mass * topo.nodes.mass[i]));
-                    self.diagonal_rows.push(i as u32);
+                    if partial {
+                        self.diagonal_rows.insert(i as u32);
+                    }
                 }
             }
         }
@@ -434,7 +435,7 @@ impl Dynamics {
             let v = c.point_velocity(topo);
             let approach = -c.normal * (h * c.stiffness * v.dot(&c.normal)) + c.stick_force - across * (v - c.tool_velocity) * (h * c.stick_stiffness);
             for i in 0..8 {
-                self.diagonal_rows.push(nodes[i]);
+                self.diagonal_rows.insert(nodes[i]);
                 self.force[nodes[i] as usize] += (c.force + approach) * c.weights[i];
                 for j in 0..8 {
                     self.system.add(blocks[8 * i + j] as usize, &(nn * (c.weights[i] * c.weights[j])));
@@ -569,10 +570,10 @@ impl Dynamics {
             }
             self.jacobi.update(&self.system, &self.active);
         } else {
-            for &i in &self.diagonal_rows {
+            for i in self.diagonal_rows.iter() {
                 self.diagonal[i as usize] = self.system.diagonal(i as usize);
             }
-            self.jacobi.update_rows(&self.system, &self.active, self.diagonal_rows.iter().map(|&i| i as usize));
+            self.jacobi.update_rows(&self.system, &self.active, self.diagonal_rows.iter().map(|i| i as usize));
         }
         self.diagonal_rows.clear();
     }

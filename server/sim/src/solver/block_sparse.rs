@@ -212,31 +212,32 @@ impl Scalar for f32 {
     }
 }
 
-/// A set of block indices, for refreshing only the blocks that changed: a flag per
-/// block and the list of those set, so clearing costs what was marked. Marking
-/// [`NO_BLOCK`] does nothing. Allocates only when it grows (a new pattern, or more
-/// marks than ever before).
+/// A set of indices below a bound (a pattern's blocks, a matrix's rows), for refreshing
+/// only what changed: a flag per index and the list of those set, so clearing costs
+/// what was marked. Inserting [`NO_BLOCK`] does nothing. Allocates only in `reset`
+/// (room for every index), never when inserting.
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct BlockSet {
+pub struct IndexSet {
     flags: Vec<bool>,
     list: Vec<u32>,
 }
 
-impl BlockSet {
-    /// Empties the set and sizes it to a pattern of `blocks` blocks.
-    pub fn reset(&mut self, blocks: usize) {
+impl IndexSet {
+    /// Empties the set and sizes it for indices below `bound`.
+    pub fn reset(&mut self, bound: usize) {
         self.clear();
-        self.flags.resize(blocks, false);
+        self.flags.resize(bound, false);
+        self.list.reserve(bound);
     }
 
-    pub fn insert(&mut self, block: u32) {
-        if block != NO_BLOCK && !std::mem::replace(&mut self.flags[block as usize], true) {
-            self.list.push(block);
+    pub fn insert(&mut self, index: u32) {
+        if index != NO_BLOCK && !std::mem::replace(&mut self.flags[index as usize], true) {
+            self.list.push(index);
         }
     }
 
-    pub fn contains(&self, block: u32) -> bool {
-        block != NO_BLOCK && self.flags[block as usize]
+    pub fn contains(&self, index: u32) -> bool {
+        index != NO_BLOCK && self.flags[index as usize]
     }
 
     pub fn len(&self) -> usize {
@@ -247,7 +248,7 @@ impl BlockSet {
         self.list.is_empty()
     }
 
-    /// The blocks in the order they were first inserted.
+    /// The indices in the order they were first inserted.
     pub fn iter(&self) -> impl Iterator<Item = u32> + '_ {
         self.list.iter().copied()
     }
@@ -365,8 +366,8 @@ impl BlockMatrix<f32> {
 #[cfg(test)]
 mod tests {
     #[test]
-    fn a_block_set_keeps_each_block_once_ignores_no_block_and_clears_what_it_marked() {
-        let mut set = BlockSet::default();
+    fn an_index_set_keeps_each_index_once_ignores_no_block_and_clears_what_it_marked() {
+        let mut set = IndexSet::default();
         set.reset(5);
         for b in [3, 1, 3, NO_BLOCK, 4] {
             set.insert(b);
