@@ -17,6 +17,7 @@
 use super::solver::PointContact;
 use super::topology::Topology;
 use crate::math::{Matrix3, Vec3};
+use crate::solver::block_sparse::IndexSet;
 
 /// A material's friction coefficients.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -33,6 +34,65 @@ pub struct Anchor {
     pub from_tip: Vec3,
     /// The step it was last in contact.
     pub step: u64,
+}
+
+/// Every surface vertex's anchor, if it has one. A cut forgets them all (the surface
+/// around the blade is remade); forgetting visits only the vertices that were given an
+/// anchor since the last time (`held`), not the whole surface: on a large body (the
+/// layered abdomen's 100k vertices) clearing and refilling every slot after each cut
+/// made the next step 0.4 ms longer.
+#[derive(Debug, Clone, Default)]
+pub struct Anchors {
+    slots: Vec<Option<Anchor>>,
+    /// Every vertex whose slot holds an anchor is in it (some in it may since have let
+    /// go).
+    held: IndexSet,
+}
+
+impl Anchors {
+    /// `vertices` empty slots, with room for `room` without reallocating.
+    pub fn with_room(vertices: usize, room: usize) -> Anchors {
+        let mut anchors = Anchors { slots: Vec::with_capacity(room.max(vertices)), held: IndexSet::default() };
+        anchors.held.reset(room.max(vertices));
+        anchors.fit(vertices);
+        anchors
+    }
+
+    /// One slot per surface vertex (`vertices` of them), new slots empty; a shorter
+    /// surface forgets every anchor first.
+    pub fn fit(&mut self, vertices: usize) {
+        if vertices < self.slots.len() {
+            self.forget_all();
+            self.slots.truncate(vertices);
+            self.held.reset(vertices);
+        } else if vertices > self.slots.len() {
+            self.slots.resize(vertices, None);
+            self.held.grow(vertices);
+        }
+    }
+
+    /// Vertex `vertex`'s anchor (none beyond the slots).
+    pub fn get(&self, vertex: usize) -> Option<Anchor> {
+        self.slots.get(vertex).copied().flatten()
+    }
+
+    pub fn set(&mut self, vertex: usize, anchor: Anchor) {
+        self.slots[vertex] = Some(anchor);
+        self.held.insert(vertex as u32);
+    }
+
+    /// Vertex `vertex`'s slot, to change or empty an anchor it holds.
+    pub fn slot_mut(&mut self, vertex: usize) -> &mut Option<Anchor> {
+        &mut self.slots[vertex]
+    }
+
+    /// Every slot empty.
+    pub fn forget_all(&mut self) {
+        for v in self.held.iter() {
+            self.slots[v as usize] = None;
+        }
+        self.held.clear();
+    }
 }
 
 /// `I − n nᵀ`: the projection across the unit normal `n`.
@@ -75,6 +135,34 @@ mod tests {
     use super::*;
 
     const FRICTION: Friction = Friction { static_coefficient: 0.5, dynamic_coefficient: 0.4 };
+
+    #[test]
+    fn anchors_forget_every_anchor_grow_within_their_room_in_place_and_forget_all_when_shrunk() {
+        let anchor = |step| Anchor { tool: 0, from_tip: Vec3::new(0.0, 0.0, 0.001), step };
+        let mut anchors = Anchors::with_room(10, 20);
+        anchors.set(3, anchor(1));
+        anchors.set(7, anchor(2));
+        anchors.set(3, anchor(3));
+        *anchors.slot_mut(7) = None;
+        assert_eq!(anchors.get(3), Some(anchor(3)));
+        assert_eq!(anchors.get(7), None);
+        assert_eq!(anchors.get(10), None, "beyond the slots: none");
+        anchors.forget_all();
+        assert!((0..10).all(|v| anchors.get(v).is_none()));
+        // Growing within the room keeps the slots where they are and what they hold.
+        anchors.set(9, anchor(4));
+        let before = anchors.slots.as_ptr();
+        anchors.fit(20);
+        assert_eq!(anchors.slots.as_ptr(), before, "no reallocation within the room");
+        assert_eq!((anchors.slots.len(), anchors.get(9)), (20, Some(anchor(4))));
+        anchors.set(19, anchor(5));
+        anchors.forget_all();
+        assert!((0..20).all(|v| anchors.get(v).is_none()));
+        anchors.set(2, anchor(6));
+        anchors.fit(5);
+        assert_eq!(anchors.slots.len(), 5);
+        assert!((0..5).all(|v| anchors.get(v).is_none()), "a shorter surface forgets them all");
+    }
 
     #[test]
     fn within_the_static_cone_the_spring_pulls_across_the_normal_toward_the_anchor() {

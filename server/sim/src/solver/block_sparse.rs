@@ -230,6 +230,14 @@ impl IndexSet {
         self.list.reserve(bound);
     }
 
+    /// Makes room for indices below `bound` too, keeping what is in it.
+    pub fn grow(&mut self, bound: usize) {
+        if bound > self.flags.len() {
+            self.flags.resize(bound, false);
+            self.list.reserve(bound - self.list.len());
+        }
+    }
+
     pub fn insert(&mut self, index: u32) {
         if index != NO_BLOCK && !std::mem::replace(&mut self.flags[index as usize], true) {
             self.list.push(index);

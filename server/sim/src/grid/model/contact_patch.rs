@@ -133,7 +133,7 @@ impl BranchedGrid {
         for &(v, _) in &near {
             patch.vertices.push(v);
             patch.positions.push(self.frame.to_world(&self.surface.position(&self.topo, v as usize)));
-            let anchor = self.anchors.get(v as usize).copied().flatten().filter(|a| a.tool == i && a.step == self.step_index);
+            let anchor = self.anchors.get(v as usize).filter(|a| a.tool == i && a.step == self.step_index);
             patch.anchors.push(anchor.map(|a| self.frame.rotation * a.from_tip));
             // The normal it was held along this step, tool frame (the grid's own).
             let touch = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step == self.step_index);
