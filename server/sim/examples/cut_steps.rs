@@ -12,14 +12,14 @@
 //! real-time measure of the same script under both schedules is
 //! `cargo run --release -p cutsim-sim --bin accuracy-speed -- schedules`.
 
-use cutsim_sim::accuracy::schedule::{Model, scene_at};
-use cutsim_sim::math::{Pose, Quat, Vec3};
+use cutsim_sim::accuracy::schedule::{Model, Script, scene_at};
 use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 use std::time::Instant;
 
-const HOLD_STEPS: usize = 1000;
-const CUT_STEPS: usize = 2000;
+const SCRIPT: Script = Script::FULL;
+const HOLD_STEPS: usize = SCRIPT.hold_steps;
+const CUT_STEPS: usize = SCRIPT.cut_steps;
 
 fn main() -> Result<(), String> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -31,8 +31,6 @@ fn main() -> Result<(), String> {
     };
     let top = grid.broad_top().ok_or("the body has no broad top to probe")?;
     let tools = grid.tools().to_vec();
-    let blade = tools.iter().position(|t| t.can_cut);
-    let probe = tools.iter().position(|t| !t.can_cut);
     let mut commands = vec![ToolCommand::default(); tools.len()];
     let mut feedback = vec![ToolFeedback::default(); tools.len()];
     let mut times_us = Vec::with_capacity(HOLD_STEPS + CUT_STEPS);
@@ -40,16 +38,7 @@ fn main() -> Result<(), String> {
     let mut removal_steps = Vec::new();
     println!("{scene} at level {level}, single-rate, unpaced");
     for step in 0..HOLD_STEPS + CUT_STEPS {
-        commands.iter_mut().for_each(|c| *c = ToolCommand::default());
-        if step < HOLD_STEPS {
-            if let Some(p) = probe {
-                let depth = 0.004 * (step as f64 / 100.0).min(1.0);
-                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + tools[p].radius_m - depth), Quat::identity()), active: true, cut: false };
-            }
-        } else if let Some(b) = blade {
-            let x = -0.02 + 0.04 * (step - HOLD_STEPS) as f64 / CUT_STEPS as f64;
-            commands[b] = ToolCommand { pose: Pose::new(Vec3::new(top.x + x, top.y, top.z - 0.008), Quat::identity()), active: true, cut: true };
-        }
+        SCRIPT.commands(step, top, &tools, &mut commands);
         let before = grid.counters();
         let start = Instant::now();
         grid.step(&commands, &mut feedback);

@@ -23,7 +23,7 @@ use crate::multirate::Multirate;
 use crate::scene::{ModelSpec, Scene, ScheduleSpec};
 use crate::stats::LatencyHistogram;
 use crate::tissue::Tissue;
-use crate::tool::{ToolCommand, ToolFeedback};
+use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 
 /// The haptic step's budget: one millisecond (1 kHz).
 pub const HAPTIC_BUDGET_MS: f64 = 1.0;
@@ -46,6 +46,24 @@ impl Script {
     pub const FULL: Script = Script { hold_steps: 1000, cut_steps: 2000, stop_when_late: true };
     /// A shorter one (0.3 s held, 0.5 s cutting).
     pub const QUICK: Script = Script { hold_steps: 300, cut_steps: 500, stop_when_late: true };
+
+    /// The tools' commands at `step` (0-based) into `commands`, for a body whose broad
+    /// top is at `top` (world frame): while held, the first tool that cannot cut (the
+    /// probe) pressed 4 mm in over the first 100 steps; then the first that can (the
+    /// scalpel) drawn 4 cm along x through that point, 8 mm deep, its cut button held.
+    /// Every other tool is inactive.
+    pub fn commands(&self, step: usize, top: Vec3, tools: &[ToolShape], commands: &mut [ToolCommand]) {
+        commands.iter_mut().for_each(|c| *c = ToolCommand::default());
+        if step < self.hold_steps {
+            if let Some(p) = tools.iter().position(|t| !t.can_cut) {
+                let depth = 0.004 * (step as f64 / 100.0).min(1.0);
+                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + tools[p].radius_m - depth), Quat::identity()), active: true, cut: false };
+            }
+        } else if let Some(b) = tools.iter().position(|t| t.can_cut) {
+            let x = -0.02 + 0.04 * (step - self.hold_steps) as f64 / self.cut_steps as f64;
+            commands[b] = ToolCommand { pose: Pose::new(Vec3::new(top.x + x, top.y, top.z - 0.008), Quat::identity()), active: true, cut: true };
+        }
+    }
 }
 
 /// A bundled scene's JSON at `level`, under a multirate schedule of `every` steps with
@@ -158,7 +176,6 @@ pub fn wait_until(deadline: Instant) {
 pub fn run_real_time(model: &mut Model, script: Script) -> RealTime {
     let top = model.broad_top().unwrap_or_else(Vec3::zeros);
     let tools = model.tissue().tools().to_vec();
-    let blade = tools.iter().position(|t| t.can_cut);
     let probe = tools.iter().position(|t| !t.can_cut);
     let mut commands = vec![ToolCommand::default(); tools.len()];
     let mut feedback = vec![ToolFeedback::default(); tools.len()];
@@ -171,16 +188,7 @@ pub fn run_real_time(model: &mut Model, script: Script) -> RealTime {
     let mut out = RealTime { planned, ..RealTime::default() };
     let start = Instant::now();
     for step in 0..planned {
-        commands.iter_mut().for_each(|c| *c = ToolCommand::default());
-        if step < script.hold_steps {
-            if let Some(p) = probe {
-                let depth = 0.004 * (step as f64 / 100.0).min(1.0);
-                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + tools[p].radius_m - depth), Quat::identity()), active: true, cut: false };
-            }
-        } else if let Some(b) = blade {
-            let x = -0.02 + 0.04 * (step - script.hold_steps) as f64 / script.cut_steps as f64;
-            commands[b] = ToolCommand { pose: Pose::new(Vec3::new(top.x + x, top.y, top.z - 0.008), Quat::identity()), active: true, cut: true };
-        }
+        script.commands(step, top, &tools, &mut commands);
         wait_until(start + Duration::from_millis(step as u64));
         let t = Instant::now();
         model.tissue().step(&commands, &mut feedback);

@@ -107,8 +107,8 @@ pub struct BranchedGrid {
     contact_on_face: Vec<bool>,
     /// Per tool: its tip last step (grid frame), for its velocity.
     previous_tips: Vec<Option<Vec3>>,
-    /// Per surface vertex: where it stuck to a tool (super::friction); cleared when the
-    /// surface changes.
+    /// Per surface vertex: where it stuck to a tool (super::friction); forgotten at every
+    /// cut.
     anchors: super::friction::Anchors,
     /// Per surface vertex: how it touches a tool (super::hold); kept across cuts (a
     /// vertex's id is never reused).
@@ -201,6 +201,12 @@ impl BranchedGrid {
         let dynamics = Dynamics::new(&topo);
         let n = topo.nodes.len();
         let tool_count = tools.len();
+        // The per-vertex contact memory, with room for the surface to double through
+        // cuts: growing it on the step after a cut (copying and first touching megabytes
+        // on a large body) made that step 0.7 ms longer on the layered abdomen.
+        let vertices = surface.voxel.len();
+        let mut touches = Vec::with_capacity(2 * vertices);
+        touches.resize(vertices, None);
         let mut grid = BranchedGrid {
             dt_s,
             frame,
@@ -214,8 +220,8 @@ impl BranchedGrid {
             contact_vertices: Vec::new(),
             contact_on_face: Vec::new(),
             previous_tips: vec![None; tool_count],
-            anchors: super::friction::Anchors::default(),
-            touches: Vec::new(),
+            anchors: super::friction::Anchors::with_room(vertices, 2 * vertices),
+            touches,
             touching_scratch: Vec::new(),
             triangle_scratch: Vec::new(),
             face_scratch: Vec::new(),
@@ -241,13 +247,6 @@ impl BranchedGrid {
         // The preconditioner's first heavy work (a Cholesky factor, the multigrid's
         // coarse grids) is done here, as the model is made, never on a step.
         grid.dynamics.prime(&mut grid.topo, &grid.settings);
-        // The per-vertex contact memory, sized now with room for the surface to double
-        // through cuts: growing it on the step after a cut (copying and first touching
-        // megabytes on a large body) made that step 0.7 ms longer on the layered abdomen.
-        let vertices = grid.surface.voxel.len();
-        grid.anchors = super::friction::Anchors::with_room(vertices, 2 * vertices);
-        grid.touches = Vec::with_capacity(2 * vertices);
-        grid.touches.resize(vertices, None);
         grid
     }
 

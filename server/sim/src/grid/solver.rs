@@ -162,7 +162,8 @@ pub struct Dynamics {
     /// An element's stiffness in the world frame (scratch).
     rotated: Box<Planar24>,
     scatter: Scatter,
-    /// The pattern must be rebuilt (a cut changed the elements or nodes).
+    /// A cut changed the topology: the next assembly checks the pattern (remade where
+    /// the cut changed what it is made from) and makes every value again.
     stale_pattern: bool,
     /// What `system`'s pattern, `scatter` and `first_element` were made from.
     pattern_inputs: PatternInputs,
@@ -192,7 +193,7 @@ impl Dynamics {
     }
 
     /// Grows the buffers to the topology's node and element counts; the system's pattern
-    /// is rebuilt before the next step.
+    /// is checked (and remade where the cut changed it) before the next step.
     pub fn resize(&mut self, topo: &Topology) {
         let n = topo.nodes.len();
         for buffer in [&mut self.force, &mut self.b, &mut self.q, &mut self.diagonal, &mut self.dv] {
@@ -236,12 +237,12 @@ impl Dynamics {
     }
 
     /// After a cut: the pattern, the scatter and each node's first element made anew
-    /// where the cut changed what they are made from (the live elements' corners, the
-    /// coupled nodes), and every value made again from nothing either way. The Cholesky
-    /// factor in use is dropped with the pattern, kept (and a new one asked for) with it. A cut that
-    /// only takes voxels out of coarse elements (the element lives on, condensed anew)
-    /// leaves them as they were: remaking them took half a millisecond of the next step
-    /// on the layered abdomen's level 3.
+    /// where the cut changed what they are made from (`PatternInputs`), and every value
+    /// made again from nothing either way. A cut that only takes voxels out of coarse
+    /// elements (each lives on, condensed anew) leaves them as they were: remaking them
+    /// took half a millisecond of the next step on the layered abdomen's level 3. The
+    /// Cholesky factor in use is dropped with the pattern, kept (and a new one asked
+    /// for) with it.
     fn rebuild_pattern(&mut self, topo: &Topology) {
         if self.pattern_inputs.made_from(topo) {
             self.system.clear();
@@ -282,7 +283,7 @@ impl Dynamics {
         let n = topo.nodes.len();
         for i in 0..n {
             self.force[i] = Vec3::zeros();
-            self.active[i] = topo.nodes.alive[i] && !topo.nodes.fixed[i];
+            self.active[i] = coupled(topo, i);
         }
         // The elements' blocks are kept from step to step: an element's are taken out
         // and put back rotated anew only once its rotation has moved by more than
@@ -644,11 +645,9 @@ enum Unknown {
     Scratch,
 }
 
-/// The pattern of the step's system: every pair of nodes sharing a live element, except
-/// that held nodes' unknowns are zero: their couplings would only multiply zeros (on the
-/// layered abdomen a third of the nodes are held), so they keep their diagonal alone.
 /// What the system's pattern is made from: every element's corners and whether it
-/// lives, every node's coupling (alive and not held).
+/// lives, every node's coupling ([`coupled`]). A cut that leaves all three leaves the
+/// pattern, the scatter and the first elements as they are.
 #[derive(Debug, Clone, Default, PartialEq)]
 struct PatternInputs {
     element_nodes: Vec<[u32; 8]>,
@@ -657,25 +656,30 @@ struct PatternInputs {
 }
 
 impl PatternInputs {
-    fn coupled(topo: &Topology) -> impl Iterator<Item = bool> + '_ {
-        topo.nodes.alive.iter().zip(&topo.nodes.fixed).map(|(&alive, &fixed)| alive && !fixed)
-    }
-
     fn made_from(&self, topo: &Topology) -> bool {
-        self.element_nodes == topo.elements.nodes && self.element_alive == topo.elements.alive && self.coupled.len() == topo.nodes.len() && self.coupled.iter().copied().eq(Self::coupled(topo))
+        self.element_nodes == topo.elements.nodes && self.element_alive == topo.elements.alive && self.coupled.len() == topo.nodes.len() && (0..topo.nodes.len()).all(|n| self.coupled[n] == coupled(topo, n))
     }
 
     fn record(&mut self, topo: &Topology) {
         self.element_nodes.clone_from(&topo.elements.nodes);
         self.element_alive.clone_from(&topo.elements.alive);
         self.coupled.clear();
-        self.coupled.extend(Self::coupled(topo));
+        self.coupled.extend((0..topo.nodes.len()).map(|n| coupled(topo, n)));
     }
 }
 
+/// Whether node `n` is coupled to its neighbours in the system: alive and not held (a
+/// held node's unknown is zero).
+fn coupled(topo: &Topology, n: usize) -> bool {
+    topo.nodes.alive[n] && !topo.nodes.fixed[n]
+}
+
+/// The pattern of the step's system: every pair of nodes sharing a live element, except
+/// that held nodes' unknowns are zero: their couplings would only multiply zeros (on the
+/// layered abdomen a third of the nodes are held), so they keep their diagonal alone.
 pub fn system_pattern(topo: &Topology) -> Pattern {
     let live = (0..topo.elements.len()).filter(|&e| topo.elements.alive[e]).map(|e| &topo.elements.nodes[e][..]);
-    Pattern::from_elements_coupling(topo.nodes.len(), live, |n| topo.nodes.alive[n as usize] && !topo.nodes.fixed[n as usize])
+    Pattern::from_elements_coupling(topo.nodes.len(), live, |n| coupled(topo, n as usize))
 }
 
 /// An assembled system as the solver's operator, on its active rows: the step's (in
