@@ -706,6 +706,7 @@ impl BranchedGrid {
     /// Removes voxels from the grid and the surface and records the topology delta.
     pub fn apply_removal(&mut self, removed: &[usize]) {
         let start = std::time::Instant::now();
+        self.dynamics.before_cut(&self.topo, removed);
         let report = self.topo.remove_voxels(removed);
         if report.voxels_removed == 0 {
             return;

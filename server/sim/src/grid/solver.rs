@@ -167,6 +167,10 @@ pub struct Dynamics {
     stale_pattern: bool,
     /// What `system`'s pattern, `scatter` and `first_element` were made from.
     pattern_inputs: PatternInputs,
+    /// The elements the pending cut takes voxels from, each with its stiffness before
+    /// the cut ([`Self::before_cut`]): what a cut that keeps the pattern takes out of
+    /// the kept elements' part before putting the new stiffness in.
+    cut_elements: Vec<(u32, Box<Planar24>)>,
     jacobi: BlockJacobi,
     multigrid: Multigrid,
     factorization: Factorization,
@@ -190,6 +194,18 @@ impl Dynamics {
         let mut d = Dynamics { stale_pattern: true, multigrid: Multigrid::default(), factorization: Factorization::new(), ..Dynamics::default() };
         d.resize(topo);
         d
+    }
+
+    /// Called before a cut takes voxels `removed` out of `topo`: keeps the stiffness
+    /// of the elements that hold them, for [`Self::rebuild_pattern`].
+    pub fn before_cut(&mut self, topo: &Topology, removed: &[usize]) {
+        self.cut_elements.clear();
+        for &v in removed {
+            let e = topo.voxel_element.get(v).copied().unwrap_or(super::topology::NONE);
+            if e != super::topology::NONE && !self.cut_elements.iter().any(|(kept, _)| *kept == e) {
+                self.cut_elements.push((e, Box::new(topo.elements.stiffness_single[e as usize])));
+            }
+        }
     }
 
     /// Grows the buffers to the topology's node and element counts; the system's pattern
@@ -244,9 +260,14 @@ impl Dynamics {
     /// Cholesky factor in use is dropped with the pattern, kept (and a new one asked
     /// for) with it.
     fn rebuild_pattern(&mut self, topo: &Topology) {
+        let cut_elements = std::mem::take(&mut self.cut_elements);
         if self.pattern_inputs.made_from(topo) {
-            self.system.clear();
             self.factorization.values_changed();
+            if self.take_out_cut_elements(topo, &cut_elements) {
+                self.stale_pattern = false;
+                return;
+            }
+            self.system.clear();
         } else {
             self.factorization.topology_changed();
             let pattern = system_pattern(topo);
@@ -267,6 +288,38 @@ impl Dynamics {
         self.scattered.resize(topo.elements.len(), None);
         self.stiffness_whole = true;
         self.stale_pattern = false;
+    }
+
+    /// A cut that kept the pattern changed only the stiffness of the elements it took
+    /// voxels from (and the masses at their corners): in a whole elements' part, each
+    /// of those is taken out as it was and put back as it is, with the rotation its
+    /// blocks were made with, as a re-rotated element is; the step's assembly then
+    /// touches up their blocks (mass included) instead of making every value again
+    /// (which cost about 0.14 ms on the layered abdomen's level 3, where a cut takes a
+    /// voxel from one element of 991). False where that cannot be done: the part is not
+    /// whole, or a cut element's blocks are not in it.
+    fn take_out_cut_elements(&mut self, topo: &Topology, cut_elements: &[(u32, Box<Planar24>)]) -> bool {
+        let in_part = |e: u32| topo.elements.alive.get(e as usize) == Some(&true) && self.scattered.get(e as usize).is_some_and(Option::is_some);
+        if !self.stiffness_whole || cut_elements.is_empty() || !cut_elements.iter().all(|&(e, _)| in_part(e)) {
+            return false;
+        }
+        let scale = self.stiffness_scale as f32;
+        let zero = [0f32; 24];
+        let mut unused = [0f32; 24];
+        for (e, before) in cut_elements {
+            let e = *e as usize;
+            let Some(r) = self.scattered[e] else { continue };
+            let rf: [[f32; 3]; 3] = std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32));
+            let blocks = &self.scatter.blocks[e];
+            rotate_and_multiply(before, &rf, &zero, &mut self.rotated, &mut unused);
+            scatter_element(&mut self.stiffness, blocks, &self.rotated, -scale, 0);
+            rotate_and_multiply(&topo.elements.stiffness_single[e], &rf, &zero, &mut self.rotated, &mut unused);
+            scatter_element(&mut self.stiffness, blocks, &self.rotated, scale, 0);
+            if self.system_kept {
+                blocks.iter().for_each(|&b| self.refresh.insert(b));
+            }
+        }
+        true
     }
 
     /// The step's system without the tools (rotations, element blocks, mass, supports)
@@ -1039,6 +1092,45 @@ mod tests {
         assert!(cut.system.pattern.blocks() < blocks_before, "an element fewer, fewer blocks");
         assert_eq!(cut.system, fresh.system);
         assert_eq!((&cut.scatter, &cut.first_element), (&fresh.scatter, &fresh.first_element));
+    }
+
+    #[test]
+    fn a_cut_that_keeps_the_pattern_touches_up_the_cut_element_to_a_new_solvers_system() {
+        let settings = SolverSettings { alpha_per_s: 2.0, ..settings() };
+        let mut topo = bar();
+        turn(&mut topo, 0.3);
+        let mut cut = Dynamics::new(&topo);
+        cut.assemble(&mut topo, &settings);
+        cut.assemble(&mut topo, &settings);
+        let age = cut.stiffness_age;
+        // One corner voxel of the first element (2 × 2 × 2 voxels): the element lives on
+        // and still touches its neighbours across every face, so no node changes.
+        let voxel = (0..topo.material.len()).find(|&v| topo.material[v] != 0).expect("a voxel");
+        let element = topo.voxel_element[voxel] as usize;
+        cut.before_cut(&topo, &[voxel]);
+        assert_eq!(topo.remove_voxels(&[voxel]).voxels_removed, 1);
+        cut.resize(&topo);
+        // A block of an element the cut left alone, marked: the touch-up leaves it.
+        let far = topo.elements.len() - 1;
+        assert!(topo.elements.nodes[far].iter().all(|n| !topo.elements.nodes[element].contains(n)));
+        let untouched = cut.scatter.blocks[far][0] as usize;
+        let before = cut.system.values[untouched][0];
+        cut.system.values[untouched][0] = -1.0;
+        cut.assemble(&mut topo, &settings);
+        assert_eq!(cut.system.values[untouched][0], -1.0, "only the cut element's blocks were written");
+        cut.system.values[untouched][0] = before;
+        assert_eq!(cut.stiffness_age, age + 1, "the elements' part was kept, not made whole again");
+        let mut fresh = Dynamics::new(&topo);
+        fresh.assemble(&mut topo, &settings);
+        let difference = relative_difference(&cut.system, &fresh.system);
+        assert!(difference < 1e-6, "a new solver's system to single precision's round-off: {difference:e}");
+        // Without the stiffness from before the cut, the part is made whole again.
+        let mut blind = Dynamics::new(&topo);
+        blind.assemble(&mut topo, &settings);
+        blind.assemble(&mut topo, &settings);
+        blind.resize(&topo);
+        blind.assemble(&mut topo, &settings);
+        assert_eq!((blind.stiffness_age, &blind.system), (1, &fresh.system));
     }
 
     #[test]
