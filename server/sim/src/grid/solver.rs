@@ -197,9 +197,10 @@ impl Dynamics {
     }
 
     /// Called before a cut takes voxels `removed` out of `topo`: keeps the stiffness
-    /// of the elements that hold them, for [`Self::rebuild_pattern`].
+    /// of the elements that hold them, for [`Self::rebuild_pattern`]. Cuts before the
+    /// next assembly add to the list, each element kept as it was before the first
+    /// (as the kept elements' part still holds it).
     pub fn before_cut(&mut self, topo: &Topology, removed: &[usize]) {
-        self.cut_elements.clear();
         for &v in removed {
             let e = topo.voxel_element.get(v).copied().unwrap_or(super::topology::NONE);
             if e != super::topology::NONE && !self.cut_elements.iter().any(|(kept, _)| *kept == e) {
@@ -1110,6 +1111,15 @@ mod tests {
         cut.before_cut(&topo, &[voxel]);
         assert_eq!(topo.remove_voxels(&[voxel]).voxels_removed, 1);
         cut.resize(&topo);
+        // A second cut before the next assembly, of another voxel of the same element
+        // and one of its neighbour along x: both elements taken out as they were before
+        // the first.
+        let same = (voxel + 1..topo.material.len()).find(|&v| topo.material[v] != 0 && topo.voxel_element[v] as usize == element).expect("another voxel of the element");
+        let neighbour = (0..topo.material.len()).find(|&v| topo.material[v] != 0 && topo.voxel_element[v] as usize == element + 1).expect("a voxel of the next element");
+        cut.before_cut(&topo, &[same, neighbour]);
+        assert_eq!(topo.remove_voxels(&[same, neighbour]).voxels_removed, 2);
+        cut.resize(&topo);
+        assert_eq!(cut.cut_elements.iter().map(|(e, _)| *e as usize).collect::<Vec<_>>(), vec![element, element + 1]);
         // A block of an element the cut left alone, marked: the touch-up leaves it.
         let far = topo.elements.len() - 1;
         assert!(topo.elements.nodes[far].iter().all(|n| !topo.elements.nodes[element].contains(n)));
