@@ -170,7 +170,7 @@ pub struct Dynamics {
     /// The elements the pending cut takes voxels from, each with its stiffness before
     /// the cut ([`Self::before_cut`]): what a cut that keeps the pattern takes out of
     /// the kept elements' part before putting the new stiffness in.
-    cut_elements: Vec<(u32, Box<Planar24>)>,
+    cut_elements: Vec<(u32, Planar24)>,
     jacobi: BlockJacobi,
     multigrid: Multigrid,
     factorization: Factorization,
@@ -204,7 +204,7 @@ impl Dynamics {
         for &v in removed {
             let e = topo.voxel_element.get(v).copied().unwrap_or(super::topology::NONE);
             if e != super::topology::NONE && !self.cut_elements.iter().any(|(kept, _)| *kept == e) {
-                self.cut_elements.push((e, Box::new(topo.elements.stiffness_single[e as usize])));
+                self.cut_elements.push((e, topo.elements.stiffness_single[e as usize]));
             }
         }
     }
@@ -299,23 +299,21 @@ impl Dynamics {
     /// (which cost about 0.14 ms on the layered abdomen's level 3, where a cut takes a
     /// voxel from one element of 991). False where that cannot be done: the part is not
     /// whole, or a cut element's blocks are not in it.
-    fn take_out_cut_elements(&mut self, topo: &Topology, cut_elements: &[(u32, Box<Planar24>)]) -> bool {
+    fn take_out_cut_elements(&mut self, topo: &Topology, cut_elements: &[(u32, Planar24)]) -> bool {
         let in_part = |e: u32| topo.elements.alive.get(e as usize) == Some(&true) && self.scattered.get(e as usize).is_some_and(Option::is_some);
         if !self.stiffness_whole || cut_elements.is_empty() || !cut_elements.iter().all(|&(e, _)| in_part(e)) {
             return false;
         }
         let scale = self.stiffness_scale as f32;
-        let zero = [0f32; 24];
-        let mut unused = [0f32; 24];
+        let (zero, mut unused) = ([0f32; 24], [0f32; 24]);
         for (e, before) in cut_elements {
-            let e = *e as usize;
-            let Some(r) = self.scattered[e] else { continue };
-            let rf: [[f32; 3]; 3] = std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32));
-            let blocks = &self.scatter.blocks[e];
-            rotate_and_multiply(before, &rf, &zero, &mut self.rotated, &mut unused);
-            scatter_element(&mut self.stiffness, blocks, &self.rotated, -scale, 0);
-            rotate_and_multiply(&topo.elements.stiffness_single[e], &rf, &zero, &mut self.rotated, &mut unused);
-            scatter_element(&mut self.stiffness, blocks, &self.rotated, scale, 0);
+            // The rotation its blocks in the part were made with (checked above).
+            let r = self.scattered[*e as usize].expect("a cut element in the part");
+            let (rf, blocks) = (single_rotation(&r), &self.scatter.blocks[*e as usize]);
+            for (k, sign) in [(before, -1.0), (&topo.elements.stiffness_single[*e as usize], 1.0)] {
+                rotate_and_multiply(k, &rf, &zero, &mut self.rotated, &mut unused);
+                scatter_element(&mut self.stiffness, blocks, &self.rotated, sign * scale, 0);
+            }
             if self.system_kept {
                 blocks.iter().for_each(|&b| self.refresh.insert(b));
             }
@@ -397,7 +395,6 @@ impl Dynamics {
         // One pass over the elements: f_el − (β + h) K_R v, and the element's blocks of
         // the system where they moved.
         let damping = settings.beta_s + h;
-        let to_f32 = |r: &Matrix3<f64>| -> [[f32; 3]; 3] { std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32)) };
         for e in 0..topo.elements.len() {
             if !topo.elements.alive[e] {
                 continue;
@@ -406,7 +403,7 @@ impl Dynamics {
             let r = self.rotations[e];
             let k = &topo.elements.stiffness_single[e];
             let d = world_displacement(topo, e, &r, damping);
-            let rf = to_f32(&r);
+            let rf = single_rotation(&r);
             let mut f = [0f32; 24];
             let blocks = &self.scatter.blocks[e];
             match self.scattered[e] {
@@ -416,7 +413,7 @@ impl Dynamics {
                     let part = if direct { &mut self.system.values } else { &mut self.stiffness };
                     if let Some(before) = before {
                         let mut unused = [0f32; 24];
-                        rotate_and_multiply(k, &to_f32(&before), &d, rotated, &mut unused);
+                        rotate_and_multiply(k, &single_rotation(&before), &d, rotated, &mut unused);
                         scatter_element(part, blocks, rotated, -(a_stiff as f32), 0);
                     }
                     // On a remake, each element is scattered once, in order.
@@ -736,6 +733,11 @@ pub fn system_pattern(topo: &Topology) -> Pattern {
     Pattern::from_elements_coupling(topo.nodes.len(), live, |n| coupled(topo, n as usize))
 }
 
+/// A rotation in single precision, as the element kernels take it.
+fn single_rotation(r: &Matrix3<f64>) -> [[f32; 3]; 3] {
+    std::array::from_fn(|p| std::array::from_fn(|q| r[(p, q)] as f32))
+}
+
 /// An assembled system as the solver's operator, on its active rows: the step's (in
 /// single precision) and the static problem's (`super::statics`, in double).
 pub(super) struct Assembled<'a, T: RowProduct> {
@@ -976,6 +978,13 @@ mod tests {
         }
     }
 
+    /// A new solver that has assembled `topo`'s system once.
+    fn new_assembled(topo: &mut Topology, settings: &SolverSettings) -> Dynamics {
+        let mut d = Dynamics::new(topo);
+        d.assemble(topo, settings);
+        d
+    }
+
     /// The largest difference between two systems' blocks over their largest entry.
     fn relative_difference(a: &BlockMatrix<f32>, b: &BlockMatrix<f32>) -> f64 {
         let largest = a.values.iter().flatten().fold(0f32, |m, v| m.max(v.abs()));
@@ -996,8 +1005,7 @@ mod tests {
         let at_rest = kept.system.clone();
         kept.assemble(&mut topo, &settings);
         assert_eq!(kept.system, at_rest, "the blocks made at rest are kept");
-        let mut fresh = Dynamics::new(&topo);
-        fresh.assemble(&mut topo, &settings);
+        let fresh = new_assembled(&mut topo, &settings);
         let off = relative_difference(&kept.system, &fresh.system);
         assert!(off > 0.0 && off < 2.0 * ROTATION_KEPT, "kept blocks {off:e} off a fresh assembly");
         let largest_force = kept.force.iter().map(|f| f.amax()).fold(0.0, f64::max);
@@ -1008,8 +1016,7 @@ mod tests {
         // ones out.
         turn(&mut topo, 3.0 * ROTATION_KEPT);
         kept.assemble(&mut topo, &settings);
-        let mut fresh = Dynamics::new(&topo);
-        fresh.assemble(&mut topo, &settings);
+        let fresh = new_assembled(&mut topo, &settings);
         let off = relative_difference(&kept.system, &fresh.system);
         assert!(off < 1e-6, "blocks made again {off:e} off a fresh assembly");
     }
@@ -1035,14 +1042,12 @@ mod tests {
             assert_eq!(kept.stiffness_age, if step == STIFFNESS_REMADE { 1 } else { step + 1 }, "step {step}");
             if step == 100 {
                 // Taken out and put back a hundred times: within round-off of fresh.
-                let mut fresh = Dynamics::new(&topo);
-                fresh.assemble(&mut topo, &settings);
+                let fresh = new_assembled(&mut topo, &settings);
                 let off = relative_difference(&kept.system, &fresh.system);
                 assert!(off < 1e-5, "after 100 updates {off:e} off a fresh assembly");
             }
         }
-        let mut fresh = Dynamics::new(&topo);
-        fresh.assemble(&mut topo, &settings);
+        let fresh = new_assembled(&mut topo, &settings);
         assert_eq!(kept.system, fresh.system, "made from nothing, as a fresh assembly");
         // When most elements turned, the whole part is made from nothing at once.
         turn(&mut topo, 0.1);
@@ -1076,8 +1081,7 @@ mod tests {
         cut.resize(&topo);
         cut.assemble(&mut topo, &settings);
         assert_eq!(cut.system.values.as_ptr(), values, "the pattern's values kept, not made anew");
-        let mut fresh = Dynamics::new(&topo);
-        fresh.assemble(&mut topo, &settings);
+        let fresh = new_assembled(&mut topo, &settings);
         assert_eq!(cut.system, fresh.system, "the bits of a new solver's system");
         assert_eq!((&cut.scatter, &cut.first_element), (&fresh.scatter, &fresh.first_element));
         // A cut that takes an element away: the pattern, the scatter and the first
@@ -1087,8 +1091,7 @@ mod tests {
         topo.elements.alive[last] = false;
         cut.resize(&topo);
         cut.assemble(&mut topo, &settings);
-        let mut fresh = Dynamics::new(&topo);
-        fresh.assemble(&mut topo, &settings);
+        let fresh = new_assembled(&mut topo, &settings);
         assert_eq!(cut.system.pattern, system_pattern(&topo));
         assert!(cut.system.pattern.blocks() < blocks_before, "an element fewer, fewer blocks");
         assert_eq!(cut.system, fresh.system);
@@ -1130,13 +1133,11 @@ mod tests {
         assert_eq!(cut.system.values[untouched][0], -1.0, "only the cut element's blocks were written");
         cut.system.values[untouched][0] = before;
         assert_eq!(cut.stiffness_age, age + 1, "the elements' part was kept, not made whole again");
-        let mut fresh = Dynamics::new(&topo);
-        fresh.assemble(&mut topo, &settings);
+        let fresh = new_assembled(&mut topo, &settings);
         let difference = relative_difference(&cut.system, &fresh.system);
         assert!(difference < 1e-6, "a new solver's system to single precision's round-off: {difference:e}");
         // Without the stiffness from before the cut, the part is made whole again.
-        let mut blind = Dynamics::new(&topo);
-        blind.assemble(&mut topo, &settings);
+        let mut blind = new_assembled(&mut topo, &settings);
         blind.assemble(&mut topo, &settings);
         blind.resize(&topo);
         blind.assemble(&mut topo, &settings);
