@@ -583,22 +583,108 @@ fn grid_block(toughness: f64) -> Scene {
     Scene::from_json_str(&text, "block", None).unwrap_or_else(|e| panic!("{e}"))
 }
 
-/// Draws the scalpel upright with its tip `depth_m` below the block's top along +x at
-/// 50 mm/s from outside the block to its middle, its cut button held: per step the
-/// tip's x and the resistance along the draw (N, positive against it).
-fn draw_through_block(scene: &Scene, depth_m: f64) -> Vec<(f64, f64)> {
+/// What drawing the scalpel through the block left: per step the tip's x and the
+/// resistance along the draw (N, positive against it), the voxels removed, and the
+/// contact force of the block on the blade against the draw over the last 2 mm of the
+/// draw, on average (N; without the cutting resistance).
+struct BlockDraw {
+    trace: Vec<(f64, f64)>,
+    removed: u64,
+    push_n: f64,
+}
+
+/// Draws the scalpel upright, turned `orientation` about its axis, with its tip
+/// `depth_m` below the block's top along +x at 50 mm/s from outside the block for
+/// `travel_m`, its cut button held.
+fn draw_block(scene: &Scene, depth_m: f64, orientation: Quat, travel_m: f64) -> BlockDraw {
     let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
     let mut grid = cutsim_sim::grid::build_from_scene(scene, spec).unwrap();
     let mut feedback = [cutsim_sim::tool::ToolFeedback::default()];
     let (speed, dt) = (0.05, scene.time_step_s.get());
-    let mut out = Vec::new();
-    for step in 0..800 {
+    let (mut trace, mut pushes) = (Vec::new(), Vec::new());
+    let steps = (travel_m / (speed * dt)).round() as usize;
+    for step in 0..steps {
         let x = -0.036 + speed * dt * step as f64;
-        let pose = cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, 0.01 - depth_m), Quat::identity());
+        let pose = cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, 0.01 - depth_m), orientation);
         cutsim_sim::tissue::Tissue::step(&mut grid, &[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true }], &mut feedback);
-        out.push((x, -feedback[0].resistance_n.x));
+        trace.push((x, -feedback[0].resistance_n.x));
+        pushes.push(-(feedback[0].force_n - feedback[0].resistance_n).x);
     }
-    out
+    let last = &pushes[steps - (0.002 / (speed * dt)).round() as usize..];
+    BlockDraw { trace, removed: grid.counters().removed_elements, push_n: last.iter().sum::<f64>() / last.len() as f64 }
+}
+
+/// Draws the scalpel upright with its edge leading (+x) from outside the block to its
+/// middle: per step the tip's x and the resistance along the draw.
+fn draw_through_block(scene: &Scene, depth_m: f64) -> Vec<(f64, f64)> {
+    draw_block(scene, depth_m, Quat::identity(), 0.04).trace
+}
+
+#[test]
+fn a_blade_drawn_sideways_or_backwards_through_the_grid_does_not_cut_tough_tissue() {
+    let turned = |angle: f64| Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), angle);
+    let ahead = draw_block(&grid_block(200.0), 0.006, Quat::identity(), 0.015);
+    println!("edge leading: {} voxels removed, pushed {:.2} N at the end", ahead.removed, ahead.push_n);
+    assert!(ahead.removed > 100, "the edge leading cuts: {} voxels", ahead.removed);
+    for (name, angle) in [("sideways", std::f64::consts::FRAC_PI_2), ("backwards", std::f64::consts::PI)] {
+        let drawn = draw_block(&grid_block(200.0), 0.006, turned(angle), 0.015);
+        println!("{name}: {} voxels removed, pushed {:.2} N at the end", drawn.removed, drawn.push_n);
+        assert_eq!(drawn.removed, 0, "{name}: the flat or back leading must not cut");
+        assert!(drawn.trace.iter().all(|&(_, f)| f == 0.0), "{name}: no cutting resistance without a cut");
+        // Held off the blade, the block is pushed along (edge first, what is ahead is
+        // let in and cut: its contact is the vertices between the cutting and outer
+        // capsules, and the cut resists apart).
+        assert!(drawn.push_n > 0.5, "{name}: the blade pushes the block ({:.2} N)", drawn.push_n);
+    }
+    // Without a fracture toughness the paper's rule holds: the blade cuts every way.
+    let free = draw_block(&grid_block(0.0), 0.006, turned(std::f64::consts::FRAC_PI_2), 0.015);
+    assert!(free.removed > 100, "a tissue without toughness is cut sideways too: {} voxels", free.removed);
+}
+
+/// The voxels removed, and the haptic force against the draw over its last 2 mm on
+/// average (N), drawing the scalpel as [`draw_block`] does under a multirate schedule
+/// (deformation every 33 steps, Cholesky).
+fn draw_block_multirate(toughness: f64, orientation: Quat) -> (u64, f64) {
+    let mut scene = serde_json::to_value(grid_block(toughness)).unwrap();
+    scene["model"]["branched-grid"]["solver"] = serde_json::json!({ "preconditioner": "cholesky" });
+    let scene = Scene::from_json_str(&scene.to_string(), "block", None).unwrap();
+    let schedule = cutsim_sim::scene::MultirateSpec { deformation_every_steps: serde_json::from_value(serde_json::json!(33)).unwrap() };
+    let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 1];
+    let mut pushes = Vec::new();
+    for step in 0..300 {
+        let x = -0.036 + 0.05e-3 * f64::from(step);
+        let pose = cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, 0.004), orientation);
+        model.step(&[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true }], &mut feedback);
+        pushes.push(-(feedback[0].force_n - feedback[0].resistance_n).x);
+    }
+    let last = &pushes[pushes.len() - 40..];
+    (model.with_grid(|g| g.counters().removed_elements), last.iter().sum::<f64>() / last.len() as f64)
+}
+
+#[test]
+fn under_multirate_too_a_blade_drawn_sideways_does_not_cut_tough_tissue_and_pushes_it() {
+    let (ahead, _) = draw_block_multirate(200.0, Quat::identity());
+    let (sideways, push) = draw_block_multirate(200.0, Quat::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::FRAC_PI_2));
+    println!("multirate: edge leading {ahead} voxels removed; sideways {sideways}, pushed {push:.2} N at the end");
+    assert!(ahead > 100, "edge first it cuts: {ahead} voxels");
+    assert_eq!(sideways, 0, "the flat leading must not cut");
+    assert!(push > 0.5, "the haptic loop holds the block off the flat: {push:.2} N");
+}
+
+#[test]
+fn a_blade_pressed_point_first_into_the_grid_cuts_tough_tissue() {
+    // Upright above the block's middle, lowered 8 mm into it at 50 mm/s, button held.
+    let scene = grid_block(200.0);
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+    let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
+    let mut feedback = [cutsim_sim::tool::ToolFeedback::default()];
+    for step in 0..220 {
+        let z = 0.012 - 0.05e-3 * step as f64;
+        let pose = cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, z), Quat::identity());
+        cutsim_sim::tissue::Tissue::step(&mut grid, &[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true }], &mut feedback);
+    }
+    assert!(grid.counters().removed_elements > 20, "the point leading cuts: {} voxels", grid.counters().removed_elements);
 }
 
 #[test]

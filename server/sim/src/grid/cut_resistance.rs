@@ -23,9 +23,38 @@
 //! held between them, fading once the blade has removed nothing for [`IDLE_S`] (it left
 //! the tissue, or stopped). Below a creep speed the force fades to zero (a blade held
 //! still in its cut feels none, and the direction never flips at rest), as the skin's.
+//!
+//! Only the edge parts tough tissue, as on the skin: a blade moving across its axis cuts
+//! a material with a fracture toughness only where its edge leads, its motion across the
+//! axis within [`MAX_EDGE_ANGLE_DEG`] of the direction the edge faces ([`edge_leads`]).
+//! Moving along its own line — the point going in, or the blade drawn out along its
+//! edge — it cuts (the point and the edge lead). Drawn sideways or backwards the blade
+//! pushes the tissue with its flat or its back instead, and holds it as a probe does.
 
 use crate::math::Vec3;
+pub use crate::msm::resistance::MAX_EDGE_ANGLE_DEG;
 use crate::msm::resistance::CREEP_SPEED_M_PER_S;
+
+/// A blade moving within this angle of its own axis moves along its line: its point
+/// (going in) or its edge (drawn out) leads, deg.
+pub const ALONG_AXIS_DEG: f64 = 30.0;
+
+/// Whether a blade whose axis is `axis` and whose edge faces `edge` (unit, across the
+/// axis), moving by `motion` over a step of `dt_s`, leads with its edge or its point
+/// (so that it cuts tough tissue). None when it moved slower than the creep speed: too
+/// little to say (the stroke keeps what it last was).
+pub fn edge_leads(motion: &Vec3, axis: &Vec3, edge: &Vec3, dt_s: f64) -> Option<bool> {
+    let travel = motion.norm();
+    if travel < CREEP_SPEED_M_PER_S * dt_s {
+        return None;
+    }
+    let along = motion.dot(axis);
+    let across = motion - axis * along;
+    if across.norm() <= along.abs() * ALONG_AXIS_DEG.to_radians().tan() {
+        return Some(true);
+    }
+    Some(across.dot(edge) >= across.norm() * MAX_EDGE_ANGLE_DEG.to_radians().cos())
+}
 
 /// The time over which J·d is averaged, s.
 pub const AVERAGING_TIME_S: f64 = 0.02;
@@ -117,6 +146,24 @@ mod tests {
     use super::*;
 
     const VOXEL: f64 = 1e-3;
+
+    #[test]
+    fn only_the_edge_or_the_point_leading_cuts() {
+        let (axis, edge, dt) = (Vec3::z(), Vec3::x(), 1e-3);
+        let leads = |motion: Vec3| edge_leads(&(motion * 1e-4), &axis, &edge, dt);
+        // Edge first, within 60° of it; sideways, backwards and past 60°: the flat or back.
+        assert_eq!(leads(Vec3::x()), Some(true));
+        assert_eq!(leads(Vec3::new(1.0, 1.6, 0.0)), Some(true));
+        assert_eq!(leads(Vec3::new(1.0, 1.8, 0.0)), Some(false));
+        assert_eq!(leads(Vec3::y()), Some(false));
+        assert_eq!(leads(-Vec3::x()), Some(false));
+        // Along its own line, in or out, even drifting a little sideways: it cuts.
+        assert_eq!(leads(-Vec3::z()), Some(true));
+        assert_eq!(leads(Vec3::new(0.0, 0.5, 1.0)), Some(true));
+        assert_eq!(leads(Vec3::new(0.0, 0.7, -1.0)), Some(false));
+        // Slower than the creep speed (2 mm/s, 2 µm a step): no say.
+        assert_eq!(edge_leads(&Vec3::new(0.0, 1.5e-6, 0.0), &axis, &edge, dt), None);
+    }
 
     #[test]
     fn the_depth_is_the_window_of_removals_extent_along_the_blade_and_the_toughness_their_mean() {

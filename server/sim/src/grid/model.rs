@@ -55,6 +55,9 @@ pub struct GridMaterial {
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 struct Stroke {
     removed_any: bool,
+    /// The blade's flat or back leads (super::cut_resistance::edge_leads): it pushes
+    /// tissue with a fracture toughness instead of cutting it.
+    pushes: bool,
     last_tip: Option<Vec3>,
     /// The tissue's averaged resistance (super::cut_resistance).
     resistance: super::cut_resistance::CutResistance,
@@ -272,6 +275,7 @@ impl BranchedGrid {
         self.contact_levers.clear();
         self.contact_vertices.clear();
         self.contact_on_face.clear();
+        self.lead_strokes(commands);
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
@@ -403,11 +407,11 @@ impl BranchedGrid {
         let placed = self.touching(i, command, &mut touching);
         let ToolPlacement { tip, tool_to_grid, tool_velocity, .. } = placed;
         let k = self.tools[i].contact_stiffness_n_per_m;
-        let holding = !self.cutting(i, command);
+        let cutting = self.cutting(i, command);
         for &(v, super::hold::Contact { normal, depth, entry }) in &touching {
             let v = v as usize;
             let p = self.surface.position(&self.topo, v);
-            if holding {
+            if !cutting || !self.cuts_through(i, v) {
                 self.touches[v] = Some(Touch { tool: i, normal_in_tool: tool_to_grid.transpose() * entry, step: self.step_index });
             }
             let friction = self.friction_at(v);
@@ -418,11 +422,7 @@ impl BranchedGrid {
             self.contact_vertices.push(v as u32);
             self.contact_on_face.push(false);
         }
-        if holding {
-            self.face_contacts(&placed.at(i), &touching, &mut triangles, &mut faces);
-        } else {
-            faces.clear();
-        }
+        self.held_face_contacts(i, cutting, &placed, &touching, &mut triangles, &mut faces);
         self.held_faces[i].clear();
         self.held_faces[i].extend(faces.iter().map(|f| f.held));
         for f in &faces {
@@ -462,7 +462,7 @@ impl BranchedGrid {
         let (lo, hi) = (tip.inf(&top) - Vec3::repeat(reach), tip.sup(&top) + Vec3::repeat(reach));
         for v in self.surface_vertices_near(lo, hi) {
             let p = self.surface.position(&self.topo, v as usize);
-            if cutting {
+            if cutting && self.cuts_through(i, v as usize) {
                 // The cut parts the tissue in front of the blade: it must reach the
                 // cutting shape, so nothing holds it out (the cut resists through the
                 // material's toughness instead, super::cut_resistance).
@@ -485,6 +485,54 @@ impl BranchedGrid {
         self.tools[i].cuts(command)
     }
 
+    /// Ends the strokes of the tools whose cut button is released, and decides for the
+    /// others whether the edge leads over the step (from last step's tip to this one's).
+    fn lead_strokes(&mut self, commands: &[ToolCommand]) {
+        for (i, command) in commands.iter().enumerate() {
+            if !self.cutting(i, command) {
+                self.strokes[i] = Stroke::default();
+                continue;
+            }
+            let tip = self.frame.to_local(&command.pose.position_m);
+            if let Some(leads) = self.previous_tips[i].and_then(|before| self.edge_leads(i, command, &(tip - before))) {
+                self.strokes[i].pushes = !leads;
+            }
+        }
+    }
+
+    /// Whether tool `i` at `command`'s pose, having moved by `motion` (grid frame), leads
+    /// with its edge or point (super::cut_resistance::edge_leads); None if too slow to say.
+    fn edge_leads(&self, i: usize, command: &ToolCommand, motion: &Vec3) -> Option<bool> {
+        let tool_to_grid = self.frame.rotation.transpose() * command.pose.orientation.to_rotation_matrix().matrix();
+        let (axis, edge) = (tool_to_grid * Vec3::z(), tool_to_grid * self.tools[i].edge_local);
+        super::cut_resistance::edge_leads(motion, &axis, &edge, self.dt_s)
+    }
+
+    /// Whether material `m` (a voxel's label index, 1-based) has a fracture toughness:
+    /// only a blade's edge parts it.
+    fn tough(&self, m: u16) -> bool {
+        self.materials[usize::from(m) - 1].fracture_toughness_j_per_m2 > 0.0
+    }
+
+    /// Whether tool `i`, cutting, lets surface vertex `v` into its cutting shape: unless
+    /// its flat or back leads into tough tissue.
+    fn cuts_through(&self, i: usize, v: usize) -> bool {
+        !self.strokes[i].pushes || !self.tough(self.topo.material[self.surface.voxel[v] as usize])
+    }
+
+    /// The contacts on triangles' insides of tool `i` (face_contact) into `faces`: none
+    /// where it cuts through.
+    fn held_face_contacts(&self, i: usize, cutting: bool, placed: &ToolPlacement, touching: &[(u32, super::hold::Contact)], triangles: &mut Vec<u32>, faces: &mut Vec<face_contact::FaceContact>) {
+        if cutting && !self.strokes[i].pushes {
+            faces.clear();
+            return;
+        }
+        self.face_contacts(&placed.at(i), touching, triangles, faces);
+        if cutting {
+            faces.retain(|f| !self.cuts_through(i, f.vertex as usize));
+        }
+    }
+
     /// The penalty force tool `i` at `command`'s pose would feel from the surface as it
     /// is now (each vertex along the normal it touched the tool with last step), world
     /// frame, N: what the step's fed-back force is checked against.
@@ -492,9 +540,7 @@ impl BranchedGrid {
         let mut touching = Vec::new();
         let placed = self.touching(i, command, &mut touching);
         let mut faces = Vec::new();
-        if !self.cutting(i, command) {
-            self.face_contacts(&placed.at(i), &touching, &mut Vec::new(), &mut faces);
-        }
+        self.held_face_contacts(i, self.cutting(i, command), &placed, &touching, &mut Vec::new(), &mut faces);
         let k = self.tools[i].contact_stiffness_n_per_m;
         let contacts = touching.iter().map(|(_, c)| c).chain(faces.iter().map(|f| &f.contact));
         self.frame.rotation * contacts.map(|c| -c.normal * (k * c.depth)).sum::<Vec3>()
@@ -631,14 +677,22 @@ impl BranchedGrid {
             let moved = *moved.get_or_insert_with(|| self.moved_at_most());
             let before = removed.len();
             let mut last_taken: Option<Vec3> = None;
+            // Along the path, whether the edge leads is decided from pose to pose.
+            let (mut last_tip, mut leads) = (self.previous_tips[i], !self.strokes[i].pushes);
             for step in path.chunks_exact(tools.max(1)) {
                 let c = &step[i];
-                if cutting(c) && last_taken.is_none_or(|p| (p - c.pose.position_m).norm() >= half_voxel) {
+                if !cutting(c) {
+                    continue;
+                }
+                let tip = self.frame.to_local(&c.pose.position_m);
+                leads = last_tip.and_then(|before| self.edge_leads(i, c, &(tip - before))).unwrap_or(leads);
+                last_tip = Some(tip);
+                if last_taken.is_none_or(|p| (p - c.pose.position_m).norm() >= half_voxel) {
                     last_taken = Some(c.pose.position_m);
-                    self.voxels_in_cutting_capsule(i, c, limit, &moved, &mut removed);
+                    self.voxels_in_cutting_capsule(i, c, limit, leads, &moved, &mut removed);
                 }
             }
-            let (tip, top, length) = self.voxels_in_cutting_capsule(i, command, limit, &moved, &mut removed);
+            let (tip, top, length) = self.voxels_in_cutting_capsule(i, command, limit, !self.strokes[i].pushes, &moved, &mut removed);
             if removed.len() > before {
                 feedback[i].cutting = true;
                 tips.push((i, tip));
@@ -665,9 +719,10 @@ impl BranchedGrid {
     }
 
     /// Adds the voxels whose deformed centres tool `i`'s inner capsule holds at
-    /// `command`'s pose to `removed` (up to `limit` in all); returns the capsule's tip,
-    /// top and length (grid frame). `moved`: [`Self::moved_at_most`] now.
-    fn voxels_in_cutting_capsule(&self, i: usize, command: &ToolCommand, limit: usize, moved: &Vec3, removed: &mut Vec<usize>) -> (Vec3, Vec3, f64) {
+    /// `command`'s pose to `removed` (up to `limit` in all), those of a material with a
+    /// fracture toughness only where the edge `leads`; returns the capsule's tip, top and
+    /// length (grid frame). `moved`: [`Self::moved_at_most`] now.
+    fn voxels_in_cutting_capsule(&self, i: usize, command: &ToolCommand, limit: usize, leads: bool, moved: &Vec3, removed: &mut Vec<usize>) -> (Vec3, Vec3, f64) {
         let (radius, length) = self.tools[i].cutting_capsule();
         let tip = self.frame.to_local(&command.pose.position_m);
         let top = tip + self.frame.rotation.transpose() * command.pose.axis() * length;
@@ -682,7 +737,7 @@ impl BranchedGrid {
             for &e in &self.topo.cell_elements[cell] {
                 let e = e as usize;
                 let corners: [Vec3; 8] = std::array::from_fn(|n| self.topo.nodes.x[self.topo.elements.nodes[e][n] as usize]);
-                let search = VoxelSearch { topo: &self.topo, element: e as u32, cell_first_voxel: self.topo.layout.cell_coords(cell).map(|c| c * self.topo.layout.side), corners, capsule: &capsule, limit };
+                let search = VoxelSearch { topo: &self.topo, element: e as u32, cell_first_voxel: self.topo.layout.cell_coords(cell).map(|c| c * self.topo.layout.side), corners, capsule: &capsule, limit, parts: &|m| leads || !self.tough(m) };
                 search.descend([0; 3], self.topo.layout.side, removed);
             }
         }
@@ -968,6 +1023,8 @@ struct VoxelSearch<'a> {
     corners: [Vec3; 8],
     capsule: &'a Capsule,
     limit: usize,
+    /// Whether the blade parts a voxel of this material (its label index).
+    parts: &'a dyn Fn(u16) -> bool,
 }
 
 impl VoxelSearch<'_> {
@@ -988,7 +1045,7 @@ impl VoxelSearch<'_> {
         }
         if size == 1 {
             let v = self.topo.layout.voxel_index(g);
-            if self.topo.voxel_element[v] == self.element && self.capsule.contains(&self.map(origin.map(|c| c as f64 + 0.5))) {
+            if self.topo.voxel_element[v] == self.element && (self.parts)(self.topo.material[v]) && self.capsule.contains(&self.map(origin.map(|c| c as f64 + 0.5))) {
                 removed.push(v);
             }
             return;

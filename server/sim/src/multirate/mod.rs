@@ -322,7 +322,7 @@ impl Multirate {
                 // The old patch (now in `job`) at this step's pose; `render` takes the new
                 // one's force off it (the step's own solve), and the difference fades out
                 // over the N steps to the next arrival (the last one has faded by now).
-                let old = match capsule(&self.tools[i], command) {
+                let old = match capsule(&self.tools[i], command, self.patches[i].blade_pushes) {
                     Some(tool) => {
                         // The new patch's friction anchors are the deformation's, on the
                         // tool as it was N steps ago: brought to this step's pose first
@@ -357,7 +357,7 @@ impl Multirate {
             if command.active && !command.pose.is_finite() {
                 self.rejected_poses += 1;
             }
-            let Some(tool) = capsule(&self.tools[i], command) else {
+            let Some(tool) = capsule(&self.tools[i], command, self.patches[i].blade_pushes) else {
                 // Lifted away: nothing stays stuck to it.
                 self.patches[i].anchors.iter_mut().for_each(|a| *a = None);
                 continue;
@@ -389,8 +389,9 @@ impl Multirate {
     }
 }
 
-/// A tool's outer capsule at its commanded pose (None: away or not finite).
-fn capsule(tool: &ToolShape, command: &ToolCommand) -> Option<Capsule> {
+/// A tool's outer capsule at its commanded pose (None: away or not finite); a blade
+/// whose flat or back leads into tough tissue (`blade_pushes`) holds it off as a probe.
+fn capsule(tool: &ToolShape, command: &ToolCommand, blade_pushes: bool) -> Option<Capsule> {
     if !command.active || !command.pose.is_finite() {
         return None;
     }
@@ -403,7 +404,7 @@ fn capsule(tool: &ToolShape, command: &ToolCommand) -> Option<Capsule> {
         stiffness_n_per_m: tool.contact_stiffness_n_per_m,
         rotation,
         // As the deformation's own contact: a blade cutting is not held off the tissue.
-        holds: !tool.cuts(command),
+        holds: !tool.cuts(command) || blade_pushes,
         max_depth_m: tool.hold_max_depth_m(),
     })
 }

@@ -60,6 +60,10 @@ pub struct ContactPatch {
     /// Per vertex: the normal it is held along while in contact (crate::grid::hold), in
     /// the tool's frame; None: not in contact. The haptic loop keeps them up to date.
     pub held: Vec<Option<Vec3>>,
+    /// A cutting blade's flat or back leads into tissue with a fracture toughness (its
+    /// nearest vertex's material; crate::grid::cut_resistance::edge_leads): the haptic
+    /// loop holds the tissue off it, as the deformation step did.
+    pub blade_pushes: bool,
 }
 
 /// The tool's capsule at a haptic step, world frame.

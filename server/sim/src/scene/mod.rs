@@ -397,7 +397,8 @@ pub struct ToolSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cutting_shape: Option<ToolShapeSpec>,
     /// A blade's edge: the direction it faces in the tool's frame, across the tool's +z
-    /// axis. Where the skin has a fracture toughness, only motion within 60° of it cuts.
+    /// axis. Where the tissue has a fracture toughness, only motion within 60° of it cuts
+    /// (on the branched grid, also motion along the tool's own axis: its point).
     #[serde(default)]
     pub edge: EdgeSpec,
 }

@@ -140,6 +140,7 @@ impl BranchedGrid {
             patch.held.push(touch.map(|t| t.normal_in_tool));
         }
         patch.friction = near.first().map_or_else(Default::default, |&(v, _)| self.friction_at(v as usize));
+        patch.blade_pushes = near.first().is_some_and(|&(v, _)| !self.cuts_through(i, v as usize));
         self.patch_scratch = near;
     }
 }
