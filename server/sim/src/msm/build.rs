@@ -219,6 +219,7 @@ impl MassSpring {
             blade_through: vec![false; tools.len()],
             holes: vec![None; tools.len()],
             holder: super::hold::Holder::new(tools.len(), params.friction, topo.tris.len()),
+            side_memory: super::side_hold::SideMemory::default(),
             blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),
             contacts: Vec::with_capacity(super::CONTACTS_PER_NODE * n),

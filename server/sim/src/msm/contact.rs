@@ -3,11 +3,13 @@
 //! The tool is the segment tip–top with radius r. A node N is inside when its
 //! projection on the axis falls between the two ends (the paper's two angles ≤ 90°)
 //! and its distance d to the axis is below r. The paper pushes N out along N − p (p the
-//! closest point on the axis); we keep that for every node alongside the tool, and add
-//! one case the paper leaves open: a node that is closer to the tip's end face than to
-//! the side (the tool pressed tip-first into the skin) is pushed out through that face,
-//! so that pressing is felt. A blade that is cutting uses the paper's radial rule only,
-//! so it passes through the skin instead of pushing it ahead.
+//! closest point on the axis); we keep that for a node's first touch of the tool's side,
+//! and add one case the paper leaves open: a node that is closer to the tip's end face
+//! than to the side (the tool pressed tip-first into the skin) is pushed out through
+//! that face, so that pressing is felt. A tool holding the skin keeps each node beside
+//! its shaft on the side it came in from ([`super::side_hold`]), so a tool laid along the
+//! skin does not push its nodes past its axis. A blade that is cutting uses the paper's
+//! radial rule only, so it passes through the skin instead of pushing it ahead.
 //!
 //! A scalpel blade's plate ([`crate::tool::Section::Plate`]) is the same test with a
 //! rectangular cross-section: a node inside it goes out through the nearer of its
@@ -21,6 +23,7 @@
 //! opposite force, and the sum over nodes is the haptic force. Only nodes the broad
 //! phase returns near the tool are tested.
 
+use super::side_hold::{SideMemory, side_contact};
 use super::state::Nodes;
 use crate::broad_phase::PointGrid;
 use crate::math::{Vec3, any_perpendicular};
@@ -103,9 +106,20 @@ pub(crate) struct Contact {
     pub drive_m_per_s: f64,
 }
 
+/// A tool's side holding the nodes it touches on the side they came in from
+/// ([`super::side_hold`]): the memory, the body's index and the depth at which one node
+/// would push with its rated force.
+pub(crate) struct SideHold<'a> {
+    pub memory: &'a mut SideMemory,
+    pub body: usize,
+    pub max_depth_m: f64,
+}
+
 /// Adds the contact forces of one tool to the nodes, and their reaction to `feedback`
 /// (scaled by `weight`, the substep's share of the step). Contacts are appended to
 /// `contacts` (whose capacity is [`super::CONTACTS_PER_NODE`] times the node count, so this never allocates).
+/// With `side`, the nodes beside a holding tool ([`ContactMode::SideOnly`]) are pushed out
+/// on the side they came in from instead of radially.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn apply_tool_contacts(
     tool: &PlacedTool,
@@ -117,6 +131,7 @@ pub(crate) fn apply_tool_contacts(
     feedback: &mut ToolFeedback,
     weight: f64,
     query_margin_m: f64,
+    mut side: Option<SideHold<'_>>,
 ) {
     let (min, max) = tool.bounds(query_margin_m);
     let mut count = 0u32;
@@ -128,7 +143,14 @@ pub(crate) fn apply_tool_contacts(
         {
             return;
         }
-        if let Some(pen) = tool_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut) {
+        let penetration = tool_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut);
+        let pushed = match (&mut side, mode) {
+            (Some(side), ContactMode::SideOnly { .. }) => {
+                side_contact(side.memory, i, side.body, tool, &nodes.x[i], penetration.map(|p| (p.direction, p.depth_m)), side.max_depth_m).map(|(direction, depth_m)| Penetration { direction, depth_m })
+            }
+            _ => penetration,
+        };
+        if let Some(pen) = pushed {
             let on_node = pen.direction * (stiffness * pen.depth_m);
             nodes.f[i] += on_node;
             force -= on_node;

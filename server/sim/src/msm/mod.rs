@@ -22,6 +22,7 @@ pub(crate) mod flat;
 pub(crate) mod forces;
 pub mod foundation;
 pub(crate) mod hold;
+pub(crate) mod side_hold;
 pub mod resistance;
 pub(crate) mod implicit;
 pub(crate) mod state;
@@ -34,7 +35,7 @@ pub use foundation::FoundationParams;
 use std::time::Instant;
 
 use calibration::MembraneMaterial;
-use contact::{Contact, ContactMode, apply_tool_contacts};
+use contact::{Contact, ContactMode, SideHold, apply_tool_contacts};
 use cut::{CutView, Cutter};
 use implicit::ImplicitSolver;
 use state::{Nodes, SpringSet, Topology};
@@ -145,6 +146,8 @@ pub struct MassSpring {
     /// [`flat`]).
     holes: Vec<Option<flat::Hole>>,
     holder: hold::Holder,
+    /// Which side of a tool each node beside its shaft came in from ([`side_hold`]).
+    side_memory: side_hold::SideMemory,
     /// Each blade's velocity through the skin, smoothed over
     /// [`BLADE_VELOCITY_TIME_CONSTANT_S`] (zero outside a resisted stroke).
     blade_velocity: Vec<Vec3>,
@@ -406,14 +409,17 @@ impl MassSpring {
 
     fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
         self.contacts.clear();
+        self.side_memory.begin_pass(self.nodes.len());
         for (i, placed) in self.swept.iter().enumerate() {
             let Some(tool) = placed else { continue };
             let shape = &self.tools[i];
             // The broad phase is refreshed once per step: half a cell of margin covers
             // what nodes travel in between.
             let margin = 0.5 * self.grid.cell_size_m();
+            let substep_s = self.substep_s();
+            let side = self.holding[i].then(|| SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m() });
             let mode = if self.holding[i] {
-                ContactMode::SideOnly { face_reach_m: hold::hold_reach_m(self.tool_velocity[i], tool.axis, self.substep_s(), self.mean_edge_m) }
+                ContactMode::SideOnly { face_reach_m: hold::hold_reach_m(self.tool_velocity[i], tool.axis, substep_s, self.mean_edge_m) }
             } else if shape.can_cut && commands[i].cut {
                 ContactMode::Radial
             } else {
@@ -429,6 +435,7 @@ impl MassSpring {
                 &mut feedback[i],
                 weight,
                 margin,
+                side,
             );
         }
         for &(node, force) in &self.cut_reactions {
