@@ -23,7 +23,7 @@
 //! opposite force, and the sum over nodes is the haptic force. Only nodes the broad
 //! phase returns near the tool are tested.
 
-use super::side_hold::{SideMemory, side_contact};
+use super::side_hold::{SideMemory, Slot, side_contact};
 use super::state::Nodes;
 use crate::broad_phase::PointGrid;
 use crate::math::{Vec3, any_perpendicular};
@@ -146,7 +146,7 @@ pub(crate) fn apply_tool_contacts(
         let penetration = tool_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut);
         let pushed = match (&mut side, mode) {
             (Some(side), ContactMode::SideOnly { .. }) => {
-                side_contact(side.memory, i, side.body, tool, &nodes.x[i], penetration.map(|p| (p.direction, p.depth_m)), side.max_depth_m).map(|(direction, depth_m)| Penetration { direction, depth_m })
+                side_contact(side.memory, Slot::Node(i), side.body, tool, &nodes.x[i], penetration.map(|p| (p.direction, p.depth_m)), side.max_depth_m).map(|(direction, depth_m)| Penetration { direction, depth_m })
             }
             _ => penetration,
         };

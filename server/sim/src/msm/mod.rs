@@ -21,6 +21,7 @@ pub mod explicit;
 pub(crate) mod flat;
 pub(crate) mod forces;
 pub mod foundation;
+pub(crate) mod face_hold;
 pub(crate) mod hold;
 pub(crate) mod side_hold;
 pub mod resistance;
@@ -140,6 +141,9 @@ pub struct MassSpring {
     pierced: Vec<bool>,
     /// Which tools hold the skin at their tip face this step ([`hold`]).
     holding: Vec<bool>,
+    /// Which tools hold the skin on the insides of triangles along their side in this
+    /// contact pass ([`face_hold`]).
+    side_holds: Vec<bool>,
     /// Which tools are blades through the skin with their cut button held this step.
     blade_through: Vec<bool>,
     /// Blades through the skin: where they pass through it (taken at the step's start;
@@ -148,6 +152,8 @@ pub struct MassSpring {
     holder: hold::Holder,
     /// Which side of a tool each node beside its shaft came in from ([`side_hold`]).
     side_memory: side_hold::SideMemory,
+    /// Triangles near a tool laid along the skin ([`face_hold`]; scratch).
+    face_scratch: Vec<u32>,
     /// Each blade's velocity through the skin, smoothed over
     /// [`BLADE_VELOCITY_TIME_CONSTANT_S`] (zero outside a resisted stroke).
     blade_velocity: Vec<Vec3>,
@@ -348,8 +354,10 @@ impl MassSpring {
             };
             let reach_m = hold::hold_reach_m(self.tool_velocity[i], tool.axis, h, self.mean_edge_m);
             let held_tool = hold::HeldTool { placed: &tool, velocity: self.tool_velocity[i], reach_m };
-            if !self.holder.hold(i, held_tool, view, &mut feedback[i], weight) {
-                // Got under the skin from the side: through it, from the next step on.
+            // Got under the skin from the side: through it, from the next step on; unless
+            // the triangles along its side hold the skin (a thin tool laid along the skin,
+            // the skin draped over its end crossing its axis there).
+            if !self.holder.hold(i, held_tool, view, &mut feedback[i], weight) && !self.side_holds[i] {
                 self.pierced[i] = true;
             }
         }
@@ -409,7 +417,13 @@ impl MassSpring {
 
     fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
         self.contacts.clear();
-        self.side_memory.begin_pass(self.nodes.len());
+        self.side_memory.begin_pass(self.nodes.len(), self.topo.tris.len());
+        self.side_holds.fill(false);
+        // Room for every triangle thrice, as the tip face's candidates (grown only when a
+        // cut has added triangles): no allocation.
+        if self.face_scratch.capacity() < 3 * self.topo.tris.len() {
+            self.face_scratch.reserve(3 * self.topo.tris.len() - self.face_scratch.len());
+        }
         for (i, placed) in self.swept.iter().enumerate() {
             let Some(tool) = placed else { continue };
             let shape = &self.tools[i];
@@ -437,6 +451,16 @@ impl MassSpring {
                 margin,
                 side,
             );
+            // A tool that fits between the nodes is also held by the triangles' insides;
+            // not a blade with its cut button held (it parts the skin it meets).
+            if self.holding[i] && tool.radius_m < self.mean_edge_m && !(shape.can_cut && commands[i].cut) {
+                let before = self.contacts.len();
+                let mut side = SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m() };
+                let k = shape.contact_stiffness_n_per_m;
+                face_hold::apply_face_contacts(tool, k, &mut side, &mut self.nodes, &self.topo, &self.grid, &mut self.face_scratch, &mut self.contacts, &mut feedback[i], weight, margin);
+                self.side_holds[i] = self.contacts.len() > before;
+            }
+
         }
         for &(node, force) in &self.cut_reactions {
             self.nodes.f[node as usize] += force;

@@ -6,11 +6,11 @@
 //! of its axis. A tool laid along the skin and pressed down pushes the nodes under it
 //! down until they are deeper than its radius; then they are past the axis, pushed up,
 //! and the tool is through the skin: the default scene's 6 mm probe laid flat went
-//! through at 3.2 N (its rated force is 10 N), the 1 mm scalpel laid flat with no force
-//! at all (measured 2026-11-29, both integrators). Here a node that touches a tool's
-//! side remembers which way it came in — the section's way out where it first touched,
-//! in the tool's own frame (along its edge and its flat's normal, so it turns with the
-//! tool) — and while it stays in contact it is pushed along that direction by as far as
+//! through at 4.2 N (its rated force is 10 N), the 1 mm scalpel laid flat with no force
+//! at all (measured 2026-11-29, both integrators; [`super::face_hold`] holds such thin
+//! tools). Here a node that touches a tool's side remembers which way it came in — the
+//! section's way out where it first touched, in the tool's own frame (along its edge and
+//! its flat's normal, so it turns with the tool) — and while it stays in contact it is pushed along that direction by as far as
 //! the section lies across the ray from it: a node under the shaft is pushed down below
 //! it however deep the tool goes. Near the surface (within [`SHALLOW`] of the section's
 //! half-size) it is pushed along the surface's own normal, so the tool slides over the
@@ -21,6 +21,8 @@
 //!
 //! The tip face's nodes are not here ([`super::hold`] holds them), nor a blade's that
 //! cuts or a tool's through the skin (the paper's radial rule and the shortest way out).
+//! A tool that fits between the nodes is also held on the triangles' insides along it
+//! ([`super::face_hold`]), whose points this memory keeps too ([`Slot::FacePoint`]).
 
 use crate::math::Vec3;
 use crate::tool::{PlacedTool, Section, TipShape};
@@ -41,64 +43,95 @@ struct SideTouch {
     pass: u64,
 }
 
-/// Per node, the side of a tool it touches; kept while the contact lasts from one
-/// contact pass (a substep) to the next.
+/// What touches a tool's side: a node, or one of the two points a triangle's inside is
+/// held at (super::face_hold).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Slot {
+    Node(usize),
+    FacePoint { triangle: u32, end: usize },
+}
+
+/// Per node and per triangle's point, the side of a tool it touches; kept while the
+/// contact lasts from one contact pass (a substep) to the next.
 #[derive(Debug, Clone, Default)]
 pub struct SideMemory {
-    touches: Vec<Option<SideTouch>>,
+    nodes: Vec<Option<SideTouch>>,
+    face_points: Vec<Option<SideTouch>>,
     pass: u64,
 }
 
 impl SideMemory {
-    /// A new contact pass over `nodes` nodes (grows only when a cut has added nodes).
-    pub fn begin_pass(&mut self, nodes: usize) {
+    /// A new contact pass over `nodes` nodes and `triangles` triangles (grows only when a
+    /// cut has added some).
+    pub fn begin_pass(&mut self, nodes: usize, triangles: usize) {
         self.pass += 1;
-        if self.touches.len() < nodes {
-            self.touches.resize(nodes, None);
+        if self.nodes.len() < nodes {
+            self.nodes.resize(nodes, None);
+        }
+        if self.face_points.len() < 2 * triangles {
+            self.face_points.resize(2 * triangles, None);
         }
     }
 
-    /// The way node `node` came into body `body`'s side (world frame, across the axis),
-    /// if it touched it in the last pass or this one.
-    fn remembered(&self, node: usize, body: usize, tool: &PlacedTool) -> Option<Vec3> {
-        let t = self.touches[node].filter(|t| t.body == body && t.pass + 1 >= self.pass)?;
+    /// Whether `slot` touched body `body`'s side in the last pass or this one.
+    pub fn remembers(&self, slot: Slot, body: usize) -> bool {
+        let touch = match slot {
+            Slot::Node(node) => self.nodes[node],
+            Slot::FacePoint { triangle, end } => self.face_points[2 * triangle as usize + end],
+        };
+        touch.is_some_and(|t| t.body == body && t.pass + 1 >= self.pass)
+    }
+
+    fn slot(&mut self, slot: Slot) -> &mut Option<SideTouch> {
+        match slot {
+            Slot::Node(node) => &mut self.nodes[node],
+            Slot::FacePoint { triangle, end } => &mut self.face_points[2 * triangle as usize + end],
+        }
+    }
+
+    /// The way `slot` came into body `body`'s side (world frame, across the axis), if it
+    /// touched it in the last pass or this one.
+    fn remembered(&mut self, slot: Slot, body: usize, tool: &PlacedTool) -> Option<Vec3> {
+        let pass = self.pass;
+        let t = self.slot(slot).filter(|t| t.body == body && t.pass + 1 >= pass)?;
         Some(tool.edge * t.along_edge + tool.flat_normal() * t.along_flat)
     }
 
-    fn remember(&mut self, node: usize, body: usize, tool: &PlacedTool, way_out: &Vec3) {
-        self.touches[node] = Some(SideTouch { body, along_edge: way_out.dot(&tool.edge), along_flat: way_out.dot(&tool.flat_normal()), pass: self.pass });
+    fn remember(&mut self, slot: Slot, body: usize, tool: &PlacedTool, way_out: &Vec3) {
+        let pass = self.pass;
+        *self.slot(slot) = Some(SideTouch { body, along_edge: way_out.dot(&tool.edge), along_flat: way_out.dot(&tool.flat_normal()), pass });
     }
 
-    fn forget(&mut self, node: usize) {
-        self.touches[node] = None;
+    fn forget(&mut self, slot: Slot) {
+        *self.slot(slot) = None;
     }
 }
 
-/// How node `node` at `x` touches body `body`'s side, given `radial` (the paper's way
-/// out across the axis and its depth, if it is inside): the direction it is pushed
-/// along and how far, remembered for the next pass; None (forgotten) if it does not
-/// touch it or has gone through. `max_depth_m`: the depth at which the node alone would
-/// push with the tool's rated force.
-pub fn side_contact(memory: &mut SideMemory, node: usize, body: usize, tool: &PlacedTool, x: &Vec3, radial: Option<(Vec3, f64)>, max_depth_m: f64) -> Option<(Vec3, f64)> {
-    let Some(way_in) = memory.remembered(node, body, tool) else {
+/// How `slot` at `x` touches body `body`'s side, given `radial` (the paper's way out
+/// across the axis and its depth, if it is inside): the direction it is pushed along and
+/// how far, remembered for the next pass; None (forgotten) if it does not touch it or
+/// has gone through. `max_depth_m`: the depth at which the point alone would push with
+/// the tool's rated force.
+pub fn side_contact(memory: &mut SideMemory, slot: Slot, body: usize, tool: &PlacedTool, x: &Vec3, radial: Option<(Vec3, f64)>, max_depth_m: f64) -> Option<(Vec3, f64)> {
+    let Some(way_in) = memory.remembered(slot, body, tool) else {
         let (direction, depth) = radial?;
-        memory.remember(node, body, tool, &direction);
+        memory.remember(slot, body, tool, &direction);
         return Some((direction, depth));
     };
     if let Some((direction, depth)) = radial
         && depth <= SHALLOW * half_size_m(tool)
         && direction.dot(&way_in) > 0.0
     {
-        memory.remember(node, body, tool, &way_in);
+        memory.remember(slot, body, tool, &way_in);
         return Some((direction, depth));
     }
     match exit_along(tool, x, &way_in).filter(|&depth| depth <= max_depth_m) {
         Some(depth) => {
-            memory.remember(node, body, tool, &way_in);
+            memory.remember(slot, body, tool, &way_in);
             Some((way_in, depth))
         }
         None => {
-            memory.forget(node);
+            memory.forget(slot);
             None
         }
     }
@@ -174,23 +207,23 @@ mod tests {
     fn a_node_that_came_in_under_the_shaft_is_pushed_down_below_it_however_deep() {
         let tool = laid_flat();
         let mut memory = SideMemory::default();
-        memory.begin_pass(1);
+        memory.begin_pass(1, 0);
         // It touches first just under the shaft: pushed down (radially).
         let x = Vec3::new(0.0, 0.0005, -0.0029);
-        let (n, depth) = side_contact(&mut memory, 0, 0, &tool, &x, Some((Vec3::new(0.0, 0.0005, -0.0029).normalize(), 0.003 - x.norm())), 1.0).unwrap();
+        let (n, depth) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::new(0.0, 0.0005, -0.0029).normalize(), 0.003 - x.norm())), 1.0).unwrap();
         assert!(n.z < -0.9 && depth < 1e-4);
         // Two passes later it is above the axis (the shaft pressed past it): radially it
         // would go up; it is pushed down, to below the shaft.
-        memory.begin_pass(1);
+        memory.begin_pass(1, 0);
         let x = Vec3::new(0.0, 0.0, 0.001);
-        let (m, depth) = side_contact(&mut memory, 0, 0, &tool, &x, Some((Vec3::z(), 0.002)), 1.0).unwrap();
+        let (m, depth) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::z(), 0.002)), 1.0).unwrap();
         assert!((m - n).norm() < 1e-12, "along the way it came in");
         assert!((x + m * depth).norm() > 0.003 - 1e-12 && (x + m * depth).z < 0.0, "out below the shaft: {:?}", x + m * depth);
         // Deeper than its rated force allows: let go, and forgotten.
-        memory.begin_pass(1);
-        assert_eq!(side_contact(&mut memory, 0, 0, &tool, &x, Some((Vec3::z(), 0.002)), 1e-3), None);
-        memory.begin_pass(1);
-        let (fresh, _) = side_contact(&mut memory, 0, 0, &tool, &x, Some((Vec3::z(), 0.002)), 1.0).unwrap();
+        memory.begin_pass(1, 0);
+        assert_eq!(side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::z(), 0.002)), 1e-3), None);
+        memory.begin_pass(1, 0);
+        let (fresh, _) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::z(), 0.002)), 1.0).unwrap();
         assert_eq!(fresh, Vec3::z(), "a new contact: radial");
     }
 
@@ -198,20 +231,20 @@ mod tests {
     fn shallow_contacts_slide_and_a_stale_or_other_bodys_memory_is_not_used() {
         let tool = laid_flat();
         let mut memory = SideMemory::default();
-        memory.begin_pass(1);
-        side_contact(&mut memory, 0, 0, &tool, &Vec3::new(0.0, 0.0, -0.0029), Some((-Vec3::z(), 1e-4)), 1.0);
+        memory.begin_pass(1, 0);
+        side_contact(&mut memory, Slot::Node(0), 0, &tool, &Vec3::new(0.0, 0.0, -0.0029), Some((-Vec3::z(), 1e-4)), 1.0);
         // Shallow, on the same side: along the surface's normal there.
-        memory.begin_pass(1);
+        memory.begin_pass(1, 0);
         let tilted = Vec3::new(0.0, 0.6, -0.8);
-        let (n, _) = side_contact(&mut memory, 0, 0, &tool, &(tilted * 0.0029), Some((tilted, 1e-4)), 1.0).unwrap();
+        let (n, _) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &(tilted * 0.0029), Some((tilted, 1e-4)), 1.0).unwrap();
         assert_eq!(n, tilted);
         // Another body's memory, or one two passes old, is not this contact's.
-        memory.begin_pass(1);
-        let (n, _) = side_contact(&mut memory, 0, 1, &tool, &Vec3::new(0.0, 0.0, 0.001), Some((Vec3::z(), 0.002)), 1.0).unwrap();
+        memory.begin_pass(1, 0);
+        let (n, _) = side_contact(&mut memory, Slot::Node(0), 1, &tool, &Vec3::new(0.0, 0.0, 0.001), Some((Vec3::z(), 0.002)), 1.0).unwrap();
         assert_eq!(n, Vec3::z());
-        memory.begin_pass(1);
-        memory.begin_pass(1);
-        let (n, _) = side_contact(&mut memory, 0, 1, &tool, &Vec3::new(0.0, 0.0, -0.001), Some((-Vec3::z(), 0.002)), 1.0).unwrap();
+        memory.begin_pass(1, 0);
+        memory.begin_pass(1, 0);
+        let (n, _) = side_contact(&mut memory, Slot::Node(0), 1, &tool, &Vec3::new(0.0, 0.0, -0.001), Some((-Vec3::z(), 0.002)), 1.0).unwrap();
         assert_eq!(n, -Vec3::z(), "two passes old: a new contact");
     }
 
