@@ -8,17 +8,18 @@
 //! a 4 mm probe went through at 5.3 N, a 3 mm one at 2.2 N, the 1 mm scalpel with no
 //! force at all. Here, on each live triangle that the shaft lies along (its axis more
 //! than 60° from the triangle's normal: the tip face holds the others, [`super::hold`]),
-//! the ends of the stretch of the axis over the triangle (where the axis lies beside it,
-//! the triangle's point nearest the axis) are pushed out of the tool's section as a node
-//! is: on the side they came in from, remembered per triangle in the tool's frame while
-//! the contact lasts (a face the axis crosses is not taken anew). Triangles whose nodes
-//! the side touches too are held as well: skipping them let the 4 mm probe through at
-//! 5.3 N as before, once its nodes slid round the shaft. A point's push is shared by the
-//! triangle's three nodes by their barycentric weights (and its stiffness, in the
-//! implicit system, by the same weights: each node's share of the point's row sum).
-//! Frictionless. The points are the stretch's ends taken anew each pass, not material
-//! points: round the thinnest shafts (the 1 mm scalpel) the groove's walls slide off the
-//! section's ray and the skin closes over the shaft at 6–7 N.
+//! the triangle's material points where the ends of the stretch of the axis over it
+//! come into the section (where the axis lies beside it, its point nearest the axis)
+//! are pushed out of the tool's section as a node is: on the side they came in from,
+//! each kept (its barycentric weights and its way in, per triangle, in the tool's
+//! frame) while its contact lasts; a face the axis crosses is not taken anew. Triangles
+//! whose nodes the side touches too are held as well: skipping them let the 4 mm probe
+//! through at 5.3 N as before, once its nodes slid round the shaft. A point's push is
+//! shared by the triangle's three nodes by their barycentric weights (and its
+//! stiffness, in the implicit system, by the same weights: each node's share of the
+//! point's row sum). Frictionless. Round the thinnest shafts (the 1 mm scalpel) the
+//! penalty's give is as deep as the section is thin, and the skin closes over the shaft
+//! at 6.5–7.2 N (docs/tool-tissue.md, "The shaft's side").
 
 use super::contact::{Contact, SideHold};
 use super::side_hold::{Slot, side_contact};
@@ -76,13 +77,17 @@ pub(crate) fn apply_face_contacts(
             (w, w)
         });
         let ends = if near == far { 1 } else { 2 };
-        for (end, w) in [near, far].into_iter().enumerate().take(ends) {
+        for (end, fresh) in [near, far].into_iter().enumerate().take(ends) {
             if contacts.len() + 3 > contacts.capacity() {
                 break;
             }
+            // A point in contact stays the material point it was; a new one is taken
+            // where the axis's stretch ends.
+            let w = side.memory.face_point(t, end, side.body).unwrap_or(fresh);
             let point: Vec3 = (0..3).map(|k| corners[k] * w[k]).sum();
             let radial = super::contact::tool_penetration(tool, &point, true).map(|p| (p.direction, p.depth_m));
             let Some((direction, depth)) = side_contact(side.memory, slot(end), side.body, tool, &point, radial, side.max_depth_m) else { continue };
+            side.memory.keep_face_point(t, end, w);
             let on_point = direction * (stiffness * depth);
             for k in 0..3 {
                 let i = ids[k] as usize;

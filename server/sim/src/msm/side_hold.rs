@@ -41,6 +41,9 @@ struct SideTouch {
     along_flat: f64,
     /// The contact pass it was last in contact.
     pass: u64,
+    /// A triangle's point: its barycentric weights (the material point, kept while the
+    /// contact lasts).
+    weights: [f64; 3],
 }
 
 /// What touches a tool's side: a node, or one of the two points a triangle's inside is
@@ -99,7 +102,23 @@ impl SideMemory {
 
     fn remember(&mut self, slot: Slot, body: usize, tool: &PlacedTool, way_out: &Vec3) {
         let pass = self.pass;
-        *self.slot(slot) = Some(SideTouch { body, along_edge: way_out.dot(&tool.edge), along_flat: way_out.dot(&tool.flat_normal()), pass });
+        let entry = self.slot(slot);
+        let weights = entry.map_or([0.0; 3], |t| t.weights);
+        *entry = Some(SideTouch { body, along_edge: way_out.dot(&tool.edge), along_flat: way_out.dot(&tool.flat_normal()), pass, weights });
+    }
+
+    /// The material point a triangle's point in contact with body `body` is (its
+    /// barycentric weights), if it touched it in the last pass or this one.
+    pub fn face_point(&self, triangle: u32, end: usize, body: usize) -> Option<[f64; 3]> {
+        self.face_points[2 * triangle as usize + end].filter(|t| t.body == body && t.pass + 1 >= self.pass).map(|t| t.weights)
+    }
+
+    /// Keeps the barycentric weights of a triangle's point in contact (after
+    /// [`side_contact`] took it).
+    pub fn keep_face_point(&mut self, triangle: u32, end: usize, weights: [f64; 3]) {
+        if let Some(t) = self.face_points[2 * triangle as usize + end].as_mut() {
+            t.weights = weights;
+        }
     }
 
     fn forget(&mut self, slot: Slot) {
