@@ -32,8 +32,7 @@
 //! pushes the tissue with its flat or its back instead, and holds it as a probe does.
 
 use crate::math::Vec3;
-pub use crate::msm::resistance::MAX_EDGE_ANGLE_DEG;
-use crate::msm::resistance::CREEP_SPEED_M_PER_S;
+use crate::msm::resistance::{CREEP_SPEED_M_PER_S, MAX_EDGE_ANGLE_DEG};
 
 /// A blade moving within this angle of its own axis moves along its line: its point
 /// (going in) or its edge (drawn out) leads, deg.

@@ -503,7 +503,7 @@ impl BranchedGrid {
     /// Whether tool `i` at `command`'s pose, having moved by `motion` (grid frame), leads
     /// with its edge or point (super::cut_resistance::edge_leads); None if too slow to say.
     fn edge_leads(&self, i: usize, command: &ToolCommand, motion: &Vec3) -> Option<bool> {
-        let tool_to_grid = self.frame.rotation.transpose() * command.pose.orientation.to_rotation_matrix().matrix();
+        let tool_to_grid = super::hold::tool_to_grid(&self.frame.rotation, command.pose.orientation.to_rotation_matrix().matrix());
         let (axis, edge) = (tool_to_grid * Vec3::z(), tool_to_grid * self.tools[i].edge_local);
         super::cut_resistance::edge_leads(motion, &axis, &edge, self.dt_s)
     }
@@ -670,8 +670,8 @@ impl BranchedGrid {
         let mut moved = None;
         for (i, command) in commands.iter().enumerate() {
             let cutting = |c: &ToolCommand| self.cutting(i, c);
+            // A stroke whose button is released was ended at the step's start (lead_strokes).
             if !cutting(command) {
-                self.strokes[i] = Stroke::default();
                 continue;
             }
             let moved = *moved.get_or_insert_with(|| self.moved_at_most());

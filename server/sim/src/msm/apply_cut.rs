@@ -141,6 +141,11 @@ impl MassSpring {
         if let Integrator::ImplicitEuler(solver) = &mut self.integrator {
             solver.reserve(n, self.springs.len());
         }
+        self.side_memory.fit(n, self.topo.tris.len());
+        // Room for every triangle thrice, as the tip face's candidates (face_hold).
+        if self.face_scratch.capacity() < 3 * self.topo.tris.len() {
+            self.face_scratch.reserve(3 * self.topo.tris.len() - self.face_scratch.len());
+        }
         if let Some(foundation) = &mut self.foundation {
             foundation.refresh(&self.nodes, &self.topo);
         }

@@ -220,7 +220,7 @@ impl MassSpring {
             blade_through: vec![false; tools.len()],
             holes: vec![None; tools.len()],
             holder: super::hold::Holder::new(tools.len(), params.friction, topo.tris.len()),
-            side_memory: super::side_hold::SideMemory::default(),
+            side_memory: super::side_hold::SideMemory::with_room(n, topo.tris.len()),
             face_scratch: Vec::with_capacity(3 * topo.tris.len()),
             blade_velocity: vec![Vec3::zeros(); tools.len()],
             cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),

@@ -131,7 +131,7 @@ pub(crate) fn apply_tool_contacts(
     feedback: &mut ToolFeedback,
     weight: f64,
     query_margin_m: f64,
-    mut side: Option<SideHold<'_>>,
+    mut side: Option<&mut SideHold<'_>>,
 ) {
     let (min, max) = tool.bounds(query_margin_m);
     let mut count = 0u32;

@@ -417,13 +417,8 @@ impl MassSpring {
 
     fn add_contacts(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], weight: f64) {
         self.contacts.clear();
-        self.side_memory.begin_pass(self.nodes.len(), self.topo.tris.len());
+        self.side_memory.begin_pass();
         self.side_holds.fill(false);
-        // Room for every triangle thrice, as the tip face's candidates (grown only when a
-        // cut has added triangles): no allocation.
-        if self.face_scratch.capacity() < 3 * self.topo.tris.len() {
-            self.face_scratch.reserve(3 * self.topo.tris.len() - self.face_scratch.len());
-        }
         for (i, placed) in self.swept.iter().enumerate() {
             let Some(tool) = placed else { continue };
             let shape = &self.tools[i];
@@ -431,7 +426,7 @@ impl MassSpring {
             // what nodes travel in between.
             let margin = 0.5 * self.grid.cell_size_m();
             let substep_s = self.substep_s();
-            let side = self.holding[i].then(|| SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m() });
+            let mut side = self.holding[i].then(|| SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m() });
             let mode = if self.holding[i] {
                 ContactMode::SideOnly { face_reach_m: hold::hold_reach_m(self.tool_velocity[i], tool.axis, substep_s, self.mean_edge_m) }
             } else if shape.can_cut && commands[i].cut {
@@ -449,18 +444,16 @@ impl MassSpring {
                 &mut feedback[i],
                 weight,
                 margin,
-                side,
+                side.as_mut(),
             );
             // A tool that fits between the nodes is also held by the triangles' insides;
             // not a blade with its cut button held (it parts the skin it meets).
-            if self.holding[i] && tool.radius_m < self.mean_edge_m && !(shape.can_cut && commands[i].cut) {
+            if let Some(side) = side.as_mut().filter(|_| tool.radius_m < self.mean_edge_m && !(shape.can_cut && commands[i].cut)) {
                 let before = self.contacts.len();
-                let mut side = SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m() };
                 let k = shape.contact_stiffness_n_per_m;
-                face_hold::apply_face_contacts(tool, k, &mut side, &mut self.nodes, &self.topo, &self.grid, &mut self.face_scratch, &mut self.contacts, &mut feedback[i], weight, margin);
+                face_hold::apply_face_contacts(tool, k, side, &mut self.nodes, &self.topo, &self.grid, &mut self.face_scratch, &mut self.contacts, &mut feedback[i], weight, margin);
                 self.side_holds[i] = self.contacts.len() > before;
             }
-
         }
         for &(node, force) in &self.cut_reactions {
             self.nodes.f[node as usize] += force;

@@ -64,10 +64,9 @@ pub struct SideMemory {
 }
 
 impl SideMemory {
-    /// A new contact pass over `nodes` nodes and `triangles` triangles (grows only when a
-    /// cut has added some).
-    pub fn begin_pass(&mut self, nodes: usize, triangles: usize) {
-        self.pass += 1;
+    /// Room for `nodes` nodes and `triangles` triangles (at build and after a cut; it
+    /// only grows).
+    pub fn fit(&mut self, nodes: usize, triangles: usize) {
         if self.nodes.len() < nodes {
             self.nodes.resize(nodes, None);
         }
@@ -76,13 +75,16 @@ impl SideMemory {
         }
     }
 
-    /// Whether `slot` touched body `body`'s side in the last pass or this one.
-    pub fn remembers(&self, slot: Slot, body: usize) -> bool {
-        let touch = match slot {
-            Slot::Node(node) => self.nodes[node],
-            Slot::FacePoint { triangle, end } => self.face_points[2 * triangle as usize + end],
-        };
-        touch.is_some_and(|t| t.body == body && t.pass + 1 >= self.pass)
+    /// A memory with room for `nodes` nodes and `triangles` triangles.
+    pub fn with_room(nodes: usize, triangles: usize) -> Self {
+        let mut memory = Self::default();
+        memory.fit(nodes, triangles);
+        memory
+    }
+
+    /// A new contact pass (a substep).
+    pub fn begin_pass(&mut self) {
+        self.pass += 1;
     }
 
     fn slot(&mut self, slot: Slot) -> &mut Option<SideTouch> {
@@ -92,12 +94,24 @@ impl SideMemory {
         }
     }
 
-    /// The way `slot` came into body `body`'s side (world frame, across the axis), if it
-    /// touched it in the last pass or this one.
-    fn remembered(&mut self, slot: Slot, body: usize, tool: &PlacedTool) -> Option<Vec3> {
-        let pass = self.pass;
-        let t = self.slot(slot).filter(|t| t.body == body && t.pass + 1 >= pass)?;
-        Some(tool.edge * t.along_edge + tool.flat_normal() * t.along_flat)
+    /// What `slot` remembers of body `body`'s side: its touch, if it touched it in the
+    /// last pass or this one.
+    fn live(&self, slot: Slot, body: usize) -> Option<SideTouch> {
+        let touch = match slot {
+            Slot::Node(node) => self.nodes[node],
+            Slot::FacePoint { triangle, end } => self.face_points[2 * triangle as usize + end],
+        };
+        touch.filter(|t| t.body == body && t.pass + 1 >= self.pass)
+    }
+
+    /// Whether `slot` touched body `body`'s side in the last pass or this one.
+    pub fn remembers(&self, slot: Slot, body: usize) -> bool {
+        self.live(slot, body).is_some()
+    }
+
+    /// The way `slot` came into body `body`'s side (world frame, across the axis).
+    fn remembered(&self, slot: Slot, body: usize, tool: &PlacedTool) -> Option<Vec3> {
+        self.live(slot, body).map(|t| tool.edge * t.along_edge + tool.flat_normal() * t.along_flat)
     }
 
     fn remember(&mut self, slot: Slot, body: usize, tool: &PlacedTool, way_out: &Vec3) {
@@ -108,15 +122,15 @@ impl SideMemory {
     }
 
     /// The material point a triangle's point in contact with body `body` is (its
-    /// barycentric weights), if it touched it in the last pass or this one.
+    /// barycentric weights).
     pub fn face_point(&self, triangle: u32, end: usize, body: usize) -> Option<[f64; 3]> {
-        self.face_points[2 * triangle as usize + end].filter(|t| t.body == body && t.pass + 1 >= self.pass).map(|t| t.weights)
+        self.live(Slot::FacePoint { triangle, end }, body).map(|t| t.weights)
     }
 
     /// Keeps the barycentric weights of a triangle's point in contact (after
     /// [`side_contact`] took it).
     pub fn keep_face_point(&mut self, triangle: u32, end: usize, weights: [f64; 3]) {
-        if let Some(t) = self.face_points[2 * triangle as usize + end].as_mut() {
+        if let Some(t) = self.slot(Slot::FacePoint { triangle, end }).as_mut() {
             t.weights = weights;
         }
     }
@@ -226,22 +240,23 @@ mod tests {
     fn a_node_that_came_in_under_the_shaft_is_pushed_down_below_it_however_deep() {
         let tool = laid_flat();
         let mut memory = SideMemory::default();
-        memory.begin_pass(1, 0);
+        memory.fit(1, 0);
+        memory.begin_pass();
         // It touches first just under the shaft: pushed down (radially).
         let x = Vec3::new(0.0, 0.0005, -0.0029);
         let (n, depth) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::new(0.0, 0.0005, -0.0029).normalize(), 0.003 - x.norm())), 1.0).unwrap();
         assert!(n.z < -0.9 && depth < 1e-4);
         // Two passes later it is above the axis (the shaft pressed past it): radially it
         // would go up; it is pushed down, to below the shaft.
-        memory.begin_pass(1, 0);
+        memory.begin_pass();
         let x = Vec3::new(0.0, 0.0, 0.001);
         let (m, depth) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::z(), 0.002)), 1.0).unwrap();
         assert!((m - n).norm() < 1e-12, "along the way it came in");
         assert!((x + m * depth).norm() > 0.003 - 1e-12 && (x + m * depth).z < 0.0, "out below the shaft: {:?}", x + m * depth);
         // Deeper than its rated force allows: let go, and forgotten.
-        memory.begin_pass(1, 0);
+        memory.begin_pass();
         assert_eq!(side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::z(), 0.002)), 1e-3), None);
-        memory.begin_pass(1, 0);
+        memory.begin_pass();
         let (fresh, _) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &x, Some((Vec3::z(), 0.002)), 1.0).unwrap();
         assert_eq!(fresh, Vec3::z(), "a new contact: radial");
     }
@@ -250,19 +265,20 @@ mod tests {
     fn shallow_contacts_slide_and_a_stale_or_other_bodys_memory_is_not_used() {
         let tool = laid_flat();
         let mut memory = SideMemory::default();
-        memory.begin_pass(1, 0);
+        memory.fit(1, 0);
+        memory.begin_pass();
         side_contact(&mut memory, Slot::Node(0), 0, &tool, &Vec3::new(0.0, 0.0, -0.0029), Some((-Vec3::z(), 1e-4)), 1.0);
         // Shallow, on the same side: along the surface's normal there.
-        memory.begin_pass(1, 0);
+        memory.begin_pass();
         let tilted = Vec3::new(0.0, 0.6, -0.8);
         let (n, _) = side_contact(&mut memory, Slot::Node(0), 0, &tool, &(tilted * 0.0029), Some((tilted, 1e-4)), 1.0).unwrap();
         assert_eq!(n, tilted);
         // Another body's memory, or one two passes old, is not this contact's.
-        memory.begin_pass(1, 0);
+        memory.begin_pass();
         let (n, _) = side_contact(&mut memory, Slot::Node(0), 1, &tool, &Vec3::new(0.0, 0.0, 0.001), Some((Vec3::z(), 0.002)), 1.0).unwrap();
         assert_eq!(n, Vec3::z());
-        memory.begin_pass(1, 0);
-        memory.begin_pass(1, 0);
+        memory.begin_pass();
+        memory.begin_pass();
         let (n, _) = side_contact(&mut memory, Slot::Node(0), 1, &tool, &Vec3::new(0.0, 0.0, -0.001), Some((-Vec3::z(), 0.002)), 1.0).unwrap();
         assert_eq!(n, -Vec3::z(), "two passes old: a new contact");
     }
