@@ -233,7 +233,8 @@ fn press_laid_flat(scene: &Scene, tool: usize, roll: f64, half_m: f64) -> LaidFl
 /// insides of the triangles along it (docs/tool-tissue.md, "The shaft's side"): by the
 /// paper's radial rule the 6 mm probe went through at 4.2 N (explicit) and 5.4 N
 /// (implicit), a 3 mm one at 1.1 N, the blade's plate flat down at 0.6 N, and the 1 mm
-/// scalpel met no node at all.
+/// scalpel met no node at all; while the triangles' points let go as soon as their
+/// triangles tilted towards the tool's end, the scalpel went through at 6.5 / 7.2 N.
 #[test]
 fn a_tool_laid_along_the_skin_and_pressed_to_its_rated_force_never_goes_through() {
     use std::f64::consts::FRAC_PI_2;
@@ -243,21 +244,22 @@ fn a_tool_laid_along_the_skin_and_pressed_to_its_rated_force_never_goes_through(
         let plate = with_blade_plate(0.003);
         let plate = if implicit { edit(&plate, use_implicit_integrator) } else { plate };
         // Rod and plate sizes; the plate flat down (its edge turned to +y) and on its edge.
+        // The plate on its edge under the explicit integrator is the gap left: held to
+        // 8.7 N, then the skin slides off its end, triangle by triangle (see the doc).
         for (scene, name, tool, roll, half, holds) in [
             (probe(0.003), "6 mm probe", 1, 0.0, 0.003, true),
             (probe(0.002), "4 mm probe", 1, 0.0, 0.002, true),
             (probe(0.0015), "3 mm probe", 1, 0.0, 0.0015, true),
             (plate.clone(), "3 x 0.4 mm blade plate flat down", 0, FRAC_PI_2, 0.0002, true),
-            (scene.clone(), "1 mm scalpel", 0, 0.0, 0.0005, false),
-            (plate.clone(), "3 x 0.4 mm blade plate on its edge", 0, 0.0, 0.0015, false),
+            (scene.clone(), "1 mm scalpel", 0, 0.0, 0.0005, true),
+            (plate.clone(), "3 x 0.4 mm blade plate on its edge", 0, 0.0, 0.0015, implicit),
         ] {
             let pressed = press_laid_flat(&scene, tool, roll, half);
             println!("{} integrator, {name} laid flat: held up to {:.2} N, rated force reached {}, through {}", if implicit { "implicit" } else { "explicit" }, pressed.held_n, pressed.rated_reached, pressed.through);
             if holds {
                 assert!(pressed.rated_reached && !pressed.through, "{name} laid flat went through at {:.2} N", pressed.held_n);
             } else {
-                // The gap: the thinnest sections are held to 6.5–7.2 N, then pass (see the doc).
-                assert!(pressed.held_n > 5.0, "{name} laid flat is held to at least 5 N ({:.2} N)", pressed.held_n);
+                assert!(pressed.held_n > 8.0, "{name} laid flat is held to at least 8 N ({:.2} N)", pressed.held_n);
             }
         }
     }
