@@ -23,6 +23,7 @@
 //! opposite force, and the sum over nodes is the haptic force. Only nodes the broad
 //! phase returns near the tool are tested.
 
+use super::side_friction::{side_friction, stick_contacts};
 use super::side_hold::{SideMemory, Slot, side_contact};
 use super::state::Nodes;
 use crate::broad_phase::PointGrid;
@@ -113,6 +114,10 @@ pub(crate) struct SideHold<'a> {
     pub memory: &'a mut SideMemory,
     pub body: usize,
     pub max_depth_m: f64,
+    /// The skin's Coulomb friction against the side ([`super::side_friction`]), if any.
+    pub friction: Option<super::side_friction::Friction>,
+    /// The tool's velocity, m/s (what a stuck point moves with).
+    pub tool_velocity: Vec3,
 }
 
 /// Adds the contact forces of one tool to the nodes, and their reaction to `feedback`
@@ -144,14 +149,22 @@ pub(crate) fn apply_tool_contacts(
             return;
         }
         let penetration = tool_penetration(tool, &nodes.x[i], mode != ContactMode::ShortestWayOut);
+        let mut rub = Vec3::zeros();
         let pushed = match (&mut side, mode) {
             (Some(side), ContactMode::SideOnly { .. }) => {
-                side_contact(side.memory, Slot::Node(i), side.body, tool, &nodes.x[i], penetration.map(|p| (p.direction, p.depth_m)), side.max_depth_m).map(|(direction, depth_m)| Penetration { direction, depth_m })
+                let pushed = side_contact(side.memory, Slot::Node(i), side.body, tool, &nodes.x[i], penetration.map(|p| (p.direction, p.depth_m)), side.max_depth_m);
+                if let (Some((direction, depth_m)), Some(friction)) = (pushed, side.friction) {
+                    rub = side_friction(side.memory, Slot::Node(i), side.body, tool, &nodes.x[i], &direction, stiffness * depth_m, stiffness, friction);
+                    if contacts.len() + 3 <= contacts.capacity() {
+                        stick_contacts(&[id], &[1.0], &direction, stiffness, &side.tool_velocity, contacts);
+                    }
+                }
+                pushed.map(|(direction, depth_m)| Penetration { direction, depth_m })
             }
             _ => penetration,
         };
         if let Some(pen) = pushed {
-            let on_node = pen.direction * (stiffness * pen.depth_m);
+            let on_node = pen.direction * (stiffness * pen.depth_m) + rub;
             nodes.f[i] += on_node;
             force -= on_node;
             torque -= (nodes.x[i] - tool.tip).cross(&on_node);

@@ -206,6 +206,11 @@ impl Holder {
         }
     }
 
+    /// The skin's friction against the tools, if it has any.
+    pub fn friction(&self) -> Option<Friction> {
+        self.friction
+    }
+
     /// Forgets last step's holds.
     pub fn begin_step(&mut self) {
         self.tools.iter_mut().for_each(|t| *t = HoldState::default());

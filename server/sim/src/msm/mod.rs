@@ -23,6 +23,7 @@ pub(crate) mod forces;
 pub mod foundation;
 pub(crate) mod face_hold;
 pub(crate) mod hold;
+pub(crate) mod side_friction;
 pub(crate) mod side_hold;
 pub mod resistance;
 pub(crate) mod implicit;
@@ -426,7 +427,8 @@ impl MassSpring {
             // what nodes travel in between.
             let margin = 0.5 * self.grid.cell_size_m();
             let substep_s = self.substep_s();
-            let mut side = self.holding[i].then(|| SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m() });
+            let friction = self.holder.friction();
+            let mut side = self.holding[i].then(|| SideHold { memory: &mut self.side_memory, body: i, max_depth_m: shape.hold_max_depth_m(), friction, tool_velocity: self.tool_velocity[i] });
             let mode = if self.holding[i] {
                 ContactMode::SideOnly { face_reach_m: hold::hold_reach_m(self.tool_velocity[i], tool.axis, substep_s, self.mean_edge_m) }
             } else if shape.can_cut && commands[i].cut {

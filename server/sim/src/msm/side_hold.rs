@@ -14,7 +14,7 @@
 //! the section lies across the ray from it: a node under the shaft is pushed down below
 //! it however deep the tool goes. Near the surface (within [`SHALLOW`] of the section's
 //! half-size) it is pushed along the surface's own normal, so the tool slides over the
-//! skin as a frictionless one does. The contact lets go when the ray misses the section
+//! skin (against its friction, [`super::side_friction`]). The contact lets go when the ray misses the section
 //! (the node came out, or the tool moved off it), and past the depth at which one node
 //! would push with the tool's rated force (it has gone through: it must not be flung
 //! back harder).
@@ -44,6 +44,10 @@ struct SideTouch {
     /// A triangle's point: its barycentric weights (the material point, kept while the
     /// contact lasts).
     weights: [f64; 3],
+    /// Where friction holds it ([`super::side_friction`]): from the tool's tip, as
+    /// components along its axis, edge and flat's normal; None until the pass that
+    /// touched it first has rubbed.
+    anchor: Option<[f64; 3]>,
 }
 
 /// What touches a tool's side: a node, or one of the two points a triangle's inside is
@@ -115,10 +119,28 @@ impl SideMemory {
     }
 
     fn remember(&mut self, slot: Slot, body: usize, tool: &PlacedTool, way_out: &Vec3) {
+        // A contact that goes on keeps its anchor; a new one is anchored anew.
+        let anchor = self.live(slot, body).and_then(|t| t.anchor);
         let pass = self.pass;
         let entry = self.slot(slot);
         let weights = entry.map_or([0.0; 3], |t| t.weights);
-        *entry = Some(SideTouch { body, along_edge: way_out.dot(&tool.edge), along_flat: way_out.dot(&tool.flat_normal()), pass, weights });
+        *entry = Some(SideTouch { body, along_edge: way_out.dot(&tool.edge), along_flat: way_out.dot(&tool.flat_normal()), pass, weights, anchor });
+    }
+
+    /// Where friction holds `slot` against body `body` (world frame), if it has been
+    /// anchored during its contact.
+    pub fn anchor(&self, slot: Slot, body: usize, tool: &PlacedTool) -> Option<Vec3> {
+        let [along, edge, flat] = self.live(slot, body)?.anchor?;
+        Some(tool.tip + tool.axis * along + tool.edge * edge + tool.flat_normal() * flat)
+    }
+
+    /// Keeps `slot`'s anchor at `at` (world frame), in the tool's frame.
+    pub fn keep_anchor(&mut self, slot: Slot, body: usize, tool: &PlacedTool, at: &Vec3) {
+        let from_tip = at - tool.tip;
+        let anchor = [from_tip.dot(&tool.axis), from_tip.dot(&tool.edge), from_tip.dot(&tool.flat_normal())];
+        if let Some(t) = self.slot(slot).as_mut().filter(|t| t.body == body) {
+            t.anchor = Some(anchor);
+        }
     }
 
     /// The material point a triangle's point in contact with body `body` is (its
