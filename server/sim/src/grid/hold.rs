@@ -33,19 +33,72 @@ pub struct Touch {
     pub step: u64,
 }
 
-/// A capsule: the segment `a`–`b` swept by a ball of radius `radius`.
+/// A tool's solid against the grid's vertices: the segment `a` (its tip) – `b` swept
+/// by a ball of radius `radius` (a capsule), or, for a scalpel blade's plate, by its
+/// rectangular section (a box from `a` to `b`, `radius` then its half-diagonal: what
+/// bounds it).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Capsule {
     pub a: Vec3,
     pub b: Vec3,
     pub radius: f64,
+    pub plate: Option<Plate>,
+}
+
+/// A blade's plate across the axis: `half_width` along `edge` (the way its edge faces,
+/// a unit vector across the axis), `half_thickness` along `flat` (its flat's normal).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Plate {
+    pub edge: Vec3,
+    pub flat: Vec3,
+    pub half_width: f64,
+    pub half_thickness: f64,
 }
 
 impl Capsule {
-    /// Where the line `p + t n` (n a unit vector) lies in the capsule: its interval of t,
-    /// or None if it misses. The capsule is convex, so the interval is one: the hull of
-    /// the intervals of its two balls and of its cylinder between them.
+    /// A round tool: the segment `a`–`b` swept by a ball of `radius`.
+    pub fn round(a: Vec3, b: Vec3, radius: f64) -> Self {
+        Capsule { a, b, radius, plate: None }
+    }
+
+    /// The solid's smallest half-size across its axis: a capsule's radius, half a plate's
+    /// thickness (the depth scale of its shallow band, and what fits between vertices).
+    pub fn half_size(&self) -> f64 {
+        self.plate.map_or(self.radius, |plate| plate.half_thickness)
+    }
+
+    /// The box's three axes from the tip (along the tool, its edge, its flat's normal)
+    /// with the half-extents across them, and its length.
+    fn plate_axes(&self, plate: &Plate) -> ([Vec3; 3], [f64; 2], f64) {
+        let along = self.b - self.a;
+        let length = along.norm();
+        ([along / length.max(1e-12), plate.edge, plate.flat], [plate.half_width, plate.half_thickness], length)
+    }
+
+    /// Where the line `p + t n` (n a unit vector) lies in the solid: its interval of t,
+    /// or None if it misses. The solid is convex, so the interval is one: for a capsule
+    /// the hull of the intervals of its two balls and of its cylinder between them; for a
+    /// plate the intersection of its three slabs.
     pub fn interval(&self, p: &Vec3, n: &Vec3) -> Option<(f64, f64)> {
+        if let Some(plate) = &self.plate {
+            let (axes, half, length) = self.plate_axes(plate);
+            let m = p - self.a;
+            let bounds = [(0.0, length), (-half[0], half[0]), (-half[1], half[1])];
+            let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+            for (axis, (min, max)) in axes.iter().zip(bounds) {
+                let (at, going) = (m.dot(axis), n.dot(axis));
+                if going.abs() < 1e-12 {
+                    if at < min || at > max {
+                        return None;
+                    }
+                    continue;
+                }
+                let (t0, t1) = ((min - at) / going, (max - at) / going);
+                lo = lo.max(t0.min(t1));
+                hi = hi.min(t0.max(t1));
+            }
+            return (lo <= hi).then_some((lo, hi));
+        }
         let mut hull: Option<(f64, f64)> = None;
         let mut take = |lo: f64, hi: f64| {
             if lo <= hi {
@@ -93,11 +146,38 @@ impl Capsule {
     /// The outward normal at the surface point nearest `p` (a point on the axis: any
     /// normal across it), and how far inside `p` is (negative outside).
     pub fn radial(&self, p: &Vec3) -> (Vec3, f64) {
+        if let Some(plate) = &self.plate {
+            return self.plate_nearest(plate, p);
+        }
         let (_, closest) = closest_point_on_segment(p, &self.a, &self.b);
         let offset = p - closest;
         let distance = offset.norm();
         let normal = if distance > 1e-12 { offset / distance } else { (self.b - self.a).cross(&Vec3::x()).try_normalize(1e-9).unwrap_or(Vec3::y()) };
         (normal, self.radius - distance)
+    }
+
+    /// [`Self::radial`] for a plate: inside, the face nearest `p`; outside, from the box's
+    /// point nearest `p` towards it.
+    fn plate_nearest(&self, plate: &Plate, p: &Vec3) -> (Vec3, f64) {
+        let (axes, half, length) = self.plate_axes(plate);
+        let m = p - self.a;
+        let at = axes.map(|axis| m.dot(&axis));
+        let bounds = [(0.0, length), (-half[0], half[0]), (-half[1], half[1])];
+        let inside = (0..3).all(|k| at[k] >= bounds[k].0 && at[k] <= bounds[k].1);
+        if inside {
+            let mut best = (axes[0] * -1.0, at[0]);
+            for k in 0..3 {
+                for (depth, normal) in [(at[k] - bounds[k].0, -axes[k]), (bounds[k].1 - at[k], axes[k])] {
+                    if depth < best.1 {
+                        best = (normal, depth);
+                    }
+                }
+            }
+            return best;
+        }
+        let outside: Vec3 = (0..3).map(|k| axes[k] * (at[k] - at[k].clamp(bounds[k].0, bounds[k].1))).sum();
+        let distance = outside.norm();
+        (outside / distance, -distance)
     }
 
     /// The outward normal where the path from `before` (outside) to `p` (inside) came
@@ -150,7 +230,8 @@ fn quadratic_interval(a: f64, b: f64, c: f64) -> Option<(f64, f64)> {
     })
 }
 
-/// How deep inside the tool (a fraction of its radius) a vertex is pushed out along the
+/// How deep inside the tool (a fraction of its radius, of half a plate's thickness) a
+/// vertex is pushed out along the
 /// tool's surface normal nearest it, as a frictionless contact is, and slides over it
 /// (the normal turning as it goes); deeper, along the normal it came in with.
 pub const SHALLOW: f64 = 0.25;
@@ -167,7 +248,7 @@ pub struct Contact {
 /// How a vertex at `p` touches `capsule`, given the normal it came in with if it was in
 /// contact last step (`entry`, grid frame) and, for a new contact, where it was
 /// relative to the tool a step before (`before`); None if it does not. Near the tool's
-/// surface (within [`SHALLOW`] of its radius) the normal is the surface's there, so a
+/// surface (within [`SHALLOW`] of its half-size) the normal is the surface's there, so a
 /// tool rolls or slides over the tissue as a frictionless one does; deeper, or once that
 /// normal has turned more than a right angle from the one it came in with, the vertex
 /// is pushed along the normal it came in with, so it cannot be pushed round the tool's
@@ -180,7 +261,7 @@ pub struct Contact {
 pub fn contact(capsule: &Capsule, p: &Vec3, entry: Option<Vec3>, before: Option<Vec3>, max_depth: f64) -> Option<Contact> {
     let (radial, inside) = capsule.radial(p);
     let entry = entry_of(capsule, p, entry, before, radial, inside)?;
-    if inside > 0.0 && inside <= SHALLOW * capsule.radius && radial.dot(&entry) > 0.0 {
+    if inside > 0.0 && inside <= SHALLOW * capsule.half_size() && radial.dot(&entry) > 0.0 {
         return Some(Contact { normal: radial, depth: inside, entry });
     }
     held_along(capsule, p, entry, max_depth)
@@ -222,7 +303,7 @@ mod tests {
 
     /// A ball-ended rod of radius 3 mm standing on its tip at the origin.
     fn probe() -> Capsule {
-        Capsule { a: Vec3::new(0.0, 0.0, 0.003), b: Vec3::new(0.0, 0.0, 0.1), radius: 0.003 }
+        Capsule::round(Vec3::new(0.0, 0.0, 0.003), Vec3::new(0.0, 0.0, 0.1), 0.003)
     }
 
     #[test]
@@ -276,5 +357,40 @@ mod tests {
         assert!(normal.x > 0.9, "{normal:?}");
         // Outside: no contact.
         assert!(contact(&c, &Vec3::new(0.0, 0.0, -0.0001), None, None, 1.0).is_none());
+    }
+    /// A 3 × 0.4 mm blade plate standing on its tip at the origin, 40 mm long, its edge
+    /// facing +x.
+    fn blade() -> Capsule {
+        let plate = Plate { edge: Vec3::x(), flat: Vec3::z().cross(&Vec3::x()), half_width: 0.0015, half_thickness: 0.0002 };
+        Capsule { a: Vec3::zeros(), b: Vec3::new(0.0, 0.0, 0.04), radius: 0.0015f64.hypot(0.0002), plate: Some(plate) }
+    }
+
+    #[test]
+    fn a_plate_is_a_box_rays_cross_its_slabs_and_points_leave_by_the_nearest_face() {
+        let c = blade();
+        assert_eq!(c.half_size(), 0.0002);
+        // Across the flat (y) at 1 mm up: its thickness; across the edge (x): its width.
+        let (lo, hi) = c.interval(&Vec3::new(0.001, -1.0, 0.001), &Vec3::y()).unwrap();
+        assert!((lo - (1.0 - 0.0002)).abs() < 1e-12 && (hi - (1.0 + 0.0002)).abs() < 1e-12, "{lo} {hi}");
+        let (lo, hi) = c.interval(&Vec3::new(-1.0, 0.0, 0.001), &Vec3::x()).unwrap();
+        assert!((lo - (1.0 - 0.0015)).abs() < 1e-12 && (hi - (1.0 + 0.0015)).abs() < 1e-12, "{lo} {hi}");
+        // Beside the flat, or below the tip: missed (a capsule of its bounding radius
+        // would reach both).
+        assert!(c.interval(&Vec3::new(-1.0, 0.0005, 0.001), &Vec3::x()).is_none());
+        assert!(c.interval(&Vec3::new(-1.0, 0.0, -0.0001), &Vec3::x()).is_none());
+        assert!(Capsule::round(c.a, c.b, c.radius).interval(&Vec3::new(-1.0, 0.0005, 0.001), &Vec3::x()).is_some());
+        // Inside near the flat: out through it; near the tip: out through the tip face.
+        let (normal, inside) = c.radial(&Vec3::new(0.0005, 0.00015, 0.01));
+        assert!((normal - Vec3::y()).norm() < 1e-12 && (inside - 0.00005).abs() < 1e-12, "{normal:?} {inside}");
+        let (normal, inside) = c.radial(&Vec3::new(0.0005, 0.0, 0.0001));
+        assert!((normal + Vec3::z()).norm() < 1e-12 && (inside - 0.0001).abs() < 1e-12, "{normal:?} {inside}");
+        // Outside beside the edge: from the nearest point, negative.
+        let (normal, inside) = c.radial(&Vec3::new(0.0025, 0.0, 0.01));
+        assert!((normal - Vec3::x()).norm() < 1e-12 && (inside + 0.001).abs() < 1e-12, "{normal:?} {inside}");
+        // A vertex that came in through the tip face is held along the axis, pushed
+        // down below the tip however deep the blade goes.
+        let p = Vec3::new(0.001, 0.0001, 0.005);
+        let Contact { normal, depth, .. } = contact(&c, &p, None, Some(p - Vec3::new(0.0, 0.0, 0.006)), 1.0).unwrap();
+        assert!((normal + Vec3::z()).norm() < 1e-12 && (depth - 0.005).abs() < 1e-12, "{normal:?} {depth}");
     }
 }

@@ -444,13 +444,23 @@ impl BranchedGrid {
     /// The surface vertices tool `i` at `command`'s pose touches, each with the normal it
     /// is pushed out along and how far (super::hold), into `out`; and where the tool is.
     fn touching(&self, i: usize, command: &ToolCommand, out: &mut Vec<(u32, super::hold::Contact)>) -> ToolPlacement {
-        use super::hold::{Capsule, contact};
+        use super::hold::{Capsule, Plate, contact};
+        use crate::tool::Section;
         out.clear();
         let tool = &self.tools[i];
         let tip = self.frame.to_local(&command.pose.position_m);
         let tool_to_grid = super::hold::tool_to_grid(&self.frame.rotation, command.pose.orientation.to_rotation_matrix().matrix());
         let top = tip + tool_to_grid * Vec3::z() * tool.length_m;
-        let capsule = Capsule { a: tip, b: top, radius: tool.radius_m };
+        let axis = tool_to_grid * Vec3::z();
+        let plate = match tool.section {
+            Section::Plate { half_width_m, half_thickness_m } => {
+                let edge = tool_to_grid * tool.edge_local;
+                Some(Plate { edge, flat: axis.cross(&edge), half_width: half_width_m, half_thickness: half_thickness_m })
+            }
+            // Refused at load (crate::scene): forceps are built for the skin only.
+            Section::Round | Section::Jaws { .. } => None,
+        };
+        let capsule = Capsule { a: tip, b: top, radius: tool.radius_m, plate };
         let max_depth = tool.hold_max_depth_m();
         let cutting = self.cutting(i, command);
         // The tool's motion over the step: a new contact came in along it.

@@ -86,7 +86,7 @@ pub struct Capsule {
 
 impl Capsule {
     fn hold(&self) -> crate::grid::hold::Capsule {
-        crate::grid::hold::Capsule { a: self.tip, b: self.top, radius: self.radius_m }
+        crate::grid::hold::Capsule::round(self.tip, self.top, self.radius_m)
     }
 }
 

@@ -209,12 +209,27 @@ impl Scene {
             }
         }
         for (i, tool) in self.tools.iter().enumerate() {
-            let super::ToolShapeSpec::Cylinder { radius_m, length_m, tip } = &tool.shape else {
-                return Err(SceneError::new(
-                    origin,
-                    format!("tools[{i}].shape"),
-                    "the branched grid's tools are cylinders (capsules against its voxels); a blade's plate and forceps' jaws are built for the mass-spring skin only",
-                ));
+            // How far across its axis a cutting shape may reach: less than a cylinder's
+            // radius, at most a blade's half width (the slit its edge opens).
+            let (reach_m, length_m, tip) = match &tool.shape {
+                super::ToolShapeSpec::Cylinder { radius_m, length_m, tip } => (radius_m.get() * (1.0 - 1e-12), length_m, tip),
+                super::ToolShapeSpec::Blade { width_m, length_m, .. } => {
+                    if !grid.schedule.is_single_rate() {
+                        return Err(SceneError::new(
+                            origin,
+                            format!("tools[{i}].shape"),
+                            "a blade's plate is held against the branched grid's vertices by the single-rate step only; a multirate schedule's haptic loop renders capsules: use a cylinder, or \"schedule\": \"single-rate\"",
+                        ));
+                    }
+                    (0.5 * width_m.get(), length_m, &None)
+                }
+                super::ToolShapeSpec::Forceps { .. } => {
+                    return Err(SceneError::new(
+                        origin,
+                        format!("tools[{i}].shape"),
+                        "forceps' jaws are built for the mass-spring skin only; the branched grid's tools are cylinders (capsules against its voxels) and blades' plates",
+                    ));
+                }
             };
             if *tip == Some(super::TipSpec::Flat) {
                 return Err(SceneError::new(
@@ -230,13 +245,13 @@ impl Scene {
             if *inner_tip == Some(super::TipSpec::Flat) {
                 return Err(SceneError::new(origin, format!("tools[{i}].cutting_shape.cylinder.tip"), "a cutting shape is a capsule (a round tip): use \"round\" or leave it out"));
             }
-            if r_in.get() >= radius_m.get() || l_in.get() > length_m.get() {
+            if r_in.get() > reach_m || l_in.get() > length_m.get() {
                 return Err(SceneError::new(
                     origin,
                     format!("tools[{i}].cutting_shape"),
                     format!(
-                        "the cutting shape (radius {} m, length {} m) must fit inside the tool's shape (radius {} m, length {} m): a smaller radius, no longer",
-                        r_in.get(), l_in.get(), radius_m.get(), length_m.get()
+                        "the cutting shape (radius {} m, length {} m) must fit inside the tool's shape (a cylinder's radius or a blade's half width {} m, length {} m): a smaller radius, no longer",
+                        r_in.get(), l_in.get(), reach_m, length_m.get()
                     ),
                 ));
             }

@@ -95,7 +95,7 @@ impl BranchedGrid {
     /// `candidates`: scratch.
     pub(super) fn face_contacts(&self, at: &ToolAt<'_>, touching: &[(u32, Contact)], candidates: &mut Vec<u32>, out: &mut Vec<FaceContact>) {
         out.clear();
-        if !self.fits_between_vertices(at.capsule.radius) {
+        if !self.fits_between_vertices(at.capsule.half_size()) {
             return;
         }
         for held in self.held_faces[at.tool].iter().filter(|h| h.step + 1 >= self.step_index) {
@@ -149,9 +149,32 @@ impl BranchedGrid {
                 out.extend(new(barycentric_closest(&point, &corners[0], &corners[1], &corners[2])));
             }
         }
+        self.plate_end_contacts(at, candidates, out);
     }
 
-    /// Whether a tool of `radius` can touch the surface between its vertices: a ball
+    /// A blade's plate has a flat end as wide as the blade, wider than one point under
+    /// its tip can hold: on each triangle under the end's centre line (from edge to
+    /// back, through the tip) that holds no point, the ends of that line's stretch over
+    /// it are held by the end face (along the axis), as the points along the shaft are
+    /// held by its side, also where a vertex of it is held (the end reaches past it). Without them the triangles under the rest of a 3 mm end were
+    /// passed through one after another and the end went into a block at 1.5 N.
+    fn plate_end_contacts(&self, at: &ToolAt<'_>, candidates: &[u32], out: &mut Vec<FaceContact>) {
+        let Some(plate) = &at.capsule.plate else { return };
+        let (back, edge) = (at.capsule.a - plate.edge * plate.half_width, at.capsule.a + plate.edge * plate.half_width);
+        for &t in candidates {
+            if out.iter().any(|f| f.held.triangle == t) || !self.live_triangle(t) {
+                continue;
+            }
+            let Some((near, far)) = segment_over_triangle(&back, &edge, &self.corners(t)) else { continue };
+            for barycentric in [near, far] {
+                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index };
+                out.extend(self.hold_face(at, held, None).filter(|f| at.capsule.pushes_with_tip(&f.contact.entry)));
+            }
+        }
+    }
+
+    /// Whether a tool whose thinnest half-size is `radius` (a capsule's radius, half a
+    /// plate's thickness) can touch the surface between its vertices: a ball
     /// narrower than half the diagonal of a voxel's largest face rests on a flat face of
     /// the surface without touching a vertex (they stand at the voxels' face centres).
     /// Wider tools meet vertices first and are held by them alone.
@@ -200,9 +223,15 @@ impl BranchedGrid {
         // under a shaft laid on the block slid off its side one after another (the
         // elements, 4 mm there, shear under a 1 mm tool): the force fell and rose by
         // turns (6.3, 4.9, 5.6, 3.7 N at 3, 4, 5, 6 mm in; docs/tool-tissue.md).
+        // A blade's plate is drawn across its thickness only: across its width, under
+        // its flat, the tissue is not in a groove.
         let centring = at.capsule.out_of_tip().map(|axis| {
             let on_axis = at.capsule.a + axis * (point - at.capsule.a).dot(&axis);
-            crate::grid::friction::tangent_projection(&contact.normal) * (on_axis - point)
+            let offset = match &at.capsule.plate {
+                Some(plate) => plate.flat * plate.flat.dot(&(on_axis - point)),
+                None => on_axis - point,
+            };
+            crate::grid::friction::tangent_projection(&contact.normal) * offset
         });
         Some(FaceContact { held, point, element, weights, vertex, contact, centring })
     }
