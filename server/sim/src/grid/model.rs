@@ -106,7 +106,7 @@ pub struct BranchedGrid {
     /// Per contact: its surface vertex (for a contact on a triangle's inside, the
     /// triangle's vertex nearest it).
     contact_vertices: Vec<u32>,
-    /// Per contact: whether it is on a triangle's inside (face_contact; frictionless).
+    /// Per contact: whether it is on a triangle's inside (face_contact; its friction is decided before the solve, not moved after it).
     contact_on_face: Vec<bool>,
     /// Per tool: its tip last step (grid frame), for its velocity.
     previous_tips: Vec<Option<Vec3>>,
@@ -423,17 +423,32 @@ impl BranchedGrid {
             self.contact_on_face.push(false);
         }
         self.held_face_contacts(i, cutting, &placed, &touching, &mut triangles, &mut faces);
-        self.held_faces[i].clear();
-        self.held_faces[i].extend(faces.iter().map(|f| f.held));
-        for f in &faces {
+        for f in faces.iter_mut() {
             let (normal, depth) = (f.contact.normal, f.contact.depth);
-            // The centring spring is the friction's stick spring, anchored on the axis.
-            let (stick_stiffness, stick_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
-            self.contacts.push(PointContact { element: f.element, weights: f.weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force, tool_velocity });
+            // The centring spring is a stick spring anchored on the axis; friction adds
+            // one of its own anchor (as a vertex's, but decided before the solve only).
+            let (centring_stiffness, centring_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
+            let (rub_stiffness, rub_force) = Self::face_rub(&mut f.held, &f.point, &tip, &normal, k, k * depth, self.friction_at(f.vertex as usize));
+            let stick_stiffness = centring_stiffness + rub_stiffness;
+            // The two anchors move differently: friction's with the tool; the centring
+            // spring's, the foot of the axis, with the tool across the axis and with the
+            // point along it (the foot slides along the axis as the point does: the
+            // point's velocity at the step's start). Moving it with the tool along the
+            // axis too, a frictionless thin shaft drawn along itself dragged the surface
+            // with it (2.8 times the force pressing it).
+            let foot_velocity = placed.capsule.out_of_tip().map_or(tool_velocity, |axis| {
+                let nodes = &self.topo.elements.nodes[f.element as usize];
+                let point_velocity: Vec3 = (0..8).map(|n| self.topo.nodes.v[nodes[n] as usize] * f.weights[n]).sum();
+                tool_velocity + axis * (point_velocity - tool_velocity).dot(&axis)
+            });
+            let anchor_velocity = if stick_stiffness > 0.0 { (foot_velocity * centring_stiffness + tool_velocity * rub_stiffness) / stick_stiffness } else { tool_velocity };
+            self.contacts.push(PointContact { element: f.element, weights: f.weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force: centring_force + rub_force, tool_velocity: anchor_velocity });
             self.contact_levers.push(f.point - tip);
             self.contact_vertices.push(f.vertex);
             self.contact_on_face.push(true);
         }
+        self.held_faces[i].clear();
+        self.held_faces[i].extend(faces.iter().map(|f| f.held));
         // The force the tool feels is the contacts' after the solve (solved_contact_forces).
         fb.contacts = (touching.len() + faces.len()) as u32;
         self.touching_scratch = touching;
@@ -579,6 +594,23 @@ impl BranchedGrid {
         let (force, sliding) = stick_force(p, &anchor, normal, k, normal_n, friction);
         let anchor = if sliding { slid_anchor(p, &force, k) } else { anchor };
         anchors.set(v, Anchor { tool: i, from_tip: anchor - tip, step: step_index });
+        (if sliding { 0.0 } else { k }, force)
+    }
+
+    /// Friction's stick spring for a point of a triangle's inside held at `p` (tip at
+    /// `tip`) with normal force `normal_n`: (its stiffness, its force on the tissue now),
+    /// as [`Self::stick`] for a vertex, its anchor kept in `held` (a point held last step
+    /// keeps it; a new one sticks where it is).
+    #[allow(clippy::too_many_arguments)]
+    fn face_rub(held: &mut face_contact::HeldFace, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction) -> (f64, Vec3) {
+        use super::friction::{slid_anchor, stick_force};
+        if friction.static_coefficient <= 0.0 {
+            return (0.0, Vec3::zeros());
+        }
+        let anchor = held.anchor_from_tip.map_or(*p, |from_tip| tip + from_tip);
+        let (force, sliding) = stick_force(p, &anchor, normal, k, normal_n, friction);
+        let anchor = if sliding { slid_anchor(p, &force, k) } else { anchor };
+        held.anchor_from_tip = Some(anchor - tip);
         (if sliding { 0.0 } else { k }, force)
     }
 

@@ -28,7 +28,9 @@
 //!   give exceeded its radius (1.34 N at 3 mm in, then 0.56 N). A face the axis
 //!   crosses is not taken anew (which side it belongs on is not known; a point taken
 //!   before it was crossed remembers), nor a point the tip's ball pushes along the axis
-//!   (that is the tip's). Frictionless but for the drawing spring.
+//!   (that is the tip's). Each point rubs with its material's friction besides the
+//!   drawing spring (super::BranchedGrid's contacts: a stick spring of its own anchor,
+//!   decided before the solve).
 
 use super::BranchedGrid;
 use crate::grid::hold::{Capsule, Contact, contact_along_entry};
@@ -44,6 +46,9 @@ pub(super) struct HeldFace {
     pub normal_in_tool: Vec3,
     /// The step it was last held.
     pub step: u64,
+    /// Where friction holds it (from the tool's tip, grid frame; crate::grid::friction):
+    /// None until its first step has rubbed, and on frictionless tissue.
+    pub anchor_from_tip: Option<Vec3>,
 }
 
 /// A tool's contact on a triangle's inside this step.
@@ -132,7 +137,7 @@ impl BranchedGrid {
             // A point the tip's ball reaches is the tip's to hold (above): held along
             // the axis here, a wall's point would stand in for the tip's.
             let new = |barycentric: [f64; 3]| {
-                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index };
+                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index, anchor_from_tip: None };
                 self.hold_face(at, held, None).filter(|f| !at.capsule.pushes_with_tip(&f.contact.entry))
             };
             let before = out.len();
@@ -167,7 +172,7 @@ impl BranchedGrid {
             }
             let Some((near, far)) = segment_over_triangle(&back, &edge, &self.corners(t)) else { continue };
             for barycentric in [near, far] {
-                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index };
+                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index, anchor_from_tip: None };
                 out.extend(self.hold_face(at, held, None).filter(|f| at.capsule.pushes_with_tip(&f.contact.entry)));
             }
         }
@@ -196,7 +201,7 @@ impl BranchedGrid {
         let crossed = (on_axis - point).norm() <= 1e-9 * at.capsule.radius;
         let inward = -triangle_normal(&corners[0], &corners[1], &corners[2]).try_normalize(1e-18)?;
         let remembered = crossed.then(|| at.capsule.face_normal(&inward));
-        self.hold_face(at, HeldFace { triangle, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index }, remembered)
+        self.hold_face(at, HeldFace { triangle, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index, anchor_from_tip: None }, remembered)
     }
 
     /// `held`'s point under the vertices' rule: with the normal it came in with
