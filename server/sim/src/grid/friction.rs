@@ -120,6 +120,15 @@ pub fn slid_anchor(point: &Vec3, force: &Vec3, stiffness: f64) -> Vec3 {
     point + force / stiffness
 }
 
+/// Friction's stick spring on a point at `point` held along `normal` with `normal_n`,
+/// anchored at `anchor`: (its stiffness in the solve, its force on the tissue now, where
+/// its anchor is to be kept). Sliding (beyond the static cone), the force is the dynamic
+/// one and constant over the step (stiffness 0), and the anchor moves to match it.
+pub fn rub(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, normal_n: f64, friction: Friction) -> (f64, Vec3, Vec3) {
+    let (force, sliding) = stick_force(point, anchor, normal, stiffness, normal_n, friction);
+    if sliding { (0.0, force, slid_anchor(point, &force, stiffness)) } else { (stiffness, force, *anchor) }
+}
+
 /// The stick spring's force of `contact` at the end of a step of h whose velocities
 /// `topo` holds (the linearisation the solve used), N.
 pub fn stick_force_after(contact: &PointContact, topo: &Topology, h: f64) -> Vec3 {

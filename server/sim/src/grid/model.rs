@@ -436,13 +436,12 @@ impl BranchedGrid {
             // point's velocity at the step's start). Moving it with the tool along the
             // axis too, a frictionless thin shaft drawn along itself dragged the surface
             // with it (2.8 times the force pressing it).
-            let foot_velocity = placed.capsule.out_of_tip().map_or(tool_velocity, |axis| {
-                let nodes = &self.topo.elements.nodes[f.element as usize];
-                let point_velocity: Vec3 = (0..8).map(|n| self.topo.nodes.v[nodes[n] as usize] * f.weights[n]).sum();
-                tool_velocity + axis * (point_velocity - tool_velocity).dot(&axis)
-            });
-            let anchor_velocity = if stick_stiffness > 0.0 { (foot_velocity * centring_stiffness + tool_velocity * rub_stiffness) / stick_stiffness } else { tool_velocity };
-            self.contacts.push(PointContact { element: f.element, weights: f.weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force: centring_force + rub_force, tool_velocity: anchor_velocity });
+            let mut contact = PointContact { element: f.element, weights: f.weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force: centring_force + rub_force, tool_velocity };
+            let foot_velocity = placed.capsule.out_of_tip().map_or(tool_velocity, |axis| tool_velocity + axis * (contact.point_velocity(&self.topo) - tool_velocity).dot(&axis));
+            if stick_stiffness > 0.0 {
+                contact.tool_velocity = (foot_velocity * centring_stiffness + tool_velocity * rub_stiffness) / stick_stiffness;
+            }
+            self.contacts.push(contact);
             self.contact_levers.push(f.point - tip);
             self.contact_vertices.push(f.vertex);
             self.contact_on_face.push(true);
@@ -583,7 +582,7 @@ impl BranchedGrid {
     /// one and constant over the step (stiffness 0).
     #[allow(clippy::too_many_arguments)]
     fn stick(anchors: &mut super::friction::Anchors, step_index: u64, i: usize, v: usize, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction) -> (f64, Vec3) {
-        use super::friction::{Anchor, slid_anchor, stick_force};
+        use super::friction::{Anchor, rub};
         if friction.static_coefficient <= 0.0 {
             return (0.0, Vec3::zeros());
         }
@@ -591,10 +590,9 @@ impl BranchedGrid {
             Some(a) if a.tool == i && a.step + 1 >= step_index => tip + a.from_tip,
             _ => *p,
         };
-        let (force, sliding) = stick_force(p, &anchor, normal, k, normal_n, friction);
-        let anchor = if sliding { slid_anchor(p, &force, k) } else { anchor };
+        let (stiffness, force, anchor) = rub(p, &anchor, normal, k, normal_n, friction);
         anchors.set(v, Anchor { tool: i, from_tip: anchor - tip, step: step_index });
-        (if sliding { 0.0 } else { k }, force)
+        (stiffness, force)
     }
 
     /// Friction's stick spring for a point of a triangle's inside held at `p` (tip at
@@ -603,15 +601,13 @@ impl BranchedGrid {
     /// keeps it; a new one sticks where it is).
     #[allow(clippy::too_many_arguments)]
     fn face_rub(held: &mut face_contact::HeldFace, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction) -> (f64, Vec3) {
-        use super::friction::{slid_anchor, stick_force};
         if friction.static_coefficient <= 0.0 {
             return (0.0, Vec3::zeros());
         }
         let anchor = held.anchor_from_tip.map_or(*p, |from_tip| tip + from_tip);
-        let (force, sliding) = stick_force(p, &anchor, normal, k, normal_n, friction);
-        let anchor = if sliding { slid_anchor(p, &force, k) } else { anchor };
+        let (stiffness, force, anchor) = super::friction::rub(p, &anchor, normal, k, normal_n, friction);
         held.anchor_from_tip = Some(anchor - tip);
-        (if sliding { 0.0 } else { k }, force)
+        (stiffness, force)
     }
 
     /// The surface vertices that move with an element in the coarse cells whose current

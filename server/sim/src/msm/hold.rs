@@ -590,7 +590,7 @@ fn coulomb(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, normal_n:
 
 /// Two unit vectors across `n` (a unit vector), at right angles to each other (the two
 /// springs of a stuck point together act as `I − n nᵀ`, whichever pair this is).
-fn across(n: Vec3) -> [Vec3; 2] {
+pub(crate) fn across(n: Vec3) -> [Vec3; 2] {
     let first = crate::math::any_perpendicular(&n);
     [first, n.cross(&first)]
 }

@@ -20,35 +20,29 @@
 //! the push is).
 
 use super::contact::Contact;
+pub(crate) use super::hold::Friction;
 use super::side_hold::{SideMemory, Slot};
-use crate::math::{Vec3, any_perpendicular};
+use crate::grid::friction::{slid_anchor, stick_force};
+use crate::math::Vec3;
 use crate::tool::PlacedTool;
-
-/// Coulomb friction: (static, dynamic) coefficients.
-pub(crate) type Friction = (f64, f64);
 
 /// The friction on a point at `at` that a tool's side pushes along `push` (unit) with
 /// `normal_n`: the pull of its stick spring (stiffness `stiffness`) towards its anchor,
-/// at most the dynamic force once it slides, N. Keeps the anchor in `memory` (the
-/// point's [`side_contact`](super::side_hold::side_contact) must have taken it this pass).
+/// at most the dynamic force once it slides, N (the grid's stick spring,
+/// crate::grid::friction). Keeps the anchor in `memory` (the point's
+/// [`side_contact`](super::side_hold::side_contact) must have taken it this pass).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn side_friction(memory: &mut SideMemory, slot: Slot, body: usize, tool: &PlacedTool, at: &Vec3, push: &Vec3, normal_n: f64, stiffness: f64, (mu_static, mu_dynamic): Friction) -> Vec3 {
+pub(crate) fn side_friction(memory: &mut SideMemory, slot: Slot, body: usize, tool: &PlacedTool, at: &Vec3, push: &Vec3, normal_n: f64, stiffness: f64, (static_coefficient, dynamic_coefficient): Friction) -> Vec3 {
     let anchor = memory.anchor(slot, body, tool).unwrap_or(*at);
-    let offset = anchor - at;
-    let mut pull = (offset - push * offset.dot(push)) * stiffness;
-    let size = pull.norm();
-    if size > mu_static * normal_n {
-        pull *= mu_dynamic * normal_n / size;
-    }
-    memory.keep_anchor(slot, body, tool, &(at + pull / stiffness));
+    let (pull, _) = stick_force(at, &anchor, push, stiffness, normal_n, crate::grid::friction::Friction { static_coefficient, dynamic_coefficient });
+    memory.keep_anchor(slot, body, tool, &slid_anchor(at, &pull, stiffness));
     pull
 }
 
 /// The stick springs of a point's friction as the implicit system's contacts: across
 /// `push`, `stiffness` times each node's weight, driven with the tool's velocity.
 pub(crate) fn stick_contacts(ids: &[u32], weights: &[f64], push: &Vec3, stiffness: f64, tool_velocity: &Vec3, contacts: &mut Vec<Contact>) {
-    let first = any_perpendicular(push);
-    for t in [first, push.cross(&first)] {
+    for t in super::hold::across(*push) {
         for (&node, &w) in ids.iter().zip(weights) {
             if w != 0.0 {
                 contacts.push(Contact { node, normal: t, stiffness: stiffness * w, drive_m_per_s: tool_velocity.dot(&t) });
