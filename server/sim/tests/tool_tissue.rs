@@ -245,7 +245,7 @@ fn a_tool_laid_along_the_skin_and_pressed_to_its_rated_force_never_goes_through(
         let plate = if implicit { edit(&plate, use_implicit_integrator) } else { plate };
         // Rod and plate sizes; the plate flat down (its edge turned to +y) and on its edge.
         // The plate on its edge under the explicit integrator is the gap left: held to
-        // 9.2 N, then the skin slides off its end, triangle by triangle (see the doc).
+        // 9.1 N, then the skin slides off its end, triangle by triangle (see the doc).
         for (scene, name, tool, roll, half, holds) in [
             (probe(0.003), "6 mm probe", 1, 0.0, 0.003, true),
             (probe(0.002), "4 mm probe", 1, 0.0, 0.002, true),

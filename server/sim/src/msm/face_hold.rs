@@ -24,7 +24,7 @@
 //! point's row sum). Each point is drawn towards the axis by a spring across its push
 //! ([`towards_axis`]), and rubs with the skin's friction ([`super::side_friction`]). The
 //! 1 mm scalpel laid flat reaches its rated 10 N with either integrator; the blade's
-//! plate on its edge under the explicit integrator is held to 9.2 N, then the skin
+//! plate on its edge under the explicit integrator is held to 9.1 N, then the skin
 //! beyond its end pulls the points past it
 //! (docs/tool-tissue.md, "The shaft's side").
 
