@@ -1,6 +1,8 @@
 //! Tools: their shapes (from the scene), the commands that move them each step, and
 //! the feedback (force, torque, contacts) the tissue returns for the haptic device.
 
+pub(crate) mod bodies;
+
 use crate::math::{Pose, Vec3, any_perpendicular};
 use crate::scene::{ModelSpec, TipSpec, ToolShapeSpec};
 

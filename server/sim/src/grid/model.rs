@@ -95,7 +95,16 @@ pub struct BranchedGrid {
     pub(super) settings: SolverSettings,
     pub(super) surface: GridSurface,
     pub(super) materials: Vec<GridMaterial>,
+    /// The bodies the tissue meets: the scene's tools, forceps as their two jaws
+    /// ([`crate::tool::bodies`]). Every per-tool list below is per body.
     pub(super) tools: Vec<ToolShape>,
+    /// The scene's tools, as commands and feedback name them.
+    scene_tools: Vec<ToolShape>,
+    /// The split between tools and bodies where they differ (forceps).
+    bodies: Option<crate::tool::bodies::Bodies>,
+    /// Per body, the body whose contact memory it takes when it comes back (the second
+    /// jaw of forceps reopening: [`crate::tool::bodies::Bodies::twins`]).
+    twins: Vec<Option<usize>>,
     /// None: the scene cannot be cut.
     pub(super) max_voxels_per_step: Option<usize>,
     contacts: Vec<PointContact>,
@@ -203,6 +212,9 @@ impl BranchedGrid {
     ) -> Self {
         let dynamics = Dynamics::new(&topo);
         let n = topo.nodes.len();
+        // The grid meets bodies: the tools, forceps as their two jaws.
+        let (scene_tools, (tools, bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
+        let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], crate::tool::bodies::Bodies::twins);
         let tool_count = tools.len();
         // The per-vertex contact memory, with room for the surface to double through
         // cuts: growing it on the step after a cut (copying and first touching megabytes
@@ -244,6 +256,9 @@ impl BranchedGrid {
             compliance_motion: Vec::new(),
             compliance_cache: vec![None; tool_count],
             tools,
+            scene_tools,
+            bodies,
+            twins,
             topo,
             surface,
         };
@@ -255,7 +270,18 @@ impl BranchedGrid {
 
     /// Advances one step; see the module documentation.
     pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
-        self.advance(commands, feedback, None);
+        debug_assert_eq!(commands.len(), self.scene_tools.len());
+        debug_assert_eq!(feedback.len(), self.scene_tools.len());
+        // Taken out for the step and put back: no allocation.
+        match self.bodies.take() {
+            None => self.advance(commands, feedback, None),
+            Some(mut bodies) => {
+                bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
+                self.advance(&bodies.commands, &mut bodies.feedback, None);
+                self.counters.force_clamps += bodies.gather(&self.scene_tools, feedback);
+                self.bodies = Some(bodies);
+            }
+        }
     }
 
     /// One deformation step of a multirate schedule (crate::multirate): a step as
@@ -266,6 +292,8 @@ impl BranchedGrid {
     /// ended with, and its vertices within `margin_m` of the tool as the step and its cuts
     /// leave them.
     pub fn deformation_step(&mut self, commands: &[ToolCommand], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+        // Refused at load (crate::scene): the haptic loop renders capsules, not jaws.
+        debug_assert!(self.bodies.is_none(), "forceps under a multirate schedule");
         self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }
 
@@ -471,7 +499,7 @@ impl BranchedGrid {
                 let edge = tool_to_grid * tool.edge_local;
                 Some(Plate { edge, flat: axis.cross(&edge), half_width: half_width_m, half_thickness: half_thickness_m })
             }
-            // Refused at load (crate::scene): forceps are built for the skin only.
+            // Forceps come here as their jaws' plates (crate::tool::bodies).
             Section::Round | Section::Jaws { .. } => None,
         };
         let capsule = Capsule { a: tip, b: top, radius: tool.radius_m, plate };
@@ -496,7 +524,10 @@ impl BranchedGrid {
                 }
                 continue;
             }
-            let remembered = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step + 1 >= self.step_index).map(|t| tool_to_grid * t.normal_in_tool);
+            // A jaw coming back (away last step) takes what its twin held: the closed
+            // jaws' plate (crate::tool::bodies).
+            let back = self.previous_tips[i].is_none();
+            let remembered = self.touches.get(v as usize).copied().flatten().filter(|t| (t.tool == i || (back && Some(t.tool) == self.twins[i])) && t.step + 1 >= self.step_index).map(|t| tool_to_grid * t.normal_in_tool);
             if let Some(touch) = contact(&capsule, &p, remembered, moved.map(|m| p + m), max_depth) {
                 out.push((v, touch));
             }
@@ -949,7 +980,7 @@ impl Tissue for BranchedGrid {
     }
 
     fn tools(&self) -> &[ToolShape] {
-        &self.tools
+        &self.scene_tools
     }
 
     fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {

@@ -165,8 +165,8 @@ impl MassSpring {
             }
         }
         // The skin meets bodies: the tools, forceps as their two jaws.
-        let (scene_tools, (tools, bodies)) = (tools.clone(), super::bodies::expand(&tools));
-        let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], super::bodies::Bodies::twins);
+        let (scene_tools, (tools, bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
+        let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], crate::tool::bodies::Bodies::twins);
         let foundation = params.foundation.map(|f| Foundation::new(f, &nodes, &topo));
         // A tool's contact and the foundation's spring may act on one node together.
         let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max)

@@ -12,7 +12,6 @@
 //! cut allocates.
 
 mod apply_cut;
-mod bodies;
 mod build;
 pub mod calibration;
 pub mod contact;
@@ -123,11 +122,11 @@ pub struct MassSpring {
     /// The scene's tools (what commands and feedback are per).
     scene_tools: Vec<ToolShape>,
     /// The solids the skin meets, each with its own state below: the scene's tools, with
-    /// forceps as their two jaws ([`bodies`]).
+    /// forceps as their two jaws ([`crate::tool::bodies`]).
     tools: Vec<ToolShape>,
     /// The split between tools and bodies where they differ (forceps).
-    bodies: Option<bodies::Bodies>,
-    /// Per body, the body whose state it takes when it comes back ([`bodies::Bodies::twins`]).
+    bodies: Option<crate::tool::bodies::Bodies>,
+    /// Per body, the body whose state it takes when it comes back ([`crate::tool::bodies::Bodies::twins`]).
     twins: Vec<Option<usize>>,
     placed: Vec<Option<PlacedTool>>,
     /// Where each tool was last step (the blade's velocity through the skin).
@@ -193,7 +192,7 @@ impl MassSpring {
         }
     }
 
-    /// One step with a command and a feedback per body ([`bodies`]).
+    /// One step with a command and a feedback per body ([`crate::tool::bodies`]).
     fn step_bodies(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
         self.place_tools(commands, feedback);
 

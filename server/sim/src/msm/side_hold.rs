@@ -225,7 +225,7 @@ pub fn exit_along(tool: &PlacedTool, x: &Vec3, n: &Vec3) -> Option<f64> {
             let normal = tool.flat_normal();
             slab_exit([(offset.dot(&tool.edge), n.dot(&tool.edge), half_width_m), (offset.dot(&normal), n.dot(&normal), half_thickness_m)])?
         }
-        // Forceps meet the skin as their jaws, each a plate (super::bodies).
+        // Forceps meet the skin as their jaws, each a plate (crate::tool::bodies).
         Section::Jaws { .. } => return None,
     };
     (exit > 0.0).then_some(exit)

@@ -213,22 +213,16 @@ impl Scene {
             // radius, at most a blade's half width (the slit its edge opens).
             let (reach_m, length_m, tip) = match &tool.shape {
                 super::ToolShapeSpec::Cylinder { radius_m, length_m, tip } => (radius_m.get() * (1.0 - 1e-12), length_m, tip),
-                super::ToolShapeSpec::Blade { width_m, length_m, .. } => {
+                super::ToolShapeSpec::Blade { width_m, length_m, .. } | super::ToolShapeSpec::Forceps { width_m, length_m, .. } => {
                     if !grid.schedule.is_single_rate() {
+                        let what = if matches!(tool.shape, super::ToolShapeSpec::Blade { .. }) { "a blade's plate is" } else { "forceps' jaws (two plates) are" };
                         return Err(SceneError::new(
                             origin,
                             format!("tools[{i}].shape"),
-                            "a blade's plate is held against the branched grid's vertices by the single-rate step only; a multirate schedule's haptic loop renders capsules: use a cylinder, or \"schedule\": \"single-rate\"",
+                            format!("{what} held against the branched grid's vertices by the single-rate step only; a multirate schedule's haptic loop renders capsules: use a cylinder, or \"schedule\": \"single-rate\""),
                         ));
                     }
                     (0.5 * width_m.get(), length_m, &None)
-                }
-                super::ToolShapeSpec::Forceps { .. } => {
-                    return Err(SceneError::new(
-                        origin,
-                        format!("tools[{i}].shape"),
-                        "forceps' jaws are built for the mass-spring skin only; the branched grid's tools are cylinders (capsules against its voxels) and blades' plates",
-                    ));
                 }
             };
             if *tip == Some(super::TipSpec::Flat) {

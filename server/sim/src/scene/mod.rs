@@ -469,8 +469,8 @@ pub enum ToolShapeSpec {
     /// direction, `thickness_m` across its flat, `length_m` from the tip along the +z
     /// axis), on either side of the axis with their inner flats `opening_m` apart; the
     /// command's button (`cut`, the jaw) closes them, inner flats touching. Blunt: they
-    /// press and rub, never cut (`can_cut` must be false); grasping is not modelled. The
-    /// mass-spring skin only.
+    /// press and rub, never cut (`can_cut` must be false); grasping is not modelled. On
+    /// the branched grid, under the single-rate schedule only.
     Forceps { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM, opening_m: JawOpeningM },
 }
 

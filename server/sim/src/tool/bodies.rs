@@ -1,11 +1,12 @@
 //! Forceps' jaws as bodies of their own.
 //!
-//! The skin's contact, tip-face hold, sweep between poses and puncture test work on one
-//! solid per tool: a disc or a plate around its axis. Forceps have two jaws with a gap
-//! between them, where the skin may rise. So the skin takes each jaw as a body of its
-//! own, a plate on its side of the forceps' axis, its inner flat half the opening from
-//! the axis; while the button closes them the first jaw is the two as one plate on the
-//! axis and the second is away (two touching plates would leave a seam where the skin
+//! Both tissue models' contact (the skin's hold, tip-face hold, sweep between poses and
+//! puncture test; the branched grid's vertex and triangle holds) works on one solid per
+//! tool: a disc or a plate around its axis. Forceps have two jaws with a gap between
+//! them, where the tissue may rise. So a model takes each jaw as a body of its own, a
+//! plate on its side of the forceps' axis, its inner flat half the opening from the
+//! axis; while the button closes them the first jaw is the two as one plate on the axis
+//! and the second is away (two touching plates would leave a seam where the tissue
 //! slips in between). A forceps' command is split into its jaws' commands, and the jaws'
 //! feedback is summed back into the forceps' (the torque taken about the forceps' tip),
 //! clamped at its limit. Every other tool is one body, passed through as it is.
