@@ -161,19 +161,28 @@ impl BranchedGrid {
     /// its tip can hold: on each triangle under the end's centre line (from edge to
     /// back, through the tip) that holds no point, the ends of that line's stretch over
     /// it are held by the end face (along the axis), as the points along the shaft are
-    /// held by its side, also where a vertex of it is held (the end reaches past it). Without them the triangles under the rest of a 3 mm end were
-    /// passed through one after another and the end went into a block at 1.5 N.
+    /// held by its side, also where a vertex of it is held (the end reaches past it).
+    /// Without them the triangles under the rest of a 3 mm end were passed through one
+    /// after another and the end went into a block at 1.5 N. A plate thick for the grid
+    /// (closed forceps) is held so on several lines across its thickness ([`end_lines`]).
     fn plate_end_contacts(&self, at: &ToolAt<'_>, candidates: &[u32], out: &mut Vec<FaceContact>) {
         let Some(plate) = &at.capsule.plate else { return };
-        let (back, edge) = (at.capsule.a - plate.edge * plate.half_width, at.capsule.a + plate.edge * plate.half_width);
-        for &t in candidates {
-            if out.iter().any(|f| f.held.triangle == t) || !self.live_triangle(t) {
-                continue;
-            }
-            let Some((near, far)) = segment_over_triangle(&back, &edge, &self.corners(t)) else { continue };
-            for barycentric in [near, far] {
-                let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index, anchor_from_tip: None };
-                out.extend(self.hold_face(at, held, None).filter(|f| at.capsule.pushes_with_tip(&f.contact.entry)));
+        let mut sides = self.topo.layout.spacing_m;
+        sides.sort_by(f64::total_cmp);
+        let lines = end_lines(plate.half_thickness, sides[0]);
+        for line in 0..lines {
+            let across = if lines == 1 { 0.0 } else { (2.0 * line as f64 / (lines - 1) as f64 - 1.0) * END_LINES_REACH * plate.half_thickness };
+            let middle = at.capsule.a + plate.flat * across;
+            let (back, edge) = (middle - plate.edge * plate.half_width, middle + plate.edge * plate.half_width);
+            for &t in candidates {
+                if out.iter().any(|f| f.held.triangle == t) || !self.live_triangle(t) {
+                    continue;
+                }
+                let Some((near, far)) = segment_over_triangle(&back, &edge, &self.corners(t)) else { continue };
+                for barycentric in [near, far] {
+                    let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index, anchor_from_tip: None };
+                    out.extend(self.hold_face(at, held, None).filter(|f| at.capsule.pushes_with_tip(&f.contact.entry)));
+                }
             }
         }
     }
@@ -303,5 +312,41 @@ impl BranchedGrid {
             cell_weights(&self.topo, voxel(nearest), rest)
         };
         (element, weights, vertices[nearest])
+    }
+}
+
+/// How far across a plate's end, as a fraction of its half thickness, its outer lines
+/// of held points reach (see [`end_lines`]).
+const END_LINES_REACH: f64 = 0.8;
+
+/// How many lines of points across its thickness hold a plate's end on a grid whose
+/// smallest voxel side is `voxel_m`: its centre line alone where the strips beside it
+/// (half its thickness `half_thickness_m`) are at most a quarter of a voxel wide, too
+/// narrow for a triangle the line misses; else lines at most a fifth of a voxel apart
+/// over [`END_LINES_REACH`] of its thickness (an odd number: one on the centre). With
+/// the centre line alone, a 2 × 2 mm end (closed forceps) pressed into 2 mm voxels let
+/// the surface close over it from 3.2 mm in while it pushed with under 1 N.
+fn end_lines(half_thickness_m: f64, voxel_m: f64) -> usize {
+    if half_thickness_m <= 0.25 * voxel_m {
+        return 1;
+    }
+    let intervals = (2.0 * END_LINES_REACH * half_thickness_m / (0.2 * voxel_m)).ceil() as usize;
+    2 * intervals.div_ceil(2) + 1
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_plate_thin_for_the_grid_is_held_on_its_centre_line_a_thick_one_on_lines_a_fifth_of_a_voxel_apart() {
+        use super::end_lines;
+        // A 0.4 mm blade and 1 mm forceps' jaws on 2 mm voxels: the centre line.
+        assert_eq!(end_lines(0.2e-3, 2e-3), 1);
+        assert_eq!(end_lines(0.5e-3, 2e-3), 1);
+        // Closed 2 mm jaws: 1.6 mm spanned by lines 0.4 mm apart.
+        assert_eq!(end_lines(1e-3, 2e-3), 5);
+        // Just over a quarter of a voxel: 0.82 mm spanned, lines at most 0.4 mm apart,
+        // an even number of gaps (a line on the centre).
+        assert_eq!(end_lines(0.51e-3, 2e-3), 5);
+        assert_eq!(end_lines(1.6e-3, 2e-3), 9);
     }
 }
