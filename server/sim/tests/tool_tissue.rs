@@ -1273,6 +1273,25 @@ fn grid_block_with_forceps() -> Scene {
     Scene::from_json_str(&json.to_string(), "block with forceps", None).unwrap()
 }
 
+/// The load-time check (grid::build) presses the scene's first tool that does not cut
+/// 2 mm into the body: forceps by their jaws' flat ends, not by a ball end's radius
+/// above them (which left them 5 mm short, touching nothing: a block whose stiff jaws
+/// need 89 iterations a step passed a cap of 60, and a quarter of a press's steps then
+/// stopped at the cap).
+#[test]
+fn the_load_time_check_presses_forceps_by_their_jaws_ends() {
+    let mut json = serde_json::to_value(grid_block_with_forceps()).unwrap();
+    json["model"]["branched-grid"]["solver"] = serde_json::json!({ "cg_max_iterations": 60 });
+    let scene = Scene::from_json_str(&json.to_string(), "block with forceps, 60 iterations", None).unwrap();
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+    let e = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap_err();
+    assert_eq!(e.path, "model.branched-grid.solver.cg_max_iterations", "{e}");
+    assert!(e.message.contains("needs") && e.message.contains("tool \"forceps\" pressed 2 mm into the body under load"), "{e}");
+    let scene = grid_block_with_forceps();
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+    assert!(cutsim_sim::grid::build_from_scene(&scene, spec).is_ok(), "with 400 iterations the check passes");
+}
+
 /// Forceps pressed tip-first into the branched grid, open and closed (the button held),
 /// as into the skin (`forceps_press_with_both_jaws_and_the_skin_rises_between_them_unless_they_are_closed`),
 /// at five positions over and between the block's vertices, up to the rated force or

@@ -229,7 +229,7 @@ const CHECK_STEPS: usize = 12;
 /// residual near 1 and blows up within 0.2 s). So at load the scene's own solver — its
 /// tolerance and preconditioner — runs what a session does: a probe (the scene's first
 /// tool that does not cut; gravity, or 10 m/s² when the scene has none) pressed 2 mm
-/// into the body's broad top and held, from rest, with ten times the iteration cap; the
+/// into the body's broad top (its ball end's underside, or a plate's end) and held, from rest, with ten times the iteration cap; the
 /// scene is refused when a step needs more than its cap to reach its tolerance, with
 /// the number it needs.
 fn check_solver_converges(scene: &Scene, grid: &BranchedGrid) -> Result<(), SceneError> {
@@ -249,7 +249,10 @@ fn check_solver_converges(scene: &Scene, grid: &BranchedGrid) -> Result<(), Scen
     for step in 0..2 * CHECK_STEPS {
         if let (Some(p), Some(top)) = (pressing, top) {
             let depth = 0.002 * ((step + 1) as f64 / CHECK_STEPS as f64).min(1.0);
-            let tip = Vec3::new(top.x, top.y, top.z + tools[p].radius_m - depth);
+            // On the grid a cylinder's tip is the centre of its ball end; a plate's (and
+            // forceps' jaws') flat end is at the tip itself.
+            let below_tip = if tools[p].section == crate::tool::Section::Round { tools[p].radius_m } else { 0.0 };
+            let tip = Vec3::new(top.x, top.y, top.z + below_tip - depth);
             commands[p] = crate::tool::ToolCommand { pose: crate::math::Pose::new(tip, crate::math::Quat::identity()), active: true, cut: false };
         }
         probe.step(&commands, &mut feedback);
@@ -263,13 +266,17 @@ fn check_solver_converges(scene: &Scene, grid: &BranchedGrid) -> Result<(), Scen
         return Ok(());
     }
     let dt_ms = grid.settings.dt_s * 1e3;
+    let load = match (pressing, top) {
+        (Some(p), Some(_)) => format!("tool {:?} pressed 2 mm into the body under load", tools[p].name),
+        _ => "the body under load".to_owned(),
+    };
     let message = if let Some(worst) = unreached {
         format!(
-            "the implicit solve of this scene does not reach its tolerance {tolerance:e} (residual {worst:.1e} after {needed} conjugate-gradient iterations, time step {dt_ms} ms; {cap} are allowed), and a solve stopped further off is not stable: the system is too stiff for this step; use a shorter time_step_s, the multigrid preconditioner, a looser cg_tolerance or a softer material (or a Poisson ratio further from 0.5)"
+            "the implicit solve of this scene does not reach its tolerance {tolerance:e} (residual {worst:.1e} after {needed} conjugate-gradient iterations, time step {dt_ms} ms, {load}; {cap} are allowed), and a solve stopped further off is not stable: the system is too stiff for this step; use a shorter time_step_s, the multigrid preconditioner, a looser cg_tolerance or a softer material (or a Poisson ratio further from 0.5)"
         )
     } else {
         format!(
-            "the implicit solve of this scene needs {needed} conjugate-gradient iterations to reach its tolerance {tolerance:e} (time step {dt_ms} ms, a probe pressed in under load), more than the {cap} allowed, and a solve stopped short is less accurate, and far off not stable; raise cg_max_iterations to at least {needed}, use the multigrid preconditioner, a shorter time_step_s or a softer material"
+            "the implicit solve of this scene needs {needed} conjugate-gradient iterations to reach its tolerance {tolerance:e} (time step {dt_ms} ms, {load}), more than the {cap} allowed, and a solve stopped short is less accurate, and far off not stable; raise cg_max_iterations to at least {needed}, use the multigrid preconditioner, a shorter time_step_s or a softer material"
         )
     };
     Err(SceneError::new(&scene.origin, "model.branched-grid.solver.cg_max_iterations", message))
