@@ -443,9 +443,11 @@ impl BranchedGrid {
                 self.touches[v] = Some(Touch { tool: i, normal_in_tool: tool_to_grid.transpose() * entry, step: self.step_index });
             }
             let friction = self.friction_at(v);
-            let (stick_stiffness, stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * depth, friction);
             let element = self.topo.voxel_element[self.surface.voxel[v] as usize];
-            self.contacts.push(PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force, tool_velocity });
+            let mut contact = PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: normal * (k * depth), stick_stiffness: 0.0, stick_force: Vec3::zeros(), tool_velocity };
+            let slip = contact.point_velocity(&self.topo) - tool_velocity;
+            (contact.stick_stiffness, contact.stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * depth, friction, &slip, self.dt_s);
+            self.contacts.push(contact);
             self.contact_levers.push(p - tip);
             self.contact_vertices.push(v as u32);
             self.contact_on_face.push(false);
@@ -456,7 +458,8 @@ impl BranchedGrid {
             // The centring spring is a stick spring anchored on the axis; friction adds
             // one of its own anchor (as a vertex's, but decided before the solve only).
             let (centring_stiffness, centring_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
-            let (rub_stiffness, rub_force) = Self::face_rub(&mut f.held, &f.point, &tip, &normal, k, k * depth, self.friction_at(f.vertex as usize));
+            let slip = super::solver::embedded_velocity(&self.topo, f.element, &f.weights) - tool_velocity;
+            let (rub_stiffness, rub_force) = Self::face_rub(&mut f.held, &f.point, &tip, &normal, k, k * depth, self.friction_at(f.vertex as usize), &slip, self.dt_s);
             let stick_stiffness = centring_stiffness + rub_stiffness;
             // The two anchors move differently: friction's with the tool; the centring
             // spring's, the foot of the axis, with the tool across the axis and with the
@@ -610,10 +613,12 @@ impl BranchedGrid {
     /// `tip`) with normal force `normal_n`: (its stiffness, its force on the tissue now).
     /// A vertex in contact with the same tool last step keeps its anchor; a new contact
     /// sticks where it is. Sliding (beyond the static cone), the force is the dynamic
-    /// one and constant over the step (stiffness 0).
+    /// one, as a damper on `slip` (its velocity relative to the tool at the step's start)
+    /// where the stick spring is stiff for the slip, else constant over the step
+    /// (super::friction::rub_implicit).
     #[allow(clippy::too_many_arguments)]
-    fn stick(anchors: &mut super::friction::Anchors, step_index: u64, i: usize, v: usize, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction) -> (f64, Vec3) {
-        use super::friction::{Anchor, rub};
+    fn stick(anchors: &mut super::friction::Anchors, step_index: u64, i: usize, v: usize, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction, slip: &Vec3, h: f64) -> (f64, Vec3) {
+        use super::friction::{Anchor, rub_implicit};
         if friction.static_coefficient <= 0.0 {
             return (0.0, Vec3::zeros());
         }
@@ -621,7 +626,7 @@ impl BranchedGrid {
             Some(a) if a.tool == i && a.step + 1 >= step_index => tip + a.from_tip,
             _ => *p,
         };
-        let (stiffness, force, anchor) = rub(p, &anchor, normal, k, normal_n, friction);
+        let (stiffness, force, anchor) = rub_implicit(p, &anchor, normal, k, normal_n, friction, slip, h);
         anchors.set(v, Anchor { tool: i, from_tip: anchor - tip, step: step_index });
         (stiffness, force)
     }
@@ -631,12 +636,12 @@ impl BranchedGrid {
     /// as [`Self::stick`] for a vertex, its anchor kept in `held` (a point held last step
     /// keeps it; a new one sticks where it is).
     #[allow(clippy::too_many_arguments)]
-    fn face_rub(held: &mut face_contact::HeldFace, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction) -> (f64, Vec3) {
+    fn face_rub(held: &mut face_contact::HeldFace, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction, slip: &Vec3, h: f64) -> (f64, Vec3) {
         if friction.static_coefficient <= 0.0 {
             return (0.0, Vec3::zeros());
         }
         let anchor = held.anchor_from_tip.map_or(*p, |from_tip| tip + from_tip);
-        let (stiffness, force, anchor) = super::friction::rub(p, &anchor, normal, k, normal_n, friction);
+        let (stiffness, force, anchor) = super::friction::rub_implicit(p, &anchor, normal, k, normal_n, friction, slip, h);
         held.anchor_from_tip = Some(anchor - tip);
         (stiffness, force)
     }
@@ -979,6 +984,8 @@ impl Tissue for BranchedGrid {
         self.dt_s
     }
 
+    // The scene's tools, as commands and feedback name them (`tools` are the bodies).
+    #[allow(clippy::misnamed_getters)]
     fn tools(&self) -> &[ToolShape] {
         &self.scene_tools
     }

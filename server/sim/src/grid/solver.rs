@@ -98,8 +98,7 @@ pub struct PointContact {
 impl PointContact {
     /// The point's velocity, interpolated from its element's nodes.
     pub fn point_velocity(&self, topo: &Topology) -> Vec3 {
-        let nodes = &topo.elements.nodes[self.element as usize];
-        (0..8).map(|i| topo.nodes.v[nodes[i] as usize] * self.weights[i]).sum()
+        embedded_velocity(topo, self.element, &self.weights)
     }
 
     /// The contact force at the end of a step of h whose velocities `topo` holds (the
@@ -109,6 +108,12 @@ impl PointContact {
         let along = self.force.dot(&self.normal) - self.stiffness * h * self.point_velocity(topo).dot(&self.normal);
         self.normal * along.max(0.0)
     }
+}
+
+/// The velocity of a point embedded in `element` with trilinear `weights`.
+pub fn embedded_velocity(topo: &Topology, element: u32, weights: &[f64; 8]) -> Vec3 {
+    let nodes = &topo.elements.nodes[element as usize];
+    (0..8).map(|i| topo.nodes.v[nodes[i] as usize] * weights[i]).sum()
 }
 
 /// Buffers and per-element state of the solver; sized to the topology (resized only when

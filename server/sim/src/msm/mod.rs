@@ -769,6 +769,8 @@ impl Tissue for MassSpring {
         self.dt_s
     }
 
+    // The scene's tools, as commands and feedback name them (`tools` are the bodies).
+    #[allow(clippy::misnamed_getters)]
     fn tools(&self) -> &[ToolShape] {
         &self.scene_tools
     }
