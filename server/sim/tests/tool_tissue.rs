@@ -987,6 +987,17 @@ fn grid_block_with_probe(radius_m: f64, stiffness: f64) -> Scene {
     Scene::from_json_str(&text, "block", None).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// [`grid_block_with_probe`] with its probe `length_m` long and the block's material of
+/// friction `friction` (static, dynamic; None: frictionless).
+fn grid_block_with_rod(radius_m: f64, stiffness: f64, length_m: f64, friction: Option<(f64, f64)>) -> Scene {
+    let mut scene = serde_json::to_value(grid_block_with_probe(radius_m, stiffness)).unwrap();
+    scene["tools"][0]["shape"]["cylinder"]["length_m"] = serde_json::json!(length_m);
+    if let Some((s, d)) = friction {
+        scene["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": s, "dynamic_coefficient": d });
+    }
+    Scene::from_json_str(&scene.to_string(), "block", None).unwrap()
+}
+
 /// A probe pressed into the branched grid holds the surface up to its rated force: each
 /// surface vertex it touches is pushed out on the side it came in from (grid::hold).
 /// With the radial penalty before, a vertex deeper than the ball's centre was pushed out
@@ -1084,12 +1095,7 @@ fn a_probe_thinner_than_the_grids_vertex_spacing_is_held_by_the_face_under_it() 
 fn a_thin_probe_pressed_in_on_its_side_is_held_along_its_shaft() {
     let (radius, stiffness) = (0.0005, 20_000.0);
     for rubs in [true, false] {
-        let mut scene = serde_json::to_value(grid_block_with_probe(radius, stiffness)).unwrap();
-        if rubs {
-            scene["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": 0.5, "dynamic_coefficient": 0.4 });
-        }
-        scene["tools"][0]["shape"]["cylinder"]["length_m"] = serde_json::json!(0.02);
-        let scene = Scene::from_json_str(&scene.to_string(), "block", None).unwrap();
+        let scene = grid_block_with_rod(radius, stiffness, 0.02, rubs.then_some((0.5, 0.4)));
         let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
         let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
         // The block is centred: its top's middle, between two rows of vertices (at odd
@@ -1463,12 +1469,7 @@ fn a_blade_plate_cuts_the_grid_with_its_edge() {
 /// plough the groove's end ahead of it), pressed with 1 N and drawn 5 mm along itself at
 /// 20 mm/s, over its last millimetre.
 fn shaft_drawn_along_the_grid(radius_m: f64, stiffness: f64, friction: Option<(f64, f64)>) -> f64 {
-    let mut scene = serde_json::to_value(grid_block_with_probe(radius_m, stiffness)).unwrap();
-    scene["tools"][0]["shape"]["cylinder"]["length_m"] = serde_json::json!(0.1);
-    if let Some((s, d)) = friction {
-        scene["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": s, "dynamic_coefficient": d });
-    }
-    let scene = Scene::from_json_str(&scene.to_string(), "block", None).unwrap();
+    let scene = grid_block_with_rod(radius_m, stiffness, 0.1, friction);
     let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
     let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
     let top = Vec3::new(0.0003, 0.0003, 0.02);
@@ -1518,7 +1519,7 @@ fn a_shaft_drawn_along_the_grid_is_held_back_by_coulomb_friction() {
     // The 6 mm probe also as stiff as the thin tools' hold (20,000 N/m): with a constant
     // dynamic force the light surface points overshot the tool within each step and the
     // force flipped sign every step (0.006 of the press); sliding is a damper on the slip
-    // there (grid::friction::rub_implicit).
+    // there (grid::friction::rub).
     for (radius, stiffness, what) in [(0.003, 300.0, "6 mm probe (vertices)"), (0.003, 20_000.0, "6 mm probe (vertices), 20,000 N/m"), (0.0005, 300.0, "1 mm shaft (triangles' insides)")] {
         let (rubbing, sliding) = (shaft_drawn_along_the_grid(radius, stiffness, Some((0.5, 0.4))), shaft_drawn_along_the_grid(radius, stiffness, None));
         println!("{what} drawn along the grid: pull / press {rubbing:.3} with friction (0.5 / 0.4), {sliding:.3} without");

@@ -57,7 +57,8 @@ impl Script {
         if step < self.hold_steps {
             if let Some(p) = tools.iter().position(|t| !t.can_cut) {
                 let depth = 0.004 * (step as f64 / 100.0).min(1.0);
-                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + tools[p].radius_m - depth), Quat::identity()), active: true, cut: false };
+                let below_tip = crate::grid::hold::reach_below_tip(&tools[p]);
+                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + below_tip - depth), Quat::identity()), active: true, cut: false };
             }
         } else if let Some(b) = tools.iter().position(|t| t.can_cut) {
             let x = -0.02 + 0.04 * (step - self.hold_steps) as f64 / self.cut_steps as f64;

@@ -229,9 +229,9 @@ const CHECK_STEPS: usize = 12;
 /// residual near 1 and blows up within 0.2 s). So at load the scene's own solver — its
 /// tolerance and preconditioner — runs what a session does: a probe (the scene's first
 /// tool that does not cut; gravity, or 10 m/s² when the scene has none) pressed 2 mm
-/// into the body's broad top (its ball end's underside, or a plate's end) and held, from rest, with ten times the iteration cap; the
-/// scene is refused when a step needs more than its cap to reach its tolerance, with
-/// the number it needs.
+/// into the body's broad top (its end: super::hold::reach_below_tip) and held, from
+/// rest, with ten times the iteration cap; the scene is refused when a step needs more
+/// than its cap to reach its tolerance, with the number it needs and the tool.
 fn check_solver_converges(scene: &Scene, grid: &BranchedGrid) -> Result<(), SceneError> {
     let cap = grid.settings.cg_max_iterations;
     let tolerance = grid.settings.cg_tolerance;
@@ -249,10 +249,7 @@ fn check_solver_converges(scene: &Scene, grid: &BranchedGrid) -> Result<(), Scen
     for step in 0..2 * CHECK_STEPS {
         if let (Some(p), Some(top)) = (pressing, top) {
             let depth = 0.002 * ((step + 1) as f64 / CHECK_STEPS as f64).min(1.0);
-            // On the grid a cylinder's tip is the centre of its ball end; a plate's (and
-            // forceps' jaws') flat end is at the tip itself.
-            let below_tip = if tools[p].section == crate::tool::Section::Round { tools[p].radius_m } else { 0.0 };
-            let tip = Vec3::new(top.x, top.y, top.z + below_tip - depth);
+            let tip = Vec3::new(top.x, top.y, top.z + super::hold::reach_below_tip(&tools[p]) - depth);
             commands[p] = crate::tool::ToolCommand { pose: crate::math::Pose::new(tip, crate::math::Quat::identity()), active: true, cut: false };
         }
         probe.step(&commands, &mut feedback);

@@ -122,14 +122,13 @@ pub fn time_probe_with(grid: &mut BranchedGrid, warmup: usize, steps: usize, sto
     let top = grid.broad_top();
     let mut commands = vec![ToolCommand::default(); tools.len()];
     let mut feedback = vec![ToolFeedback::default(); tools.len()];
-    let radius = probe.map_or(0.0, |p| tools[p].radius_m);
+    let below_tip = probe.map_or(0.0, |p| super::hold::reach_below_tip(&tools[p]));
     let mut histogram = LatencyHistogram::new();
     let mut iterations = 0u64;
     for index in 0..warmup + steps {
         if let (Some(p), Some(top)) = (probe, top) {
             let depth = 0.004 * (index as f64 / 100.0).min(1.0);
-            // The capsule's lowest point is its tip less its radius.
-            let tip = Vec3::new(top.x, top.y, top.z + radius - depth);
+            let tip = Vec3::new(top.x, top.y, top.z + below_tip - depth);
             commands[p] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
         }
         let started = Instant::now();

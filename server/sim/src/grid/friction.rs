@@ -120,19 +120,23 @@ pub fn slid_anchor(point: &Vec3, force: &Vec3, stiffness: f64) -> Vec3 {
     point + force / stiffness
 }
 
-/// [`rub`] for the implicit step, whose sliding friction acts on the slip it solves for:
-/// sliding, the force is a damper on the point's velocity relative to its anchor's
-/// (`slip`, at the step's start), `μ_d N / |slip|` across the normal, so it is the
-/// dynamic force while the slip goes on as it was and falls as the point catches up,
-/// never pushing it past the tool (a constant dynamic force, stiff contacts' light
-/// points overshot the tool within the step and the force flipped sign every step:
-/// a probe drawn along a block at 20,000 N/m felt 0.006 of its press instead of μ_d).
-/// Returned as a stick spring with no force of its own at the step's start (a damper c
-/// is a spring of stiffness c / h in the step's linearisation). Where that would be
-/// stiffer than the stick spring (a slip of less than the spring's give at the dynamic
-/// force per step, which a constant force cannot overshoot), and sticking, as [`rub`].
+/// Friction's stick spring on a point at `point` held along `normal` with `normal_n`,
+/// anchored at `anchor`, for the implicit step: (its stiffness in the solve, its force
+/// on the tissue at the step's start, where its anchor is to be kept). Within the static
+/// cone it sticks: the spring. Beyond it the point slides, the anchor moves to where the
+/// spring pulls with the dynamic force, and the force is a damper on the point's
+/// velocity relative to its anchor's (`slip`, at the step's start), `μ_d N / |slip|`
+/// across the normal: the dynamic force while the slip goes on as it was, less as the
+/// point catches up, never pushing it past the tool. (A constant dynamic force made stiff
+/// contacts' light points overshoot the tool within the step, and the force flipped sign
+/// every step: a probe drawn along a block at 20,000 N/m felt 0.006 of its press instead
+/// of μ_d.) The damper is returned as a stick spring with no force of its own at the
+/// step's start (a damper c is a spring of stiffness c / h in the step's
+/// linearisation). Where it would be stiffer than the stick spring (a slip per step
+/// under the spring's give at the dynamic force, which a constant force cannot
+/// overshoot) the force is the constant dynamic one (stiffness 0).
 #[allow(clippy::too_many_arguments)]
-pub fn rub_implicit(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, normal_n: f64, friction: Friction, slip: &Vec3, h: f64) -> (f64, Vec3, Vec3) {
+pub fn rub(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, normal_n: f64, friction: Friction, slip: &Vec3, h: f64) -> (f64, Vec3, Vec3) {
     let (force, sliding) = stick_force(point, anchor, normal, stiffness, normal_n, friction);
     if !sliding {
         return (stiffness, force, *anchor);
@@ -140,18 +144,7 @@ pub fn rub_implicit(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, 
     let anchor = slid_anchor(point, &force, stiffness);
     let speed = (tangent_projection(normal) * slip).norm();
     let damper = friction.dynamic_coefficient * normal_n / (speed * h);
-    // A slip slower than the stick spring's give at the dynamic force per step cannot
-    // overshoot: the constant dynamic force, as `rub`.
     if damper <= stiffness { (damper, Vec3::zeros(), anchor) } else { (0.0, force, anchor) }
-}
-
-/// Friction's stick spring on a point at `point` held along `normal` with `normal_n`,
-/// anchored at `anchor`: (its stiffness in the solve, its force on the tissue now, where
-/// its anchor is to be kept). Sliding (beyond the static cone), the force is the dynamic
-/// one and constant over the step (stiffness 0), and the anchor moves to match it.
-pub fn rub(point: &Vec3, anchor: &Vec3, normal: &Vec3, stiffness: f64, normal_n: f64, friction: Friction) -> (f64, Vec3, Vec3) {
-    let (force, sliding) = stick_force(point, anchor, normal, stiffness, normal_n, friction);
-    if sliding { (0.0, force, slid_anchor(point, &force, stiffness)) } else { (stiffness, force, *anchor) }
 }
 
 /// The stick spring's force of `contact` at the end of a step of h whose velocities

@@ -45,6 +45,18 @@ pub struct Capsule {
     pub plate: Option<Plate>,
 }
 
+/// How far below its tip (along its axis) `tool` reaches as the grid holds it: a
+/// cylinder is a capsule whose ball is centred on the tip, so by its radius; a blade's
+/// plate and forceps' jaws end at the tip itself. Where to put a tool's tip so that its
+/// end is at a given height (the load-time check, the fidelity calibration and the
+/// schedules study press a probe into the body's top).
+pub fn reach_below_tip(tool: &crate::tool::ToolShape) -> f64 {
+    match tool.section {
+        crate::tool::Section::Round => tool.radius_m,
+        crate::tool::Section::Plate { .. } | crate::tool::Section::Jaws { .. } => 0.0,
+    }
+}
+
 /// A blade's plate across the axis: `half_width` along `edge` (the way its edge faces,
 /// a unit vector across the axis), `half_thickness` along `flat` (its flat's normal).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -442,12 +442,16 @@ impl BranchedGrid {
             if !cutting || !self.cuts_through(i, v) {
                 self.touches[v] = Some(Touch { tool: i, normal_in_tool: tool_to_grid.transpose() * entry, step: self.step_index });
             }
-            let friction = self.friction_at(v);
             let element = self.topo.voxel_element[self.surface.voxel[v] as usize];
-            let mut contact = PointContact { element, weights: self.surface.weights[v], normal, stiffness: k, force: normal * (k * depth), stick_stiffness: 0.0, stick_force: Vec3::zeros(), tool_velocity };
-            let slip = contact.point_velocity(&self.topo) - tool_velocity;
-            (contact.stick_stiffness, contact.stick_force) = Self::stick(&mut self.anchors, self.step_index, i, v, &p, &tip, &normal, k, k * depth, friction, &slip, self.dt_s);
-            self.contacts.push(contact);
+            let weights = self.surface.weights[v];
+            // A vertex in contact with the same tool last step keeps its friction anchor.
+            let from_tip = self.anchors.get(v).filter(|a| a.tool == i && a.step + 1 >= self.step_index).map(|a| a.from_tip);
+            let slip = super::solver::embedded_velocity(&self.topo, element, &weights) - tool_velocity;
+            let (stick_stiffness, stick_force, kept) = Self::rub_about_tip(from_tip, &p, &tip, &normal, k, k * depth, self.friction_at(v), &slip, self.dt_s);
+            if let Some(from_tip) = kept {
+                self.anchors.set(v, super::friction::Anchor { tool: i, from_tip, step: self.step_index });
+            }
+            self.contacts.push(PointContact { element, weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force, tool_velocity });
             self.contact_levers.push(p - tip);
             self.contact_vertices.push(v as u32);
             self.contact_on_face.push(false);
@@ -458,8 +462,9 @@ impl BranchedGrid {
             // The centring spring is a stick spring anchored on the axis; friction adds
             // one of its own anchor (as a vertex's, but decided before the solve only).
             let (centring_stiffness, centring_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
-            let slip = super::solver::embedded_velocity(&self.topo, f.element, &f.weights) - tool_velocity;
-            let (rub_stiffness, rub_force) = Self::face_rub(&mut f.held, &f.point, &tip, &normal, k, k * depth, self.friction_at(f.vertex as usize), &slip, self.dt_s);
+            let point_velocity = super::solver::embedded_velocity(&self.topo, f.element, &f.weights);
+            let (rub_stiffness, rub_force, kept) = Self::rub_about_tip(f.held.anchor_from_tip, &f.point, &tip, &normal, k, k * depth, self.friction_at(f.vertex as usize), &(point_velocity - tool_velocity), self.dt_s);
+            f.held.anchor_from_tip = kept;
             let stick_stiffness = centring_stiffness + rub_stiffness;
             // The two anchors move differently: friction's with the tool; the centring
             // spring's, the foot of the axis, with the tool across the axis and with the
@@ -468,7 +473,7 @@ impl BranchedGrid {
             // axis too, a frictionless thin shaft drawn along itself dragged the surface
             // with it (2.8 times the force pressing it).
             let mut contact = PointContact { element: f.element, weights: f.weights, normal, stiffness: k, force: normal * (k * depth), stick_stiffness, stick_force: centring_force + rub_force, tool_velocity };
-            let foot_velocity = placed.capsule.out_of_tip().map_or(tool_velocity, |axis| tool_velocity + axis * (contact.point_velocity(&self.topo) - tool_velocity).dot(&axis));
+            let foot_velocity = placed.capsule.out_of_tip().map_or(tool_velocity, |axis| tool_velocity + axis * (point_velocity - tool_velocity).dot(&axis));
             if stick_stiffness > 0.0 {
                 contact.tool_velocity = (foot_velocity * centring_stiffness + tool_velocity * rub_stiffness) / stick_stiffness;
             }
@@ -609,41 +614,19 @@ impl BranchedGrid {
         self.materials[usize::from(self.topo.material[self.surface.voxel[v] as usize]) - 1].friction
     }
 
-    /// Friction's stick spring for surface vertex `v` (at `p`) touching tool `i` (tip at
-    /// `tip`) with normal force `normal_n`: (its stiffness, its force on the tissue now).
-    /// A vertex in contact with the same tool last step keeps its anchor; a new contact
-    /// sticks where it is. Sliding (beyond the static cone), the force is the dynamic
-    /// one, as a damper on `slip` (its velocity relative to the tool at the step's start)
-    /// where the stick spring is stiff for the slip, else constant over the step
-    /// (super::friction::rub_implicit).
+    /// Friction's stick spring for a point at `p` held by a tool whose tip is at `tip`
+    /// with normal force `normal_n` (super::friction::rub): its anchor `from_tip` (from
+    /// the tip; None for a new contact, which sticks where it is), its velocity relative
+    /// to the tool `slip`. Returns its stiffness, its force on the tissue now and the
+    /// anchor to keep (None on frictionless tissue, where there is no spring).
     #[allow(clippy::too_many_arguments)]
-    fn stick(anchors: &mut super::friction::Anchors, step_index: u64, i: usize, v: usize, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction, slip: &Vec3, h: f64) -> (f64, Vec3) {
-        use super::friction::{Anchor, rub_implicit};
+    fn rub_about_tip(from_tip: Option<Vec3>, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction, slip: &Vec3, h: f64) -> (f64, Vec3, Option<Vec3>) {
         if friction.static_coefficient <= 0.0 {
-            return (0.0, Vec3::zeros());
+            return (0.0, Vec3::zeros(), None);
         }
-        let anchor = match anchors.get(v) {
-            Some(a) if a.tool == i && a.step + 1 >= step_index => tip + a.from_tip,
-            _ => *p,
-        };
-        let (stiffness, force, anchor) = rub_implicit(p, &anchor, normal, k, normal_n, friction, slip, h);
-        anchors.set(v, Anchor { tool: i, from_tip: anchor - tip, step: step_index });
-        (stiffness, force)
-    }
-
-    /// Friction's stick spring for a point of a triangle's inside held at `p` (tip at
-    /// `tip`) with normal force `normal_n`: (its stiffness, its force on the tissue now),
-    /// as [`Self::stick`] for a vertex, its anchor kept in `held` (a point held last step
-    /// keeps it; a new one sticks where it is).
-    #[allow(clippy::too_many_arguments)]
-    fn face_rub(held: &mut face_contact::HeldFace, p: &Vec3, tip: &Vec3, normal: &Vec3, k: f64, normal_n: f64, friction: super::friction::Friction, slip: &Vec3, h: f64) -> (f64, Vec3) {
-        if friction.static_coefficient <= 0.0 {
-            return (0.0, Vec3::zeros());
-        }
-        let anchor = held.anchor_from_tip.map_or(*p, |from_tip| tip + from_tip);
-        let (stiffness, force, anchor) = super::friction::rub_implicit(p, &anchor, normal, k, normal_n, friction, slip, h);
-        held.anchor_from_tip = Some(anchor - tip);
-        (stiffness, force)
+        let anchor = from_tip.map_or(*p, |from_tip| tip + from_tip);
+        let (stiffness, force, anchor) = super::friction::rub(p, &anchor, normal, k, normal_n, friction, slip, h);
+        (stiffness, force, Some(anchor - tip))
     }
 
     /// The surface vertices that move with an element in the coarse cells whose current

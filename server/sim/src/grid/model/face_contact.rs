@@ -167,9 +167,7 @@ impl BranchedGrid {
     /// (closed forceps) is held so on several lines across its thickness ([`end_lines`]).
     fn plate_end_contacts(&self, at: &ToolAt<'_>, candidates: &[u32], out: &mut Vec<FaceContact>) {
         let Some(plate) = &at.capsule.plate else { return };
-        let mut sides = self.topo.layout.spacing_m;
-        sides.sort_by(f64::total_cmp);
-        let lines = end_lines(plate.half_thickness, sides[0]);
+        let lines = end_lines(plate.half_thickness, self.topo.layout.spacing_m.into_iter().fold(f64::INFINITY, f64::min));
         for line in 0..lines {
             let across = if lines == 1 { 0.0 } else { (2.0 * line as f64 / (lines - 1) as f64 - 1.0) * END_LINES_REACH * plate.half_thickness };
             let middle = at.capsule.a + plate.flat * across;
