@@ -132,6 +132,9 @@ pub struct BranchedGrid {
     face_scratch: Vec<face_contact::FaceContact>,
     /// Per tool: the points on triangles' insides it holds (face_contact).
     held_faces: Vec<Vec<face_contact::HeldFace>>,
+    /// This step is a multirate deformation step: the tools moved over many haptic
+    /// steps since the last, and a contact lets go only that much deeper (`touching`).
+    deforming: bool,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -241,6 +244,7 @@ impl BranchedGrid {
             triangle_scratch: Vec::new(),
             face_scratch: Vec::new(),
             held_faces: vec![Vec::new(); tool_count],
+            deforming: false,
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -292,7 +296,7 @@ impl BranchedGrid {
     /// ended with, and its vertices within `margin_m` of the tool as the step and its cuts
     /// leave them.
     pub fn deformation_step(&mut self, commands: &[ToolCommand], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
-        // Refused at load (crate::scene): the haptic loop renders capsules, not jaws.
+        // Refused at load (crate::scene): the haptic loop renders one solid per tool, not two jaws.
         debug_assert!(self.bodies.is_none(), "forceps under a multirate schedule");
         self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }
@@ -304,6 +308,7 @@ impl BranchedGrid {
         self.contact_vertices.clear();
         self.contact_on_face.clear();
         self.lead_strokes(commands);
+        self.deforming = multirate.is_some();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
@@ -511,10 +516,19 @@ impl BranchedGrid {
             Section::Round | Section::Jaws { .. } => None,
         };
         let capsule = Capsule { a: tip, b: top, radius: tool.radius_m, plate };
-        let max_depth = tool.hold_max_depth_m();
         let cutting = self.cutting(i, command);
         // The tool's motion over the step: a new contact came in along it.
         let moved = self.previous_tips[i].map(|before| tip - before);
+        // A contact deeper than its rated depth lets go (super::hold::contact), as the
+        // depth before the solve. A multirate deformation step comes after the tool has
+        // moved for many haptic steps (1.65 mm in 33 ms at 50 mm/s), so a vertex or a
+        // point the tool reached within it can be that much deeper before the solve
+        // pushes it out: without the allowance, stiff contacts (a 0.5 mm probe or a
+        // 0.4 mm blade plate at 20,000 N/m, rated depth 0.5 mm) let go as they were
+        // made and the tool went 30 mm into the tissue at 0 N. A single-rate step moves
+        // the tool within the penalty's give and keeps the rated depth alone.
+        let travel = if self.deforming { moved.map_or(0.0, |m| m.norm()) } else { 0.0 };
+        let max_depth = tool.hold_max_depth_m() + travel;
         let tool_velocity = moved.map_or(Vec3::zeros(), |m| m / self.dt_s);
         // A vertex the tool holds may be outside its capsule, by as much as the tool
         // moved and up to a radius beside it: search that much further.

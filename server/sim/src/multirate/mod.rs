@@ -40,7 +40,8 @@ use crate::scene::{FidelitySpec, ModelSpec, MultirateSpec, Scene, SceneError, Sc
 use crate::solver::background::Background;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{ChosenFidelity, Tissue, TissueCounters};
-use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
+use crate::grid::hold::Plate;
+use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
 use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES, PatchContact};
 
 /// The fastest a tool is assumed to move, m/s: a patch reaches this far beyond the
@@ -389,14 +390,23 @@ impl Multirate {
     }
 }
 
-/// A tool's outer capsule at its commanded pose (None: away or not finite); a blade
-/// whose flat or back leads into tough tissue (`blade_pushes`) holds it off as a probe.
+/// A tool's outer solid at its commanded pose (None: away or not finite): a capsule, or
+/// a blade's plate; a blade whose flat or back leads into tough tissue (`blade_pushes`)
+/// holds it off as a probe.
 fn capsule(tool: &ToolShape, command: &ToolCommand, blade_pushes: bool) -> Option<Capsule> {
     if !command.active || !command.pose.is_finite() {
         return None;
     }
     let tip = command.pose.position_m;
     let rotation = *command.pose.orientation.to_rotation_matrix().matrix();
+    let plate = match tool.section {
+        Section::Plate { half_width_m, half_thickness_m } => {
+            let edge = rotation * tool.edge_local;
+            Some(Plate { edge, flat: command.pose.axis().cross(&edge), half_width: half_width_m, half_thickness: half_thickness_m })
+        }
+        // Forceps are refused under a multirate schedule (crate::scene).
+        Section::Round | Section::Jaws { .. } => None,
+    };
     Some(Capsule {
         tip,
         top: tip + command.pose.axis() * tool.length_m,
@@ -406,6 +416,7 @@ fn capsule(tool: &ToolShape, command: &ToolCommand, blade_pushes: bool) -> Optio
         // As the deformation's own contact: a blade cutting is not held off the tissue.
         holds: !tool.cuts(command) || blade_pushes,
         max_depth_m: tool.hold_max_depth_m(),
+        plate,
     })
 }
 

@@ -38,8 +38,13 @@ pub const MAX_PATCH_VERTICES: usize = 512;
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ContactPatch {
     /// Surface vertex ids near the tool (within its radius and the patch margin) when
-    /// the deformation step ended, nearest first.
+    /// the deformation step ended, nearest first; then the points on triangles' insides
+    /// the step held (a tool thinner than the vertex spacing: grid::model::face_contact),
+    /// each named by its triangle's vertex of the largest weight: the last
+    /// `face_points` entries of this and the per-vertex lists below.
     pub vertices: Vec<u32>,
+    /// How many of the entries are points on triangles' insides (at the end).
+    pub face_points: usize,
     /// Their positions then, m.
     pub positions: Vec<Vec3>,
     /// How far the patch moves, over one deformation step, per newton pushed on it as a
@@ -60,6 +65,10 @@ pub struct ContactPatch {
     /// Per vertex: the normal it is held along while in contact (crate::grid::hold), in
     /// the tool's frame; None: not in contact. The haptic loop keeps them up to date.
     pub held: Vec<Option<Vec3>>,
+    /// Where the tool's tip was (world) at the deformation step that made the patch: a
+    /// contact may be as much deeper than the tool's rated depth as the tool has moved
+    /// since before it lets go ([`ContactPatch::let_go_depth`]). None: no allowance.
+    pub tool_tip_m: Option<Vec3>,
     /// A cutting blade's flat or back leads into tissue with a fracture toughness (its
     /// nearest vertex's material; crate::grid::cut_resistance::edge_leads): the haptic
     /// loop holds the tissue off it, as the deformation step did.
@@ -82,11 +91,15 @@ pub struct Capsule {
     /// How deep one vertex may be pushed before it lets go (its force would exceed the
     /// tool's rated force), m.
     pub max_depth_m: f64,
+    /// A scalpel blade's plate (world frame): the solid is then the box from the tip
+    /// along the axis with this section, and `radius_m` its half-diagonal (what bounds
+    /// it); None for a round tool.
+    pub plate: Option<crate::grid::hold::Plate>,
 }
 
 impl Capsule {
     fn hold(&self) -> crate::grid::hold::Capsule {
-        crate::grid::hold::Capsule::round(self.tip, self.top, self.radius_m)
+        crate::grid::hold::Capsule { a: self.tip, b: self.top, radius: self.radius_m, plate: self.plate }
     }
 }
 
@@ -117,6 +130,18 @@ impl ContactPatch {
         self.anchors.clear();
         self.friction = Friction::default();
         self.held.clear();
+        self.face_points = 0;
+        self.tool_tip_m = None;
+    }
+
+    /// How deep a vertex may be in `tool` at the solved contact before it lets go: the
+    /// tool's rated depth, and as much more as the tool has moved since the deformation
+    /// step that made the patch (the patch's vertices are where that step's solve left
+    /// them against the tool where it was then: 1.65 mm behind it over 33 ms at 50 mm/s,
+    /// more than the rated depth of a stiff contact, 0.5 mm for a 0.5 mm probe at
+    /// 20,000 N/m). Within a solve no vertex lets go ([`Self::solve`]).
+    fn let_go_depth(&self, tool: &Capsule) -> f64 {
+        tool.max_depth_m + self.tool_tip_m.map_or(0.0, |tip| (tool.tip - tip).norm())
     }
 
     /// Solves the tool's contact with the patch: the displacement `u` with
@@ -128,18 +153,27 @@ impl ContactPatch {
         // keeps Newton's method from converging): all that have an anchor start stuck;
         // one whose stick force leaves the static cone at the solution slides in the
         // next solve (return mapping, as the deformation's friction does over a step).
-        let mut sliding = Sliding::default();
+        //
+        // Likewise which vertices let go (deeper than `let_go_depth`) is decided at a
+        // solution, and the solve repeated without them: within a solve none lets go.
+        // Letting go inside it made a second, false solution of a stiff contact on a
+        // soft patch: with the vertices dropped the patch springs back by C F_applied
+        // (13 mm on a block pressed with 1.4 N by a 0.4 mm blade plate at 20,000 N/m)
+        // through the tool, where nothing touches it, and Newton's method, stepping into
+        // that piece, ended there: 0 N rendered while the deformation pushed with 1.4 N.
+        let (mut sliding, mut released) = (VertexSet::default(), VertexSet::default());
         let mut u = Vec3::zeros();
         for _ in 0..SLIDE_PASSES {
-            u = self.newton(tool, &sliding);
-            if !self.mark_sliding(tool, &u, &mut sliding) {
+            u = self.newton(tool, &sliding, &released);
+            let slid = self.mark_sliding(tool, &u, &released, &mut sliding);
+            if !self.mark_released(tool, &u, &mut released) && !slid {
                 break;
             }
         }
         let mut contact = PatchContact { displacement_m: u, ..PatchContact::default() };
         for (j, x) in self.positions.iter().enumerate() {
             let p = x + u;
-            let Some((on_tissue, _)) = self.vertex_forces(tool, j, &p, &sliding, false) else { continue };
+            let Some((on_tissue, _)) = self.vertex_forces(tool, j, &p, &sliding, &released, false) else { continue };
             contact.force_n -= on_tissue;
             contact.torque_nm += (p - tool.tip).cross(&-on_tissue);
             contact.contacts += 1;
@@ -151,12 +185,12 @@ impl ContactPatch {
     /// as given, by Newton's method with backtracking: the forces are only piecewise
     /// smooth in u (vertices coming into contact, the penalty's kinks, a sliding vertex's
     /// direction), and full steps can cycle between pieces without converging.
-    fn newton(&self, tool: &Capsule, sliding: &Sliding) -> Vec3 {
+    fn newton(&self, tool: &Capsule, sliding: &VertexSet, released: &VertexSet) -> Vec3 {
         // G(u) = u − C (F(u) − F_applied); dF/du = −K (K = Σ k n nᵀ over the touching,
         // less the directions' turning near the solution (`normal_force`), and
         // k (I − n nᵀ) over those that stick).
         let residual_at = |u: &Vec3, exact: bool| {
-            let (force, stiffness) = self.forces(tool, u, sliding, exact);
+            let (force, stiffness) = self.forces(tool, u, sliding, released, exact);
             (u - self.compliance * (force - self.applied), stiffness)
         };
         let mut u = Vec3::zeros();
@@ -193,18 +227,36 @@ impl ContactPatch {
 
     /// Marks the stuck vertices whose stick force at `u` leaves the static cone as
     /// sliding; whether any was.
-    fn mark_sliding(&self, tool: &Capsule, u: &Vec3, sliding: &mut Sliding) -> bool {
+    fn mark_sliding(&self, tool: &Capsule, u: &Vec3, released: &VertexSet, sliding: &mut VertexSet) -> bool {
         if self.friction.static_coefficient <= 0.0 {
             return false;
         }
         let mut changed = false;
         for (j, x) in self.positions.iter().enumerate().take(MAX_PATCH_VERTICES) {
-            let (Some(Some(from_tip)), false) = (self.anchors.get(j), sliding.get(j)) else { continue };
+            let (Some(Some(from_tip)), false, false) = (self.anchors.get(j), sliding.get(j), released.get(j)) else { continue };
             let p = x + u;
-            let Some(Touch { normal, normal_n, .. }) = self.touch(tool, j, &p, false) else { continue };
+            let Some(Touch { normal, normal_n, .. }) = self.touch(tool, j, &p, false, f64::INFINITY) else { continue };
             let pull = tangent_projection(&normal) * (tool.tip + from_tip - p) * tool.stiffness_n_per_m;
             if pull.norm() > self.friction.static_coefficient * normal_n {
                 sliding.set(j);
+                changed = true;
+            }
+        }
+        changed
+    }
+
+    /// Marks the vertices in contact at `u` deeper than [`Self::let_go_depth`] as let go;
+    /// whether any was.
+    fn mark_released(&self, tool: &Capsule, u: &Vec3, released: &mut VertexSet) -> bool {
+        if !tool.holds {
+            return false;
+        }
+        let limit = self.let_go_depth(tool);
+        let mut changed = false;
+        for (j, x) in self.positions.iter().enumerate().take(MAX_PATCH_VERTICES) {
+            let p = x + u;
+            if !released.get(j) && self.touch(tool, j, &p, false, f64::INFINITY).is_some() && self.touch(tool, j, &p, false, limit).is_none() {
+                released.set(j);
                 changed = true;
             }
         }
@@ -221,7 +273,7 @@ impl ContactPatch {
         let to_tool = tool.rotation.transpose();
         for j in 0..self.positions.len() {
             let p = self.positions[j] + contact.displacement_m;
-            let touch = self.touch(tool, j, &p, false);
+            let touch = self.touch(tool, j, &p, false, self.let_go_depth(tool));
             if let Some(held) = self.held.get_mut(j) {
                 *held = touch.filter(|_| tool.holds).map(|t| to_tool * t.entry);
             }
@@ -241,10 +293,10 @@ impl ContactPatch {
 
     /// The forces on the tissue with the patch moved by `u`: their sum and their
     /// stiffness (see [`Self::newton`]).
-    fn forces(&self, tool: &Capsule, u: &Vec3, sliding: &Sliding, exact: bool) -> (Vec3, Matrix3<f64>) {
+    fn forces(&self, tool: &Capsule, u: &Vec3, sliding: &VertexSet, released: &VertexSet, exact: bool) -> (Vec3, Matrix3<f64>) {
         let (mut force, mut stiffness) = (Vec3::zeros(), Matrix3::zeros());
         for (j, x) in self.positions.iter().enumerate() {
-            if let Some((f, k)) = self.vertex_forces(tool, j, &(x + u), sliding, exact) {
+            if let Some((f, k)) = self.vertex_forces(tool, j, &(x + u), sliding, released, exact) {
                 force += f;
                 stiffness += k;
             }
@@ -253,14 +305,29 @@ impl ContactPatch {
     }
 
     /// Vertex `j`'s force on the tissue at `p` (penalty, and the stick spring where it
-    /// has an anchor) and its stiffness; None outside the tool. A vertex that sticks
+    /// has an anchor) and its stiffness; None outside the tool or let go (however deep
+    /// the others are: see [`Self::solve`]). A vertex that sticks
     /// pulls toward its anchor across the normal; one that slides, with the dynamic
     /// force in that direction (no stiffness: its size follows the normal force only).
     #[inline]
-    fn vertex_forces(&self, tool: &Capsule, j: usize, p: &Vec3, sliding: &Sliding, exact: bool) -> Option<(Vec3, Matrix3<f64>)> {
-        let Touch { normal, normal_n, mut stiffness, .. } = self.touch(tool, j, p, exact)?;
+    fn vertex_forces(&self, tool: &Capsule, j: usize, p: &Vec3, sliding: &VertexSet, released: &VertexSet, exact: bool) -> Option<(Vec3, Matrix3<f64>)> {
+        if released.get(j) {
+            return None;
+        }
+        let Touch { normal, normal_n, mut stiffness, .. } = self.touch(tool, j, p, exact, f64::INFINITY)?;
         let k = tool.stiffness_n_per_m;
         let mut force = normal * normal_n;
+        if tool.holds && j + self.face_points >= self.positions.len() {
+            // A point on a triangle's inside is drawn towards the axis across its normal,
+            // as the deformation draws it (grid::model::face_contact: the dent's walls
+            // round a thin tip); without it the patch, soft as a whole (10 mm per newton
+            // on a 30 kPa block), slid off a 0.4 mm plate's end sideways under a lateral
+            // force of 0.17 N and the device felt nothing pressing it point first.
+            let (across, offset) = centring(tool, p);
+            let pull = tangent_projection(&normal) * across;
+            force += pull * offset * k;
+            stiffness += pull * k;
+        }
         if let (true, Some(Some(from_tip))) = (self.friction.static_coefficient > 0.0, self.anchors.get(j)) {
             let pull = tangent_projection(&normal) * (tool.tip + from_tip - p) * k;
             if sliding.get(j) {
@@ -278,9 +345,9 @@ impl ContactPatch {
     /// How vertex `j` at `p` touches the tool: pushed out along the normal it is held
     /// along (crate::grid::hold; within a quarter radius of the surface, along the
     /// surface's normal there), or radially where the tool does not hold (a blade
-    /// cutting). None: not in contact.
+    /// cutting). None: not in contact, or deeper than `let_go_depth`.
     #[inline]
-    fn touch(&self, tool: &Capsule, j: usize, p: &Vec3, exact: bool) -> Option<Touch> {
+    fn touch(&self, tool: &Capsule, j: usize, p: &Vec3, exact: bool, let_go_depth: f64) -> Option<Touch> {
         if !tool.holds {
             return normal_force(tool, p, exact).map(|(normal, normal_n, stiffness)| Touch { normal, normal_n, stiffness, entry: normal });
         }
@@ -295,7 +362,7 @@ impl ContactPatch {
         }
         let held = held.map(|n| tool.rotation * n);
         let capsule = tool.hold();
-        let contact = crate::grid::hold::contact(&capsule, p, held, None, tool.max_depth_m)?;
+        let contact = crate::grid::hold::contact(&capsule, p, held, None, let_go_depth)?;
         let k = tool.stiffness_n_per_m;
         if contact.normal != contact.entry || held.is_none() {
             // Along the surface's normal (the shallow band, or a first touch, whose entry
@@ -326,15 +393,28 @@ struct Touch {
     entry: Vec3,
 }
 
+/// Where a tool draws a point at `p` towards its axis: the directions it draws along
+/// (across the axis; for a blade's plate, across its flat only: along its width the
+/// tissue under the flat is not in a groove) as a projection, and the point's offset
+/// from the axis along them (what `projection · (axis − p)` is).
+fn centring(tool: &Capsule, p: &Vec3) -> (Matrix3<f64>, Vec3) {
+    let axis = (tool.top - tool.tip).try_normalize(1e-12).unwrap_or(Vec3::z());
+    let across = match &tool.plate {
+        Some(plate) => plate.flat * plate.flat.transpose(),
+        None => Matrix3::identity() - axis * axis.transpose(),
+    };
+    (across, across * (tool.tip - p))
+}
+
 /// Solve passes that may find more sliding vertices (each a Newton solve).
 const SLIDE_PASSES: usize = 4;
 
-/// Which of a patch's vertices slide in this haptic step's solve (a bit each; on the
-/// stack: the haptic loop allocates nothing).
+/// A set of a patch's vertices in this haptic step's solve, such as those that slide or
+/// let go (a bit each; on the stack: the haptic loop allocates nothing).
 #[derive(Debug, Clone, Copy, Default)]
-struct Sliding([u64; MAX_PATCH_VERTICES / 64]);
+struct VertexSet([u64; MAX_PATCH_VERTICES / 64]);
 
-impl Sliding {
+impl VertexSet {
     fn get(&self, j: usize) -> bool {
         j < MAX_PATCH_VERTICES && self.0[j / 64] & (1 << (j % 64)) != 0
     }
@@ -349,7 +429,8 @@ impl Sliding {
 /// direction and size, N, and its stiffness `−∂f/∂p`: `k n nᵀ`
 /// across the surface less the turning of the direction, `k (r − d)/d` across `n` (and
 /// along the axis, for the shaft) — without the latter Newton's method converged only
-/// linearly, about a fifth of the error an iteration. None outside.
+/// linearly, about a fifth of the error an iteration. A plate pushes out through its
+/// nearest face (`k n nᵀ`: a face's normal does not turn). None outside.
 #[inline]
 fn normal_force(tool: &Capsule, p: &Vec3, exact: bool) -> Option<(Vec3, f64, Matrix3<f64>)> {
     let (t, closest) = closest_point_on_segment(p, &tool.tip, &tool.top);
@@ -359,8 +440,12 @@ fn normal_force(tool: &Capsule, p: &Vec3, exact: bool) -> Option<(Vec3, f64, Mat
     if squared >= tool.radius_m * tool.radius_m || squared <= 1e-24 {
         return None;
     }
-    let distance = squared.sqrt();
     let k = tool.stiffness_n_per_m;
+    if tool.plate.is_some() {
+        let (normal, depth) = tool.hold().radial(p);
+        return (depth > 0.0).then(|| (normal, k * depth, normal * normal.transpose() * k));
+    }
+    let distance = squared.sqrt();
     let normal = offset / distance;
     if !exact {
         return Some((normal, k * (tool.radius_m - distance), normal * normal.transpose() * k));
@@ -387,7 +472,50 @@ mod tests {
 
     fn probe(depth: f64) -> Capsule {
         // A ball-ended rod of radius 3 mm pressed straight down, its centre line at x = y = 0.
-        Capsule { tip: Vec3::new(0.0, 0.0, 3e-3 - depth), top: Vec3::new(0.0, 0.0, 0.1), radius_m: 3e-3, stiffness_n_per_m: 500.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.02 }
+        Capsule { tip: Vec3::new(0.0, 0.0, 3e-3 - depth), top: Vec3::new(0.0, 0.0, 0.1), radius_m: 3e-3, stiffness_n_per_m: 500.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.02, plate: None }
+    }
+
+    /// A #10-like blade's plate, 3 mm wide (its edge along x) and 0.4 mm thick, pressed
+    /// point first 0.1 mm into the flat patch: the vertices under its end are pushed
+    /// down, out through its end face (the nearest), and the vertices beside its flat
+    /// but within the plate's bounding radius are not touched.
+    #[test]
+    fn a_blade_plate_pushes_the_patch_with_its_box_not_its_bounding_capsule() {
+        let patch = flat_patch(0.0);
+        let (half_width, half_thickness) = (1.5e-3, 0.2e-3);
+        let plate = crate::grid::hold::Plate { edge: Vec3::x(), flat: Vec3::y(), half_width, half_thickness };
+        let tool = Capsule { tip: Vec3::new(0.0, 0.0, -1e-4), top: Vec3::new(0.0, 0.0, 0.1), radius_m: half_width.hypot(half_thickness), stiffness_n_per_m: 500.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.02, plate: Some(plate) };
+        let contact = patch.solve(&tool);
+        // Under the end: the line y = 0 from x = −1 to 1 mm, each 0.1 mm deep.
+        assert_eq!(contact.contacts, 3, "{contact:?}");
+        assert!((contact.force_n - Vec3::new(0.0, 0.0, 3.0 * 500.0 * 1e-4)).norm() < 1e-12, "{:?}", contact.force_n);
+        // A round tool of the same bounding radius, its ball's centre at the tip, would
+        // have pushed every vertex within its radius of the tip.
+        let round = patch.solve(&Capsule { plate: None, ..tool });
+        assert_eq!(round.contacts, 9, "{round:?}");
+    }
+
+    /// A stiff contact on a soft patch (a 0.4 mm blade plate at 20,000 N/m on a block
+    /// that gives 10 mm per newton), the tool 1.65 mm on since the deformation step
+    /// pushed with 1.38 N: the three points under its end are held along its axis, and
+    /// the patch is solved against them. Letting them go inside the solve (they are
+    /// deeper than the rated 0.5 mm before it) gave a second solution, the patch sprung
+    /// back 13 mm through the tool and 0 N rendered; the one with the points pressed is
+    /// the one taken, and only the point still in contact at it pushes.
+    #[test]
+    fn a_stiff_contact_on_a_soft_patch_is_not_solved_by_springing_back_through_the_tool() {
+        let plate = crate::grid::hold::Plate { edge: Vec3::x(), flat: Vec3::y(), half_width: 1.5e-3, half_thickness: 0.2e-3 };
+        let tool = Capsule { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.06), radius_m: 1.5e-3f64.hypot(0.2e-3), stiffness_n_per_m: 20_000.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.0005, plate: Some(plate) };
+        let positions = vec![Vec3::new(0.0, 0.0, 1.61e-3), Vec3::new(-0.565e-3, 0.0, 1.87e-3), Vec3::new(0.39e-3, 0.0, 1.72e-3)];
+        let compliance = Matrix3::from_diagonal(&Vec3::new(0.0139, 0.0141, 0.0094));
+        let patch = ContactPatch { vertices: vec![0, 1, 2], held: vec![Some(-Vec3::z()); 3], positions, compliance, applied: Vec3::new(0.0, 0.0, -1.38), tool_tip_m: Some(Vec3::new(0.0, 0.0, 1.65e-3)), ..ContactPatch::default() };
+        let contact = patch.solve(&tool);
+        // Only the highest point stays in: u (1 + kC) = C (−k · 1.87 mm + 1.38 N).
+        let u = 0.0094 * (-20_000.0 * 1.87e-3 + 1.38) / (1.0 + 20_000.0 * 0.0094);
+        assert_eq!(contact.contacts, 1, "{contact:?}");
+        assert!((contact.displacement_m.z - u).abs() < 1e-8, "{contact:?} against u = {u}");
+        assert!((contact.force_n.z - 20_000.0 * (1.87e-3 + u)).abs() < 1e-3, "{contact:?}");
+        assert!(contact.force_n.z > 1.0);
     }
 
     #[test]

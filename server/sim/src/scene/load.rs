@@ -213,13 +213,13 @@ impl Scene {
             // radius, at most a blade's half width (the slit its edge opens).
             let (reach_m, length_m, tip) = match &tool.shape {
                 super::ToolShapeSpec::Cylinder { radius_m, length_m, tip } => (radius_m.get() * (1.0 - 1e-12), length_m, tip),
-                super::ToolShapeSpec::Blade { width_m, length_m, .. } | super::ToolShapeSpec::Forceps { width_m, length_m, .. } => {
+                super::ToolShapeSpec::Blade { width_m, length_m, .. } => (0.5 * width_m.get(), length_m, &None),
+                super::ToolShapeSpec::Forceps { width_m, length_m, .. } => {
                     if !grid.schedule.is_single_rate() {
-                        let what = if matches!(tool.shape, super::ToolShapeSpec::Blade { .. }) { "a blade's plate is" } else { "forceps' jaws (two plates) are" };
                         return Err(SceneError::new(
                             origin,
                             format!("tools[{i}].shape"),
-                            format!("{what} held against the branched grid's vertices by the single-rate step only; a multirate schedule's haptic loop renders capsules: use a cylinder, or \"schedule\": \"single-rate\""),
+                            "forceps' jaws (two plates) are held against the branched grid by the single-rate step only; a multirate schedule's haptic loop renders one solid per tool (a capsule or a blade's plate): use a cylinder or a blade, or \"schedule\": \"single-rate\"",
                         ));
                     }
                     (0.5 * width_m.get(), length_m, &None)

@@ -463,7 +463,7 @@ pub enum ToolShapeSpec {
     /// long (its cutting edge's length), `width_m` across the axis along the tool's
     /// `edge` direction and `thickness_m` across its flat. Its cutting edge is the long
     /// side facing `edge`; its tip is a flat end (a pointed tip is not modelled). On the
-    /// branched grid, under the single-rate schedule only.
+    /// branched grid under either schedule (a multirate haptic loop renders the plate).
     Blade { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM },
     /// Forceps: two jaws, each a plate like a blade's (`width_m` along the tool's `edge`
     /// direction, `thickness_m` across its flat, `length_m` from the tip along the +z

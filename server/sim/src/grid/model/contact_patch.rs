@@ -122,10 +122,14 @@ impl BranchedGrid {
 
     /// Tool `i`'s patch vertices, their positions (world) and their friction anchors on
     /// the tool as this step left them (where a cut cleared the anchors, none), as the
-    /// step and its cuts left the surface.
+    /// step and its cuts left the surface; then the points on triangles' insides it held
+    /// (a tool thinner than the vertex spacing: face_contact), which the haptic loop
+    /// holds as it holds vertices (without them a 0.5 mm probe or a 0.4 mm blade plate
+    /// pressed tip first rendered 0 N where the deformation pushed with 8 N).
     pub(super) fn patch_vertices(&mut self, i: usize, command: &ToolCommand, margin_m: f64, patch: &mut ContactPatch) {
         let mut near = std::mem::take(&mut self.patch_scratch);
         self.near_vertices(i, command, margin_m, &mut near);
+        near.truncate(MAX_PATCH_VERTICES - self.held_face_points(i).count().min(MAX_PATCH_VERTICES));
         patch.vertices.clear();
         patch.positions.clear();
         patch.anchors.clear();
@@ -139,6 +143,15 @@ impl BranchedGrid {
             let touch = self.touches.get(v as usize).copied().flatten().filter(|t| t.tool == i && t.step == self.step_index);
             patch.held.push(touch.map(|t| t.normal_in_tool));
         }
+        patch.face_points = 0;
+        for (v, point, held) in self.held_face_points(i).take(MAX_PATCH_VERTICES - near.len()) {
+            patch.face_points += 1;
+            patch.vertices.push(v);
+            patch.positions.push(self.frame.to_world(&point));
+            patch.anchors.push(held.anchor_from_tip.map(|a| self.frame.rotation * a));
+            patch.held.push(Some(held.normal_in_tool));
+        }
+        patch.tool_tip_m = (command.active && command.pose.is_finite()).then_some(command.pose.position_m);
         patch.friction = near.first().map_or_else(Default::default, |&(v, _)| self.friction_at(v as usize));
         patch.blade_pushes = near.first().is_some_and(|&(v, _)| !self.cuts_through(i, v as usize));
         self.patch_scratch = near;

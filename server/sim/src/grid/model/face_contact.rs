@@ -248,6 +248,19 @@ impl BranchedGrid {
         Some(FaceContact { held, point, element, weights, vertex, contact, centring })
     }
 
+    /// The points on triangles' insides tool `i` held this step, as the surface is now:
+    /// each with its triangle's vertex of the largest weight (which names it), where it
+    /// is (grid frame), and what is kept of it (the multirate patch publishes them).
+    pub(super) fn held_face_points(&self, i: usize) -> impl Iterator<Item = (u32, Vec3, &HeldFace)> + '_ {
+        self.held_faces[i].iter().filter(|h| h.step == self.step_index && self.live_triangle(h.triangle)).map(|h| {
+            let vertices = self.surface.triangles[h.triangle as usize];
+            let corners = self.corners(h.triangle);
+            let point = (0..3).map(|k| corners[k] * h.barycentric[k]).sum();
+            let heaviest = (0..3).fold(0, |best, k| if h.barycentric[k] > h.barycentric[best] { k } else { best });
+            (vertices[heaviest], point, h)
+        })
+    }
+
     /// The surface triangles near [lo, hi] into `out`, each once, by id (the contacts'
     /// order is part of the state): those of the vertices near the box grown by a voxel
     /// (a triangle spans at most one, so one reaching the box has its vertices within a
