@@ -8,10 +8,12 @@
 //! feels most — the patch's compliance to a force on it as a whole (three solves per
 //! tool) — and the patch's surface vertices as the deformation step left them. The
 //! haptic loop moves the vertices together by `u = C (F − F_applied)`, finds the
-//! vertices inside the tool's capsule at its newest pose (new ones come into contact as
-//! the tool moves), and solves `u` and the penalty forces `F(u)` together by Newton's
-//! method. The dent's shape changes at the deformation rate, not in between: that is
-//! the reduction (docs/branched-grid.md, "Multirate haptics").
+//! vertices inside the tool's solid at its newest pose (a capsule, or a blade's plate;
+//! new ones come into contact as the tool moves), and solves `u` and the penalty forces
+//! `F(u)` together by Newton's method. The dent's shape changes at the deformation rate,
+//! not in between: that is the reduction (docs/branched-grid.md, "Multirate haptics").
+//! For a tool thinner than the vertex spacing the patch also holds the points on
+//! triangles' insides the deformation held (grid::model::face_contact).
 //!
 //! The contact holds as the deformation's own does (crate::grid::hold): each vertex in
 //! contact is pushed out along the normal it came in with, kept in the tool's frame for
