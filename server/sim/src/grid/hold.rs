@@ -67,10 +67,41 @@ pub struct Plate {
     pub half_thickness: f64,
 }
 
+impl Plate {
+    /// `tool`'s plate turned by `rotation` (from the tool's frame into the frame the
+    /// contact is solved in: the grid's, or the world's for the multirate haptic loop);
+    /// None for a round tool and for forceps, whose jaws come as plates of their own
+    /// (crate::tool::bodies).
+    pub fn of_tool(tool: &crate::tool::ToolShape, rotation: &Matrix3<f64>) -> Option<Plate> {
+        match tool.section {
+            crate::tool::Section::Plate { half_width_m, half_thickness_m } => {
+                let edge = rotation * tool.edge_local;
+                Some(Plate { edge, flat: (rotation * Vec3::z()).cross(&edge), half_width: half_width_m, half_thickness: half_thickness_m })
+            }
+            crate::tool::Section::Round | crate::tool::Section::Jaws { .. } => None,
+        }
+    }
+}
+
 impl Capsule {
     /// A round tool: the segment `a`–`b` swept by a ball of `radius`.
     pub fn round(a: Vec3, b: Vec3, radius: f64) -> Self {
         Capsule { a, b, radius, plate: None }
+    }
+
+    /// How the tool draws a point at `p` that it holds on a triangle's inside towards its
+    /// axis (grid::model::face_contact; the multirate patch likewise): the directions it
+    /// draws along as a projection (across the axis; for a plate across its flat only:
+    /// along its width, under its flat, the tissue is not in a groove) and the point's
+    /// offset from the axis along them. None for a ball (no axis).
+    pub fn centring(&self, p: &Vec3) -> Option<(Matrix3<f64>, Vec3)> {
+        self.out_of_tip().map(|axis| {
+            let on_axis = self.a + axis * (p - self.a).dot(&axis);
+            match &self.plate {
+                Some(plate) => (plate.flat * plate.flat.transpose(), plate.flat * plate.flat.dot(&(on_axis - p))),
+                None => (Matrix3::identity() - axis * axis.transpose(), on_axis - p),
+            }
+        })
     }
 
     /// The solid's smallest half-size across its axis: a capsule's radius, half a plate's

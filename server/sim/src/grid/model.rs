@@ -132,9 +132,6 @@ pub struct BranchedGrid {
     face_scratch: Vec<face_contact::FaceContact>,
     /// Per tool: the points on triangles' insides it holds (face_contact).
     held_faces: Vec<Vec<face_contact::HeldFace>>,
-    /// This step is a multirate deformation step: the tools moved over many haptic
-    /// steps since the last, and a contact lets go only that much deeper (`touching`).
-    deforming: bool,
     backup_x: Vec<Vec3>,
     backup_v: Vec<Vec3>,
     strokes: Vec<Stroke>,
@@ -244,7 +241,6 @@ impl BranchedGrid {
             triangle_scratch: Vec::new(),
             face_scratch: Vec::new(),
             held_faces: vec![Vec::new(); tool_count],
-            deforming: false,
             backup_x: vec![Vec3::zeros(); n],
             backup_v: vec![Vec3::zeros(); n],
             strokes: vec![Stroke::default(); tool_count],
@@ -308,13 +304,12 @@ impl BranchedGrid {
         self.contact_vertices.clear();
         self.contact_on_face.clear();
         self.lead_strokes(commands);
-        self.deforming = multirate.is_some();
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
             let start = self.contacts.len();
             if command.active {
                 if command.pose.is_finite() {
-                    self.add_tool_contacts(i, command, fb);
+                    self.add_tool_contacts(i, command, multirate.is_some(), fb);
                 } else {
                     self.counters.rejected_poses += 1;
                 }
@@ -427,7 +422,7 @@ impl BranchedGrid {
     /// pushed out on the side it came in from (super::hold), and, holding, with the
     /// insides of triangles it reaches between vertices (face_contact); their count goes
     /// into `fb`.
-    fn add_tool_contacts(&mut self, i: usize, command: &ToolCommand, fb: &mut ToolFeedback) {
+    fn add_tool_contacts(&mut self, i: usize, command: &ToolCommand, deforming: bool, fb: &mut ToolFeedback) {
         use super::hold::Touch;
         // One anchor slot per surface vertex (a cut changes their number).
         self.anchors.fit(self.surface.voxel.len());
@@ -437,7 +432,7 @@ impl BranchedGrid {
         let mut touching = std::mem::take(&mut self.touching_scratch);
         let mut triangles = std::mem::take(&mut self.triangle_scratch);
         let mut faces = std::mem::take(&mut self.face_scratch);
-        let placed = self.touching(i, command, &mut touching);
+        let placed = self.touching(i, command, deforming, &mut touching);
         let ToolPlacement { tip, tool_to_grid, tool_velocity, .. } = placed;
         let k = self.tools[i].contact_stiffness_n_per_m;
         let cutting = self.cutting(i, command);
@@ -498,24 +493,17 @@ impl BranchedGrid {
 
     /// The surface vertices tool `i` at `command`'s pose touches, each with the normal it
     /// is pushed out along and how far (super::hold), into `out`; and where the tool is.
-    fn touching(&self, i: usize, command: &ToolCommand, out: &mut Vec<(u32, super::hold::Contact)>) -> ToolPlacement {
+    /// `deforming`: a multirate deformation step, after which the tool moved for many
+    /// haptic steps (the depth at which a contact lets go allows for it, below).
+    fn touching(&self, i: usize, command: &ToolCommand, deforming: bool, out: &mut Vec<(u32, super::hold::Contact)>) -> ToolPlacement {
         use super::hold::{Capsule, Plate, contact};
-        use crate::tool::Section;
         out.clear();
         let tool = &self.tools[i];
         let tip = self.frame.to_local(&command.pose.position_m);
         let tool_to_grid = super::hold::tool_to_grid(&self.frame.rotation, command.pose.orientation.to_rotation_matrix().matrix());
         let top = tip + tool_to_grid * Vec3::z() * tool.length_m;
-        let axis = tool_to_grid * Vec3::z();
-        let plate = match tool.section {
-            Section::Plate { half_width_m, half_thickness_m } => {
-                let edge = tool_to_grid * tool.edge_local;
-                Some(Plate { edge, flat: axis.cross(&edge), half_width: half_width_m, half_thickness: half_thickness_m })
-            }
-            // Forceps come here as their jaws' plates (crate::tool::bodies).
-            Section::Round | Section::Jaws { .. } => None,
-        };
-        let capsule = Capsule { a: tip, b: top, radius: tool.radius_m, plate };
+        // Forceps come here as their jaws' plates (crate::tool::bodies).
+        let capsule = Capsule { a: tip, b: top, radius: tool.radius_m, plate: Plate::of_tool(tool, &tool_to_grid) };
         let cutting = self.cutting(i, command);
         // The tool's motion over the step: a new contact came in along it.
         let moved = self.previous_tips[i].map(|before| tip - before);
@@ -527,7 +515,7 @@ impl BranchedGrid {
         // 0.4 mm blade plate at 20,000 N/m, rated depth 0.5 mm) let go as they were
         // made and the tool went 30 mm into the tissue at 0 N. A single-rate step moves
         // the tool within the penalty's give and keeps the rated depth alone.
-        let travel = if self.deforming { moved.map_or(0.0, |m| m.norm()) } else { 0.0 };
+        let travel = if deforming { moved.map_or(0.0, |m| m.norm()) } else { 0.0 };
         let max_depth = tool.hold_max_depth_m() + travel;
         let tool_velocity = moved.map_or(Vec3::zeros(), |m| m / self.dt_s);
         // A vertex the tool holds may be outside its capsule, by as much as the tool
@@ -615,7 +603,7 @@ impl BranchedGrid {
     /// frame, N: what the step's fed-back force is checked against.
     pub fn penalty_now(&self, i: usize, command: &ToolCommand) -> Vec3 {
         let mut touching = Vec::new();
-        let placed = self.touching(i, command, &mut touching);
+        let placed = self.touching(i, command, false, &mut touching);
         let mut faces = Vec::new();
         self.held_face_contacts(i, self.cutting(i, command), &placed, &touching, &mut Vec::new(), &mut faces);
         let k = self.tools[i].contact_stiffness_n_per_m;

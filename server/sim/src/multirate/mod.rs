@@ -41,7 +41,7 @@ use crate::solver::background::Background;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{ChosenFidelity, Tissue, TissueCounters};
 use crate::grid::hold::Plate;
-use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
+use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES, PatchContact};
 
 /// The fastest a tool is assumed to move, m/s: a patch reaches this far beyond the
@@ -399,14 +399,6 @@ fn capsule(tool: &ToolShape, command: &ToolCommand, blade_pushes: bool) -> Optio
     }
     let tip = command.pose.position_m;
     let rotation = *command.pose.orientation.to_rotation_matrix().matrix();
-    let plate = match tool.section {
-        Section::Plate { half_width_m, half_thickness_m } => {
-            let edge = rotation * tool.edge_local;
-            Some(Plate { edge, flat: command.pose.axis().cross(&edge), half_width: half_width_m, half_thickness: half_thickness_m })
-        }
-        // Forceps are refused under a multirate schedule (crate::scene).
-        Section::Round | Section::Jaws { .. } => None,
-    };
     Some(Capsule {
         tip,
         top: tip + command.pose.axis() * tool.length_m,
@@ -416,7 +408,8 @@ fn capsule(tool: &ToolShape, command: &ToolCommand, blade_pushes: bool) -> Optio
         // As the deformation's own contact: a blade cutting is not held off the tissue.
         holds: !tool.cuts(command) || blade_pushes,
         max_depth_m: tool.hold_max_depth_m(),
-        plate,
+        // Forceps are refused under a multirate schedule (crate::scene).
+        plate: Plate::of_tool(tool, &rotation),
     })
 }
 

@@ -146,6 +146,13 @@ impl ContactPatch {
         tool.max_depth_m + self.tool_tip_m.map_or(0.0, |tip| (tool.tip - tip).norm())
     }
 
+    /// Whether a contact `touch` of `tool` is deeper than [`Self::let_go_depth`] (its
+    /// penalty is the stiffness times its depth); a tool that does not hold (a blade
+    /// cutting, pushed off radially) never lets go.
+    fn lets_go(&self, tool: &Capsule, touch: &Touch) -> bool {
+        tool.holds && touch.normal_n > tool.stiffness_n_per_m * self.let_go_depth(tool)
+    }
+
     /// Solves the tool's contact with the patch: the displacement `u` with
     /// `u = C (F(u) − F_applied)`, `F(u)` the penalty and stick forces on the vertices
     /// moved by `u`. Allocates nothing; changes nothing (see [`Self::commit`]).
@@ -237,7 +244,7 @@ impl ContactPatch {
         for (j, x) in self.positions.iter().enumerate().take(MAX_PATCH_VERTICES) {
             let (Some(Some(from_tip)), false, false) = (self.anchors.get(j), sliding.get(j), released.get(j)) else { continue };
             let p = x + u;
-            let Some(Touch { normal, normal_n, .. }) = self.touch(tool, j, &p, false, f64::INFINITY) else { continue };
+            let Some(Touch { normal, normal_n, .. }) = self.touch(tool, j, &p, false) else { continue };
             let pull = tangent_projection(&normal) * (tool.tip + from_tip - p) * tool.stiffness_n_per_m;
             if pull.norm() > self.friction.static_coefficient * normal_n {
                 sliding.set(j);
@@ -253,11 +260,9 @@ impl ContactPatch {
         if !tool.holds {
             return false;
         }
-        let limit = self.let_go_depth(tool);
         let mut changed = false;
         for (j, x) in self.positions.iter().enumerate().take(MAX_PATCH_VERTICES) {
-            let p = x + u;
-            if !released.get(j) && self.touch(tool, j, &p, false, f64::INFINITY).is_some() && self.touch(tool, j, &p, false, limit).is_none() {
+            if !released.get(j) && self.touch(tool, j, &(x + u), false).is_some_and(|t| self.lets_go(tool, &t)) {
                 released.set(j);
                 changed = true;
             }
@@ -275,7 +280,7 @@ impl ContactPatch {
         let to_tool = tool.rotation.transpose();
         for j in 0..self.positions.len() {
             let p = self.positions[j] + contact.displacement_m;
-            let touch = self.touch(tool, j, &p, false, self.let_go_depth(tool));
+            let touch = self.touch(tool, j, &p, false).filter(|t| !self.lets_go(tool, t));
             if let Some(held) = self.held.get_mut(j) {
                 *held = touch.filter(|_| tool.holds).map(|t| to_tool * t.entry);
             }
@@ -316,7 +321,7 @@ impl ContactPatch {
         if released.get(j) {
             return None;
         }
-        let Touch { normal, normal_n, mut stiffness, .. } = self.touch(tool, j, p, exact, f64::INFINITY)?;
+        let Touch { normal, normal_n, mut stiffness, .. } = self.touch(tool, j, p, exact)?;
         let k = tool.stiffness_n_per_m;
         let mut force = normal * normal_n;
         if tool.holds && j + self.face_points >= self.positions.len() {
@@ -325,10 +330,11 @@ impl ContactPatch {
             // round a thin tip); without it the patch, soft as a whole (10 mm per newton
             // on a 30 kPa block), slid off a 0.4 mm plate's end sideways under a lateral
             // force of 0.17 N and the device felt nothing pressing it point first.
-            let (across, offset) = centring(tool, p);
-            let pull = tangent_projection(&normal) * across;
-            force += pull * offset * k;
-            stiffness += pull * k;
+            if let Some((across, offset)) = tool.hold().centring(p) {
+                let pull = tangent_projection(&normal);
+                force += pull * offset * k;
+                stiffness += pull * across * k;
+            }
         }
         if let (true, Some(Some(from_tip))) = (self.friction.static_coefficient > 0.0, self.anchors.get(j)) {
             let pull = tangent_projection(&normal) * (tool.tip + from_tip - p) * k;
@@ -347,9 +353,10 @@ impl ContactPatch {
     /// How vertex `j` at `p` touches the tool: pushed out along the normal it is held
     /// along (crate::grid::hold; within a quarter radius of the surface, along the
     /// surface's normal there), or radially where the tool does not hold (a blade
-    /// cutting). None: not in contact, or deeper than `let_go_depth`.
+    /// cutting). None: not in contact. However deep it is ([`Self::lets_go`] says
+    /// whether that is past letting go).
     #[inline]
-    fn touch(&self, tool: &Capsule, j: usize, p: &Vec3, exact: bool, let_go_depth: f64) -> Option<Touch> {
+    fn touch(&self, tool: &Capsule, j: usize, p: &Vec3, exact: bool) -> Option<Touch> {
         if !tool.holds {
             return normal_force(tool, p, exact).map(|(normal, normal_n, stiffness)| Touch { normal, normal_n, stiffness, entry: normal });
         }
@@ -364,7 +371,7 @@ impl ContactPatch {
         }
         let held = held.map(|n| tool.rotation * n);
         let capsule = tool.hold();
-        let contact = crate::grid::hold::contact(&capsule, p, held, None, let_go_depth)?;
+        let contact = crate::grid::hold::contact(&capsule, p, held, None, f64::INFINITY)?;
         let k = tool.stiffness_n_per_m;
         if contact.normal != contact.entry || held.is_none() {
             // Along the surface's normal (the shallow band, or a first touch, whose entry
@@ -393,19 +400,6 @@ struct Touch {
     normal_n: f64,
     stiffness: Matrix3<f64>,
     entry: Vec3,
-}
-
-/// Where a tool draws a point at `p` towards its axis: the directions it draws along
-/// (across the axis; for a blade's plate, across its flat only: along its width the
-/// tissue under the flat is not in a groove) as a projection, and the point's offset
-/// from the axis along them (what `projection · (axis − p)` is).
-fn centring(tool: &Capsule, p: &Vec3) -> (Matrix3<f64>, Vec3) {
-    let axis = (tool.top - tool.tip).try_normalize(1e-12).unwrap_or(Vec3::z());
-    let across = match &tool.plate {
-        Some(plate) => plate.flat * plate.flat.transpose(),
-        None => Matrix3::identity() - axis * axis.transpose(),
-    };
-    (across, across * (tool.tip - p))
 }
 
 /// Solve passes that may find more sliding vertices (each a Newton solve).

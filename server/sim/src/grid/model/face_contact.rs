@@ -237,14 +237,7 @@ impl BranchedGrid {
         // turns (6.3, 4.9, 5.6, 3.7 N at 3, 4, 5, 6 mm in; docs/tool-tissue.md).
         // A blade's plate is drawn across its thickness only: across its width, under
         // its flat, the tissue is not in a groove.
-        let centring = at.capsule.out_of_tip().map(|axis| {
-            let on_axis = at.capsule.a + axis * (point - at.capsule.a).dot(&axis);
-            let offset = match &at.capsule.plate {
-                Some(plate) => plate.flat * plate.flat.dot(&(on_axis - point)),
-                None => on_axis - point,
-            };
-            crate::grid::friction::tangent_projection(&contact.normal) * offset
-        });
+        let centring = at.capsule.centring(&point).map(|(_, offset)| crate::grid::friction::tangent_projection(&contact.normal) * offset);
         Some(FaceContact { held, point, element, weights, vertex, contact, centring })
     }
 
