@@ -2,7 +2,8 @@
 //! and 40k nodes on the same 10 × 8 cm patch — with and without a cut in progress, for
 //! both integrators.
 //!
-//! Run: `cargo bench -p cutsim-sim --bench step` (add `-- --quick` for a short run).
+//! Run: `cargo bench -p cutsim-sim --bench step` (add `-- --quick` for a short run,
+//! `-- 10k` for one size).
 //! Prints, per case, steps per second and the p50/p99/max step time measured over every
 //! step, plus the time per stage; then what assessing the steps costs (the physics thread
 //! hands each step's tool samples to an assessor thread through a lock-free ring, as the
@@ -89,13 +90,15 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
+    // Sizes named on the command line (e.g. `10k`), else all.
+    let only: Vec<String> = std::env::args().skip(1).filter(|a| SIZES.iter().any(|(label, ..)| label == a)).collect();
     println!("cutsim-sim step benchmark (release, one core): skin-patch 10 × 8 cm at three resolutions");
     println!("on {}", cutsim_sim::stats::machine_description());
     println!(
         "{:<34} {:>7} {:>6} {:>6} {:>10} {:>9} {:>9} {:>9}   stages per step (forces / contacts / integrate / cut)",
         "case", "nodes", "subst", "CG it", "steps/s", "p50 µs", "p99 µs", "max µs"
     );
-    for (label, cx, cy) in SIZES {
+    for (label, cx, cy) in SIZES.into_iter().filter(|(label, ..)| only.is_empty() || only.iter().any(|o| o == label)) {
         for explicit in [true, false] {
             let integrator = if explicit { "explicit" } else { "implicit" };
             let (steps, budget) = if quick { (200, Some(0.5)) } else { (5000, Some(3.0)) };

@@ -463,7 +463,7 @@ impl MassSpring {
 
     fn implicit_step(&mut self) -> f64 {
         let Integrator::ImplicitEuler(solver) = &mut self.integrator else { unreachable!() };
-        let check = solver.step(&mut self.nodes, &self.springs.list, &self.contacts, self.foundation.as_ref(), self.dt_s, self.mass_damping_per_s, self.spring_damping_s);
+        let check = solver.step(&mut self.nodes, &self.springs.list, &self.contacts, self.foundation.as_ref(), self.topology_version, self.dt_s, self.mass_damping_per_s, self.spring_damping_s);
         let cap_hit = solver.last_iterations >= solver.max_iterations && solver.last_residual > solver.tolerance;
         self.counters.count_solve(&crate::solver::pcg::Convergence { iterations: solver.last_iterations, residual: solver.last_residual, cap_hit });
         check
