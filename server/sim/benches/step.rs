@@ -3,7 +3,7 @@
 //! both integrators.
 //!
 //! Run: `cargo bench -p cutsim-sim --bench step` (add `-- --quick` for a short run,
-//! `-- 10k` for one size).
+//! `-- 10k` for one size, `-- implicit` for one integrator).
 //! Prints, per case, steps per second and the p50/p99/max step time measured over every
 //! step, plus the time per stage; then what assessing the steps costs (the physics thread
 //! hands each step's tool samples to an assessor thread through a lock-free ring, as the
@@ -92,6 +92,8 @@ fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     // Sizes named on the command line (e.g. `10k`), else all.
     let only: Vec<String> = std::env::args().skip(1).filter(|a| SIZES.iter().any(|(label, ..)| label == a)).collect();
+    // `explicit` or `implicit` on the command line: that integrator only.
+    let integrators: Vec<bool> = [true, false].into_iter().filter(|&explicit| !std::env::args().any(|a| a == if explicit { "implicit" } else { "explicit" })).collect();
     println!("cutsim-sim step benchmark (release, one core): skin-patch 10 × 8 cm at three resolutions");
     println!("on {}", cutsim_sim::stats::machine_description());
     println!(
@@ -99,7 +101,7 @@ fn main() {
         "case", "nodes", "subst", "CG it", "steps/s", "p50 µs", "p99 µs", "max µs"
     );
     for (label, cx, cy) in SIZES.into_iter().filter(|(label, ..)| only.is_empty() || only.iter().any(|o| o == label)) {
-        for explicit in [true, false] {
+        for &explicit in &integrators {
             let integrator = if explicit { "explicit" } else { "implicit" };
             let (steps, budget) = if quick { (200, Some(0.5)) } else { (5000, Some(3.0)) };
             let mut m = build(cx, cy, explicit);
