@@ -165,21 +165,34 @@ impl BranchedGrid {
     /// Without them the triangles under the rest of a 3 mm end were passed through one
     /// after another and the end went into a block at 1.5 N. A plate thick for the grid
     /// (closed forceps) is held so on several lines across its thickness ([`end_lines`]).
+    /// A triangle the end held last step stays the end's (held along the axis) while the
+    /// line lies over it, also once the point it held slid off the end's corner.
     fn plate_end_contacts(&self, at: &ToolAt<'_>, candidates: &[u32], out: &mut Vec<FaceContact>) {
         let Some(plate) = &at.capsule.plate else { return };
         let lines = end_lines(plate.half_thickness, self.topo.layout.spacing_m.into_iter().fold(f64::INFINITY, f64::min));
         for line in 0..lines {
             let across = if lines == 1 { 0.0 } else { (2.0 * line as f64 / (lines - 1) as f64 - 1.0) * END_LINES_REACH * plate.half_thickness };
             let middle = at.capsule.a + plate.flat * across;
-            let (back, edge) = (middle - plate.edge * plate.half_width, middle + plate.edge * plate.half_width);
+            // A hair inside the end's corners: a point on the box's boundary is not
+            // inside it, so the point a line reaching the corner found there (where the
+            // tissue is pressed hardest) was taken by no contact.
+            let along = END_LINE_REACH * plate.half_width;
+            let (back, edge) = (middle - plate.edge * along, middle + plate.edge * along);
             for &t in candidates {
                 if out.iter().any(|f| f.held.triangle == t) || !self.live_triangle(t) {
                     continue;
                 }
                 let Some((near, far)) = segment_over_triangle(&back, &edge, &self.corners(t)) else { continue };
+                // A triangle the end held last step whose held point slid off it (the
+                // tissue pressed under a thin end stretches outwards, and its material
+                // point with it) is held by the end still, at the line's points: taken
+                // anew, the one at the corner already beside the end came in through the
+                // side by its path and was left to close over the end.
+                let held_by_end = self.held_faces[at.tool].iter().any(|h| h.triangle == t && h.step + 1 >= self.step_index && at.capsule.pushes_with_tip(&(at.tool_to_grid * h.normal_in_tool)));
+                let remembered = if held_by_end { at.capsule.out_of_tip() } else { None };
                 for barycentric in [near, far] {
                     let held = HeldFace { triangle: t, barycentric, normal_in_tool: Vec3::zeros(), step: self.step_index, anchor_from_tip: None };
-                    out.extend(self.hold_face(at, held, None).filter(|f| at.capsule.pushes_with_tip(&f.contact.entry)));
+                    out.extend(self.hold_face(at, held, remembered).filter(|f| at.capsule.pushes_with_tip(&f.contact.entry)));
                 }
             }
         }
@@ -318,6 +331,10 @@ impl BranchedGrid {
         (element, weights, vertices[nearest])
     }
 }
+
+/// How far along a plate's end, as a fraction of its half width, its lines of held
+/// points reach: a hair inside its corners (see `plate_end_contacts`).
+const END_LINE_REACH: f64 = 0.999;
 
 /// How far across a plate's end, as a fraction of its half thickness, its outer lines
 /// of held points reach (see [`end_lines`]).
