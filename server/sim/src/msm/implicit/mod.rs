@@ -27,47 +27,62 @@ mod region;
 use super::contact::Contact;
 use super::foundation::Foundation;
 use super::state::{Nodes, Spring};
-use crate::math::Vec3;
+use crate::math::{Matrix3, Vec3};
 
-/// A spring's tangent stiffness `lateral·I + excess·n nᵀ` (excess = axial − lateral),
-/// with its nodes: what a product with the system reads of a spring.
+/// A 3 × 3 block `iso·I + along·n nᵀ` (n unit, or zero): a spring's tangent stiffness
+/// (its lateral stiffness, and the axial stiffness's excess over it along the spring), a
+/// node's own terms (its mass and the foundation's drag, and the foundation's stiffness
+/// along its normal), a region's coupling (region.rs). Products read five numbers, not
+/// nine.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct AxialBlock {
+    iso: f64,
+    along: f64,
+    n: Vec3,
+}
+
+impl AxialBlock {
+    /// The block times `d`.
+    #[inline(always)]
+    fn times(&self, d: Vec3) -> Vec3 {
+        d * self.iso + self.n * (self.along * self.n.dot(&d))
+    }
+
+    /// Its diagonal.
+    fn diagonal(&self) -> Vec3 {
+        (self.n.component_mul(&self.n) * self.along).add_scalar(self.iso)
+    }
+
+    /// The block as a matrix.
+    fn matrix(&self) -> Matrix3<f64> {
+        Matrix3::identity() * self.iso + self.n * self.n.transpose() * self.along
+    }
+
+    /// The block times `s`.
+    fn scaled(&self, s: f64) -> AxialBlock {
+        AxialBlock { iso: self.iso * s, along: self.along * s, n: self.n }
+    }
+}
+
+/// A spring's tangent stiffness with its nodes: what a product with the system reads of
+/// a spring.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct SpringTangent {
     a: u32,
     b: u32,
-    n: Vec3,
-    excess: f64,
-    lateral: f64,
+    k: AxialBlock,
 }
 
 impl SpringTangent {
     /// K_s·d for the difference d of the spring's nodes' vectors.
     #[inline(always)]
     fn times(&self, d: Vec3) -> Vec3 {
-        d * self.lateral + self.n * (self.excess * self.n.dot(&d))
-    }
-
-    /// The diagonal of K_s.
-    fn diagonal(&self) -> Vec3 {
-        (self.n.component_mul(&self.n) * self.excess).add_scalar(self.lateral)
+        self.k.times(d)
     }
 }
 
-/// A node's own part of the system (its mass, the foundation's stiffness and drag):
-/// `iso·I + along·n nᵀ`.
-#[derive(Debug, Clone, Copy, Default)]
-pub(crate) struct NodeTerm {
-    iso: f64,
-    along: f64,
-    n: Vec3,
-}
-
-impl NodeTerm {
-    #[inline(always)]
-    fn times(&self, p: Vec3) -> Vec3 {
-        p * self.iso + self.n * (self.along * self.n.dot(&p))
-    }
-}
+/// A node's own part of the system (its mass, the foundation's stiffness and drag).
+pub(crate) type NodeTerm = AxialBlock;
 
 /// Scratch space and settings of the implicit integrator.
 #[derive(Debug, Clone, Default)]
@@ -126,9 +141,9 @@ impl ImplicitSolver {
             // A spring of zero length resists in every direction alike.
             (Vec3::zeros(), s.k)
         };
-        let t = SpringTangent { a: s.a, b: s.b, n, excess: s.k - lateral, lateral };
+        let t = SpringTangent { a: s.a, b: s.b, k: AxialBlock { iso: lateral, along: s.k - lateral, n } };
         self.tangents[k] = t;
-        let diagonal = t.diagonal();
+        let diagonal = t.k.diagonal();
         self.inv_diag[s.a as usize] += diagonal;
         self.inv_diag[s.b as usize] += diagonal;
     }

@@ -16,7 +16,7 @@
 //! - [`Adjacency`]: each node's springs (rebuilt when the springs change).
 //! - [`Region`]: the region's nodes, their diagonal blocks, and the sweeps.
 
-use super::{NodeTerm, SpringTangent};
+use super::{AxialBlock, NodeTerm, SpringTangent};
 use crate::math::{Matrix3, Vec3};
 use crate::msm::contact::Contact;
 
@@ -94,16 +94,7 @@ impl Adjacency {
 struct Coupling {
     /// The other node's position in the region.
     other: u32,
-    lateral: f64,
-    excess: f64,
-    n: Vec3,
-}
-
-impl Coupling {
-    #[inline(always)]
-    fn times(&self, d: Vec3) -> Vec3 {
-        d * self.lateral + self.n * (self.excess * self.n.dot(&d))
-    }
+    k: AxialBlock,
 }
 
 /// The region of one step and its scratch.
@@ -190,15 +181,14 @@ impl Region {
         }
         for &i in &self.nodes {
             let i = i as usize;
-            let term = &node_terms[i];
-            let mut block = Matrix3::identity() * term.iso + term.n * term.n.transpose() * term.along;
+            let mut block = node_terms[i].matrix();
             self.coupling_start.push(self.couplings.len() as u32);
             for &k in adjacency.of(i) {
                 let t = &tangents[k as usize];
-                block += (Matrix3::identity() * t.lateral + t.n * t.n.transpose() * t.excess) * stiff_coef;
+                block += t.k.matrix() * stiff_coef;
                 let j = if t.a as usize == i { t.b } else { t.a } as usize;
                 if self.inside[j] {
-                    self.couplings.push(Coupling { other: self.slot[j], lateral: t.lateral * stiff_coef, excess: t.excess * stiff_coef, n: t.n });
+                    self.couplings.push(Coupling { other: self.slot[j], k: t.k.scaled(stiff_coef) });
                 }
             }
             self.inverse.push(block);
@@ -236,7 +226,7 @@ impl Region {
             // r minus the off-diagonal blocks (−stiff_coef·K_s) times z.
             let mut s = r_local[at];
             for c in &couplings[coupling_start[at] as usize..coupling_start[at + 1] as usize] {
-                s += c.times(z_local[c.other as usize]);
+                s += c.k.times(z_local[c.other as usize]);
             }
             z_local[at] = inverse[at] * s;
         };
@@ -277,7 +267,7 @@ mod tests {
                 for (dx, dy) in [(1, 0), (0, 1), (1, 1)] {
                     if x + dx < m && y + dy < m {
                         let n = Vec3::new(dx as f64, dy as f64, 0.0).normalize();
-                        tangents.push(SpringTangent { a: id(x, y), b: id(x + dx, y + dy), n, excess: 90.0, lateral: 10.0 });
+                        tangents.push(SpringTangent { a: id(x, y), b: id(x + dx, y + dy), k: AxialBlock { iso: 10.0, along: 90.0, n } });
                     }
                 }
             }
@@ -290,10 +280,10 @@ mod tests {
 
     /// The Jacobi inverse of the lattice's diagonal, per axis.
     fn jacobi(tangents: &[SpringTangent], terms: &[NodeTerm], contacts: &[Contact]) -> Vec<Vec3> {
-        let mut diagonal: Vec<Vec3> = terms.iter().map(|t| (t.n.component_mul(&t.n) * t.along).add_scalar(t.iso)).collect();
+        let mut diagonal: Vec<Vec3> = terms.iter().map(|t| t.diagonal()).collect();
         for t in tangents {
-            diagonal[t.a as usize] += t.diagonal();
-            diagonal[t.b as usize] += t.diagonal();
+            diagonal[t.a as usize] += t.k.diagonal();
+            diagonal[t.b as usize] += t.k.diagonal();
         }
         for c in contacts {
             diagonal[c.node as usize] += c.normal.component_mul(&c.normal) * c.stiffness;
