@@ -47,6 +47,41 @@ fn a_copy_made_at_the_start_or_midway_steps_as_the_original() {
     }
 }
 
+/// The same on the implicit skin at 10k nodes, whose blade makes its contacts through the
+/// tip face and the side (each bounded by the room made for contacts: a copy used to
+/// make fewer than its original, whose list had that room as its capacity, and left its
+/// state hash from the step the blade met the skin), and whose solve sweeps a region
+/// chosen each step round the blade (msm::implicit::region).
+#[test]
+fn a_copy_of_the_implicit_10k_skin_cutting_steps_as_the_original() {
+    let text = std::fs::read_to_string(scenes_dir().join("skin-patch.json"))
+        .unwrap()
+        .replace(r#"{ "symplectic-euler": { "substeps": 10 } }"#, r#"{ "implicit-euler": { "cg_max_iterations": 20, "cg_tolerance": 1e-4 } }"#)
+        .replace(r#""resolution": [40, 37]"#, r#""resolution": [124, 115]"#);
+    assert!(text.contains("implicit-euler") && text.contains("[124, 115]"), "skin-patch.json's integrator or resolution changed");
+    let scene = cutsim_sim::scene::Scene::from_json_str(&text, "implicit 10k", None).unwrap();
+    let mut original: Box<dyn Tissue> = Box::new(build(&scene));
+    let mut at_start = original.clone_box();
+    let (mut hashes, mut midway) = (Vec::new(), None);
+    for i in 0..150 {
+        if i == 75 {
+            midway = Some(original.clone_box());
+        }
+        cut_step(original.as_mut(), i);
+        hashes.push(original.state_hash());
+    }
+    assert!(original.counters().cuts > 0, "the blade cut");
+    for i in 0..150 {
+        cut_step(at_start.as_mut(), i);
+        assert_eq!(at_start.state_hash(), hashes[i as usize], "the copy from the start after step {i}");
+    }
+    let mut midway = midway.unwrap();
+    for i in 75..150 {
+        cut_step(midway.as_mut(), i);
+        assert_eq!(midway.state_hash(), hashes[i as usize], "the copy from step 75 after step {i}");
+    }
+}
+
 /// A 40 × 20 × 10 mm block of 1 mm voxels at level 1 on its −z side, solved with the
 /// multigrid or the Cholesky factor (whose copies redo work the original has out on its
 /// worker), and a scalpel.

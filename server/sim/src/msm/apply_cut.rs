@@ -135,17 +135,11 @@ impl MassSpring {
         }
 
         let n = self.nodes.len();
-        if self.contacts.capacity() < super::CONTACTS_PER_NODE * n {
-            self.contacts.reserve(super::CONTACTS_PER_NODE * n - self.contacts.len());
-        }
+        self.reserve_step_room();
         if let Integrator::ImplicitEuler(solver) = &mut self.integrator {
             solver.reserve(n, self.springs.len());
         }
         self.side_memory.fit(n, self.topo.tris.len());
-        // Room for every triangle thrice, as the tip face's candidates (face_hold).
-        if self.face_scratch.capacity() < 3 * self.topo.tris.len() {
-            self.face_scratch.reserve(3 * self.topo.tris.len() - self.face_scratch.len());
-        }
         if let Some(foundation) = &mut self.foundation {
             foundation.refresh(&self.nodes, &self.topo);
         }

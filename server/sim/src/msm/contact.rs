@@ -122,7 +122,8 @@ pub(crate) struct SideHold<'a> {
 
 /// Adds the contact forces of one tool to the nodes, and their reaction to `feedback`
 /// (scaled by `weight`, the substep's share of the step). Contacts are appended to
-/// `contacts` (whose capacity is [`super::CONTACTS_PER_NODE`] times the node count, so this never allocates).
+/// `contacts` (at most [`super::contact_room`], the room made for them, so this never
+/// allocates).
 /// With `side`, the nodes beside a holding tool ([`ContactMode::SideOnly`]) are pushed out
 /// on the side they came in from instead of radially.
 #[allow(clippy::too_many_arguments)]
@@ -155,7 +156,7 @@ pub(crate) fn apply_tool_contacts(
                 let pushed = side_contact(side.memory, Slot::Node(i), side.body, tool, &nodes.x[i], penetration.map(|p| (p.direction, p.depth_m)), side.max_depth_m);
                 if let (Some((direction, depth_m)), Some(friction)) = (pushed, side.friction) {
                     rub = side_friction(side.memory, Slot::Node(i), side.body, tool, &nodes.x[i], &direction, stiffness * depth_m, stiffness, friction);
-                    if contacts.len() + 3 <= contacts.capacity() {
+                    if contacts.len() + 3 <= super::contact_room(nodes) {
                         stick_contacts(&[id], &[1.0], &direction, stiffness, &side.tool_velocity, contacts);
                     }
                 }

@@ -85,7 +85,7 @@ pub(crate) fn apply_face_contacts(
         });
         let ends = if near == far { 1 } else { 2 };
         for (end, fresh) in [near, far].into_iter().enumerate().take(ends) {
-            if contacts.len() + 12 > contacts.capacity() {
+            if contacts.len() + 12 > super::contact_room(nodes) {
                 break;
             }
             // A point in contact stays the material point it was; a new one is taken

@@ -83,6 +83,14 @@ const HELD_STIFFNESS_OVER_CONTACT: f64 = 100.0;
 /// the few nodes at a tip are held.
 const CONTACTS_PER_NODE: usize = 4;
 
+/// How many contacts a step may make: [`CONTACTS_PER_NODE`] per node, the room the
+/// contact list is given. A fixed bound, not the list's capacity: a copy of the tissue
+/// (a replay's kept state) must make the same contacts as its original, and a clone's
+/// vectors keep their lengths, not their capacities.
+fn contact_room(nodes: &state::Nodes) -> usize {
+    CONTACTS_PER_NODE * nodes.len()
+}
+
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
 /// step by step, the force would switch on and off with the pose's millisecond jitter,
 /// and a haptic proxy pulled through the cut would stick and slip at the loop rate (a
@@ -459,6 +467,20 @@ impl MassSpring {
         for &(node, force) in &self.cut_reactions {
             self.nodes.f[node as usize] += force;
         }
+    }
+
+    /// Makes the room the step fills without allocating: the contacts
+    /// ([`contact_room`]), the tip face's candidates (every triangle thrice: face_hold)
+    /// and the cut's reactions. After a build, a cut and a copy.
+    pub(super) fn reserve_step_room(&mut self) {
+        fn reserve<T>(v: &mut Vec<T>, room: usize) {
+            if v.capacity() < room {
+                v.reserve(room - v.len());
+            }
+        }
+        reserve(&mut self.contacts, contact_room(&self.nodes));
+        reserve(&mut self.face_scratch, 3 * self.topo.tris.len());
+        reserve(&mut self.cut_reactions, MAX_CUT_REACTIONS_PER_TOOL * self.tools.len());
     }
 
     fn implicit_step(&mut self) -> f64 {
@@ -859,7 +881,7 @@ impl Tissue for MassSpring {
     fn clone_box(&self) -> Box<dyn Tissue> {
         let mut copy = self.clone();
         // A clone keeps the lengths, not the room reserved for the 1 kHz path.
-        copy.cut_reactions.reserve(MAX_CUT_REACTIONS_PER_TOOL * self.tools.len());
+        copy.reserve_step_room();
         Box::new(copy)
     }
 }
