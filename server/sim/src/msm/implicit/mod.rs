@@ -208,7 +208,9 @@ impl ImplicitSolver {
             rr += r.norm_squared();
         }
         // Where the residual sits, the sweeps instead of Jacobi (region.rs).
-        self.adjacency.refresh(&self.tangents, n, springs_version);
+        if region::sweeps(n) {
+            self.adjacency.refresh(&self.tangents, n, springs_version);
+        }
         self.region.choose(&self.adjacency, &self.tangents, contacts, &self.node_terms, &nodes.free, stiff_coef, &self.r, rr);
         rz += self.region.apply(&self.r, &mut self.z);
         self.p[..n].copy_from_slice(&self.z[..n]);

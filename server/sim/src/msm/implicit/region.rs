@@ -41,6 +41,12 @@ const MAX_FRACTION: f64 = 0.1;
 /// Symmetric sweeps (one forward, one back) per application.
 const SWEEPS: usize = 2;
 
+/// Whether a patch of `nodes` nodes is swept (else Jacobi alone, and nothing here is
+/// built or kept for it).
+pub(crate) fn sweeps(nodes: usize) -> bool {
+    nodes >= MIN_PATCH_NODES
+}
+
 /// Each node's springs: the tangents it is an end of (compressed rows).
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Adjacency {
@@ -124,12 +130,15 @@ impl Region {
         for &i in &self.nodes {
             self.inside[i as usize] = false;
         }
+        self.nodes.clear();
+        if !sweeps(nodes) {
+            return;
+        }
         let largest = (MAX_FRACTION * nodes as f64) as usize;
         for v in [&mut self.r, &mut self.z] {
             v.clear();
             v.reserve(largest);
         }
-        self.nodes.clear();
         self.nodes.reserve(largest);
         self.inverse.clear();
         self.inverse.reserve(largest);
@@ -149,7 +158,7 @@ impl Region {
     pub fn choose(&mut self, adjacency: &Adjacency, tangents: &[SpringTangent], contacts: &[Contact], node_terms: &[NodeTerm], free: &[Vec3], stiff_coef: f64, r: &[Vec3], rr: f64) {
         let n = r.len();
         self.clear(n, tangents.len());
-        if rr <= 0.0 || n < MIN_PATCH_NODES {
+        if rr <= 0.0 || !sweeps(n) {
             return;
         }
         let max_nodes = (MAX_FRACTION * n as f64) as usize;
