@@ -180,7 +180,7 @@ impl MassSpring {
             IntegratorChoice::ImplicitEuler { max_iterations, tolerance } => {
                 let mut solver = ImplicitSolver::new(max_iterations, tolerance);
                 solver.reserve(n, springs.len());
-                Integrator::ImplicitEuler(solver)
+                Integrator::ImplicitEuler(Box::new(solver))
             }
         };
         let cell = mean_edge_m.max(tools.iter().map(|t| t.radius_m).fold(0.0, f64::max));

@@ -51,7 +51,8 @@ use crate::tool::{PlacedTool, ToolCommand, ToolFeedback, ToolShape};
 #[derive(Debug, Clone)]
 enum Integrator {
     SymplecticEuler { substeps: u32 },
-    ImplicitEuler(ImplicitSolver),
+    /// Boxed: its scratch (the region's included) is large beside the other variant.
+    ImplicitEuler(Box<ImplicitSolver>),
 }
 
 /// Time spent in each stage, accumulated while profiling is on (for benchmarks).
@@ -414,7 +415,7 @@ impl MassSpring {
         let (beta, tangents) = match &mut self.integrator {
             // The implicit integrator damps the springs in its system, from the tangents
             // the force pass records.
-            Integrator::ImplicitEuler(solver) => (0.0, Some(solver)),
+            Integrator::ImplicitEuler(solver) => (0.0, Some(solver.as_mut())),
             Integrator::SymplecticEuler { .. } => (self.spring_damping_s, None),
         };
         forces::accumulate(&mut self.nodes, &self.springs.list, self.gravity, beta, &mut self.spring_scratch, tangents);
