@@ -21,30 +21,32 @@ fn cut_step(model: &mut dyn Tissue, i: u32) {
     model.step(&[command, away], &mut feedback);
 }
 
-#[test]
-fn a_copy_made_at_the_start_or_midway_steps_as_the_original() {
-    let scene = load_scene(&scenes_dir().join("skin-patch.json"));
-    let mut original: Box<dyn Tissue> = Box::new(build(&scene));
+/// Steps a skin built from `scene` through [`cut_step`] `steps` times, and copies made at
+/// the start and at step `midway` the same steps: each copy's state hash must be the
+/// original's after every step.
+fn skin_copies_step_as_the_original(scene: &cutsim_sim::scene::Scene, steps: u32, midway: u32) {
+    let mut original: Box<dyn Tissue> = Box::new(build(scene));
     let mut at_start = original.clone_box();
-    let mut hashes = Vec::new();
-    let mut midway = None;
-    for i in 0..700 {
-        if i == 300 {
-            midway = Some(original.clone_box());
+    let (mut hashes, mut from_midway) = (Vec::new(), None);
+    for i in 0..steps {
+        if i == midway {
+            from_midway = Some(original.clone_box());
         }
         cut_step(original.as_mut(), i);
         hashes.push(original.state_hash());
     }
     assert!(original.counters().cuts > 0, "the blade cut");
-    for i in 0..700 {
-        cut_step(at_start.as_mut(), i);
-        assert_eq!(at_start.state_hash(), hashes[i as usize], "the copy from the start after step {i}");
+    for (copy, from) in [(at_start.as_mut(), 0), (from_midway.as_deref_mut().unwrap(), midway)] {
+        for i in from..steps {
+            cut_step(copy, i);
+            assert_eq!(copy.state_hash(), hashes[i as usize], "the copy from step {from} after step {i}");
+        }
     }
-    let mut midway = midway.unwrap();
-    for i in 300..700 {
-        cut_step(midway.as_mut(), i);
-        assert_eq!(midway.state_hash(), hashes[i as usize], "the copy from step 300 after step {i}");
-    }
+}
+
+#[test]
+fn a_copy_made_at_the_start_or_midway_steps_as_the_original() {
+    skin_copies_step_as_the_original(&load_scene(&scenes_dir().join("skin-patch.json")), 700, 300);
 }
 
 /// The same on the implicit skin at 10k nodes, whose blade makes its contacts through the
@@ -60,26 +62,7 @@ fn a_copy_of_the_implicit_10k_skin_cutting_steps_as_the_original() {
         .replace(r#""resolution": [40, 37]"#, r#""resolution": [124, 115]"#);
     assert!(text.contains("implicit-euler") && text.contains("[124, 115]"), "skin-patch.json's integrator or resolution changed");
     let scene = cutsim_sim::scene::Scene::from_json_str(&text, "implicit 10k", None).unwrap();
-    let mut original: Box<dyn Tissue> = Box::new(build(&scene));
-    let mut at_start = original.clone_box();
-    let (mut hashes, mut midway) = (Vec::new(), None);
-    for i in 0..150 {
-        if i == 75 {
-            midway = Some(original.clone_box());
-        }
-        cut_step(original.as_mut(), i);
-        hashes.push(original.state_hash());
-    }
-    assert!(original.counters().cuts > 0, "the blade cut");
-    for i in 0..150 {
-        cut_step(at_start.as_mut(), i);
-        assert_eq!(at_start.state_hash(), hashes[i as usize], "the copy from the start after step {i}");
-    }
-    let mut midway = midway.unwrap();
-    for i in 75..150 {
-        cut_step(midway.as_mut(), i);
-        assert_eq!(midway.state_hash(), hashes[i as usize], "the copy from step 75 after step {i}");
-    }
+    skin_copies_step_as_the_original(&scene, 150, 75);
 }
 
 /// A 40 × 20 × 10 mm block of 1 mm voxels at level 1 on its −z side, solved with the
