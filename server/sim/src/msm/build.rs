@@ -200,7 +200,7 @@ impl MassSpring {
             };
             Cutter::new(cut, tools.len())
         });
-        Ok(Self {
+        let mut skin = Self {
             dt_s: params.time_step_s,
             material: params.material,
             residual_strain: params.residual_strain,
@@ -221,10 +221,10 @@ impl MassSpring {
             holes: vec![None; tools.len()],
             holder: super::hold::Holder::new(tools.len(), params.friction, topo.tris.len()),
             side_memory: super::side_hold::SideMemory::with_room(n, topo.tris.len()),
-            face_scratch: Vec::with_capacity(3 * topo.tris.len()),
+            face_scratch: Vec::new(),
             blade_velocity: vec![Vec3::zeros(); tools.len()],
-            cut_reactions: Vec::with_capacity(super::MAX_CUT_REACTIONS_PER_TOOL * tools.len()),
-            contacts: Vec::with_capacity(super::CONTACTS_PER_NODE * n),
+            cut_reactions: Vec::new(),
+            contacts: Vec::new(),
             scene_tools,
             tools,
             bodies,
@@ -246,7 +246,9 @@ impl MassSpring {
             profile: None,
             last_cut_min_angle_deg: None,
             min_cut_angle_deg: None,
-        })
+        };
+        skin.reserve_step_room();
+        Ok(skin)
     }
 
     /// The contact stiffness the stability bound assumes (the stiffest tool's), N/m.

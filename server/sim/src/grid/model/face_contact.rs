@@ -176,7 +176,7 @@ impl BranchedGrid {
             // A hair inside the end's corners: a point on the box's boundary is not
             // inside it, so the point a line reaching the corner found there (where the
             // tissue is pressed hardest) was taken by no contact.
-            let along = END_LINE_REACH * plate.half_width;
+            let along = END_WIDTH_REACH * plate.half_width;
             let (back, edge) = (middle - plate.edge * along, middle + plate.edge * along);
             for &t in candidates {
                 if out.iter().any(|f| f.held.triangle == t) || !self.live_triangle(t) {
@@ -334,7 +334,7 @@ impl BranchedGrid {
 
 /// How far along a plate's end, as a fraction of its half width, its lines of held
 /// points reach: a hair inside its corners (see `plate_end_contacts`).
-const END_LINE_REACH: f64 = 0.999;
+const END_WIDTH_REACH: f64 = 0.999;
 
 /// How far across a plate's end, as a fraction of its half thickness, its outer lines
 /// of held points reach (see [`end_lines`]).

@@ -98,8 +98,7 @@ pub(crate) struct ImplicitSolver {
     inv_diag: Vec<Vec3>,
     node_terms: Vec<NodeTerm>,
     tangents: Vec<SpringTangent>,
-    /// Each node's springs, and where the step's disturbance is swept (region).
-    adjacency: region::Adjacency,
+    /// Where the step's disturbance is swept (region.rs).
     region: region::Region,
     /// The force pass has recorded the tangents since the last step used them.
     tangents_fresh: bool,
@@ -208,10 +207,7 @@ impl ImplicitSolver {
             rr += r.norm_squared();
         }
         // Where the residual sits, the sweeps instead of Jacobi (region.rs).
-        if region::sweeps(n) {
-            self.adjacency.refresh(&self.tangents, n, springs_version);
-        }
-        self.region.choose(&self.adjacency, &self.tangents, contacts, &self.node_terms, &nodes.free, stiff_coef, &self.r, rr);
+        self.region.choose(&self.tangents, springs_version, contacts, &self.node_terms, &nodes.free, stiff_coef, &self.r, rr);
         rz += self.region.apply(&self.r, &mut self.z);
         self.p[..n].copy_from_slice(&self.z[..n]);
 

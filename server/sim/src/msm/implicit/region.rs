@@ -14,7 +14,8 @@
 //! that step's residual only, so the same state gives the same region and the same bits.
 //!
 //! - [`Adjacency`]: each node's springs (rebuilt when the springs change).
-//! - [`Region`]: the region's nodes, their diagonal blocks, and the sweeps.
+//! - [`Region`]: the region's nodes, their diagonal blocks, and the sweeps; it keeps the
+//!   adjacency it grows the region along.
 
 use super::{AxialBlock, NodeTerm, SpringTangent};
 use crate::math::{Matrix3, Vec3};
@@ -41,15 +42,18 @@ const MAX_FRACTION: f64 = 0.1;
 /// Symmetric sweeps (one forward, one back) per application.
 const SWEEPS: usize = 2;
 
+/// A node's slot when it is not in the region.
+const OUTSIDE: u32 = u32::MAX;
+
 /// Whether a patch of `nodes` nodes is swept (else Jacobi alone, and nothing here is
 /// built or kept for it).
-pub(crate) fn sweeps(nodes: usize) -> bool {
+fn sweeps(nodes: usize) -> bool {
     nodes >= MIN_PATCH_NODES
 }
 
 /// Each node's springs: the tangents it is an end of (compressed rows).
 #[derive(Debug, Clone, Default)]
-pub(crate) struct Adjacency {
+struct Adjacency {
     start: Vec<u32>,
     springs: Vec<u32>,
     /// The springs' version and count it was built for.
@@ -59,7 +63,7 @@ pub(crate) struct Adjacency {
 impl Adjacency {
     /// Rebuilds from the tangents' ends unless already built for `version` and as many
     /// springs (allocates only when the mesh grew).
-    pub fn refresh(&mut self, tangents: &[SpringTangent], nodes: usize, version: u64) {
+    fn refresh(&mut self, tangents: &[SpringTangent], nodes: usize, version: u64) {
         if self.built_for == Some((version, tangents.len())) && self.start.len() == nodes + 1 {
             return;
         }
@@ -89,8 +93,15 @@ impl Adjacency {
         self.built_for = Some((version, tangents.len()));
     }
 
+    /// Node `node`'s springs (tangent indices).
     fn of(&self, node: usize) -> &[u32] {
-        &self.springs[self.start[node] as usize..self.start[node + 1] as usize]
+        &self.springs[self.range(node)]
+    }
+
+    /// Where node `node`'s springs lie in `springs` (while the region grows, which
+    /// borrows the region mutably).
+    fn range(&self, node: usize) -> std::ops::Range<usize> {
+        self.start[node] as usize..self.start[node + 1] as usize
     }
 }
 
@@ -106,11 +117,11 @@ struct Coupling {
 /// The region of one step and its scratch.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct Region {
+    /// Each node's springs, kept while the springs do not change.
+    adjacency: Adjacency,
     /// Its nodes, breadth-first from the seeds.
     nodes: Vec<u32>,
-    /// Per node of the patch: whether it is in the region.
-    inside: Vec<bool>,
-    /// Per node of the patch: its position in `nodes` (valid inside only).
+    /// Per node of the patch: its position in `nodes`, [`OUTSIDE`] if not in it.
     slot: Vec<u32>,
     /// Per region node: the inverse of its diagonal block on its free axes (zero on
     /// fixed ones), and where its couplings start in `couplings`.
@@ -128,7 +139,7 @@ impl Region {
     /// nodes), so that choosing one allocates nothing until the patch grows.
     fn clear(&mut self, nodes: usize, springs: usize) {
         for &i in &self.nodes {
-            self.inside[i as usize] = false;
+            self.slot[i as usize] = OUTSIDE;
         }
         self.nodes.clear();
         if !sweeps(nodes) {
@@ -146,27 +157,33 @@ impl Region {
         self.coupling_start.reserve(largest + 1);
         self.couplings.clear();
         self.couplings.reserve(2 * springs);
-        self.inside.resize(nodes, false);
-        self.slot.resize(nodes, 0);
+        self.slot.resize(nodes, OUTSIDE);
+    }
+
+    /// Takes node `i` into the region.
+    fn take(&mut self, i: usize) {
+        self.slot[i] = self.nodes.len() as u32;
+        self.nodes.push(i as u32);
     }
 
     /// Chooses the region from the residual `r` (square sum `rr`) and makes its system:
     /// each node's diagonal block (its own terms, its springs' tangents and its
     /// contacts, the latter two times `stiff_coef`) inverted, and its couplings to the
-    /// other region nodes.
+    /// other region nodes. `springs_version` changes whenever the springs do (the
+    /// adjacency is rebuilt then).
     #[allow(clippy::too_many_arguments)]
-    pub fn choose(&mut self, adjacency: &Adjacency, tangents: &[SpringTangent], contacts: &[Contact], node_terms: &[NodeTerm], free: &[Vec3], stiff_coef: f64, r: &[Vec3], rr: f64) {
+    pub fn choose(&mut self, tangents: &[SpringTangent], springs_version: u64, contacts: &[Contact], node_terms: &[NodeTerm], free: &[Vec3], stiff_coef: f64, r: &[Vec3], rr: f64) {
         let n = r.len();
         self.clear(n, tangents.len());
         if rr <= 0.0 || !sweeps(n) {
             return;
         }
+        self.adjacency.refresh(tangents, n, springs_version);
         let max_nodes = (MAX_FRACTION * n as f64) as usize;
         let threshold = SEED_FRACTION * rr;
         for (i, ri) in r.iter().enumerate() {
             if ri.norm_squared() >= threshold && self.nodes.len() < max_nodes {
-                self.inside[i] = true;
-                self.nodes.push(i as u32);
+                self.take(i);
             }
         }
         let mut ring_start = 0;
@@ -174,29 +191,25 @@ impl Region {
             let ring_end = self.nodes.len();
             for at in ring_start..ring_end {
                 let i = self.nodes[at] as usize;
-                for &k in adjacency.of(i) {
-                    let t = &tangents[k as usize];
+                for at_k in self.adjacency.range(i) {
+                    let t = &tangents[self.adjacency.springs[at_k] as usize];
                     let j = if t.a as usize == i { t.b } else { t.a } as usize;
-                    if !self.inside[j] && self.nodes.len() < max_nodes && free[j] != Vec3::zeros() {
-                        self.inside[j] = true;
-                        self.nodes.push(j as u32);
+                    if self.slot[j] == OUTSIDE && self.nodes.len() < max_nodes && free[j] != Vec3::zeros() {
+                        self.take(j);
                     }
                 }
             }
             ring_start = ring_end;
         }
-        for (at, &i) in self.nodes.iter().enumerate() {
-            self.slot[i as usize] = at as u32;
-        }
         for &i in &self.nodes {
             let i = i as usize;
             let mut block = node_terms[i].matrix();
             self.coupling_start.push(self.couplings.len() as u32);
-            for &k in adjacency.of(i) {
+            for &k in self.adjacency.of(i) {
                 let t = &tangents[k as usize];
                 block += t.k.matrix() * stiff_coef;
                 let j = if t.a as usize == i { t.b } else { t.a } as usize;
-                if self.inside[j] {
+                if self.slot[j] != OUTSIDE {
                     self.couplings.push(Coupling { other: self.slot[j], k: t.k.scaled(stiff_coef) });
                 }
             }
@@ -205,7 +218,7 @@ impl Region {
         self.coupling_start.push(self.couplings.len() as u32);
         for c in contacts {
             let i = c.node as usize;
-            if self.inside[i] {
+            if self.slot[i] != OUTSIDE {
                 self.inverse[self.slot[i] as usize] += c.normal * c.normal.transpose() * (c.stiffness * stiff_coef);
             }
         }
@@ -306,8 +319,6 @@ mod tests {
     fn solve(m: usize, b: &[Vec3], region: bool) -> (u32, Vec<Vec3>) {
         let (tangents, terms, free, contacts) = lattice(m);
         let inv = jacobi(&tangents, &terms, &contacts);
-        let mut adjacency = Adjacency::default();
-        adjacency.refresh(&tangents, m * m, 0);
         let mut sweeps = Region::default();
         let n = m * m;
         let (mut x, mut r, mut z, mut q) = (vec![Vec3::zeros(); n], b.to_vec(), vec![Vec3::zeros(); n], vec![Vec3::zeros(); n]);
@@ -321,7 +332,7 @@ mod tests {
         };
         let rr: f64 = r.iter().map(|v| v.norm_squared()).sum();
         if region {
-            sweeps.choose(&adjacency, &tangents, &contacts, &terms, &free, 1.0, &r, rr);
+            sweeps.choose(&tangents, 0, &contacts, &terms, &free, 1.0, &r, rr);
             assert!(!sweeps.nodes.is_empty() && sweeps.nodes.len() <= n / 10, "{} region nodes", sweeps.nodes.len());
         }
         let b_norm = rr.sqrt();
@@ -350,15 +361,13 @@ mod tests {
     fn the_sweeps_are_a_symmetric_positive_operator() {
         let m = 75;
         let (tangents, terms, free, contacts) = lattice(m);
-        let mut adjacency = Adjacency::default();
-        adjacency.refresh(&tangents, m * m, 0);
         let n = m * m;
         // A residual round the held node chooses the region.
         let centre = (m / 2) * m + m / 2;
         let mut seedlike = vec![Vec3::zeros(); n];
         seedlike[centre] = Vec3::new(0.0, 0.0, 1.0);
         let mut region = Region::default();
-        region.choose(&adjacency, &tangents, &contacts, &terms, &free, 1.0, &seedlike, 1.0);
+        region.choose(&tangents, 0, &contacts, &terms, &free, 1.0, &seedlike, 1.0);
         let vector = |seed: u64| -> Vec<Vec3> {
             (0..n).map(|i| {
                 let h = |k: u64| (((i as u64 * 2654435761 + seed * 97 + k * 31) % 1000) as f64) / 500.0 - 1.0;
