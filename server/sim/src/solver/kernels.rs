@@ -303,6 +303,36 @@ dispatch! {
 }
 
 dispatch! {
+    /// The conjugate-gradient update `x += α p`, `r −= α q` over every coordinate, and
+    /// the Jacobi-preconditioned residual `z = r w` (`w` = 1/diagonal, zero on fixed
+    /// axes) with `(Σ r z, Σ r²)`, each summed in four lanes (see [`cg_update`]).
+    pub fn cg_update_jacobi(x: &mut [f64], p: &[f64], r: &mut [f64], q: &[f64], w: &[f64], z: &mut [f64], alpha: f64) -> (f64, f64) {
+        let n = x.len().min(p.len()).min(r.len()).min(q.len()).min(w.len()).min(z.len());
+        let (mut rz, mut rr) = ([0f64; 4], [0f64; 4]);
+        #[inline(always)]
+        fn lane(x: &mut f64, p: f64, r: &mut f64, q: f64, w: f64, z: &mut f64, alpha: f64, rz: &mut f64, rr: &mut f64) {
+            *x += p * alpha;
+            *r -= q * alpha;
+            *z = *r * w;
+            *rz += *r * *z;
+            *rr += *r * *r;
+        }
+        let whole = n - n % 4;
+        let (x, p, r, q, w, z) = (&mut x[..n], &p[..n], &mut r[..n], &q[..n], &w[..n], &mut z[..n]);
+        let chunks = x[..whole].chunks_exact_mut(4).zip(p[..whole].chunks_exact(4)).zip(r[..whole].chunks_exact_mut(4)).zip(q[..whole].chunks_exact(4)).zip(w[..whole].chunks_exact(4)).zip(z[..whole].chunks_exact_mut(4));
+        for (((((xc, pc), rc), qc), wc), zc) in chunks {
+            for l in 0..4 {
+                lane(&mut xc[l], pc[l], &mut rc[l], qc[l], wc[l], &mut zc[l], alpha, &mut rz[l], &mut rr[l]);
+            }
+        }
+        for k in whole..n {
+            lane(&mut x[k], p[k], &mut r[k], q[k], w[k], &mut z[k], alpha, &mut rz[k % 4], &mut rr[k % 4]);
+        }
+        (lanes_total(rz), lanes_total(rr))
+    }
+}
+
+dispatch! {
     /// `Σ a b` over every coordinate, in four lanes (see [`cg_update`]).
     pub fn dot(a: &[f64], b: &[f64]) -> f64 {
         let n = a.len().min(b.len());
@@ -612,6 +642,20 @@ mod tests {
         let mut direction = p.clone();
         cg_direction(&mut direction, &q, -1.5);
         assert!((0..n).all(|k| direction[k] == q[k] + p[k] * -1.5));
+        // With the Jacobi-preconditioned residual (a fixed axis: w = 0).
+        let (mut x, mut r, mut z) = (x0.clone(), r0.clone(), vec![f64::NAN; n]);
+        let mut w = w.iter().map(|w| 1.0 / w).collect::<Vec<f64>>();
+        w[4] = 0.0;
+        let (rz, rr) = cg_update_jacobi(&mut x, &p, &mut r, &q, &w, &mut z, 0.37);
+        let mut expected = (0.0, 0.0);
+        for k in 0..n {
+            assert_eq!(x[k], x0[k] + p[k] * 0.37);
+            assert_eq!(r[k], r0[k] - q[k] * 0.37);
+            assert_eq!(z[k], r[k] * w[k]);
+            expected.0 += r[k] * z[k];
+            expected.1 += r[k] * r[k];
+        }
+        assert!((rz - expected.0).abs() < 1e-14 * expected.0 && (rr - expected.1).abs() < 1e-14 * expected.1);
     }
 
     #[test]

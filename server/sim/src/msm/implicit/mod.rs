@@ -28,6 +28,7 @@ use super::contact::Contact;
 use super::foundation::Foundation;
 use super::state::{Nodes, Spring};
 use crate::math::{Matrix3, Vec3};
+use crate::solver::kernels::{self, flat, flat_mut};
 
 /// A 3 × 3 block `iso·I + along·n nᵀ` (n unit, or zero): a spring's tangent stiffness
 /// (its lateral stiffness, and the axial stiffness's excess over it along the spring), a
@@ -225,22 +226,11 @@ impl ImplicitSolver {
                 break;
             }
             let alpha = rz / pq;
-            let (mut rz_next, mut rr_next) = (0.0, 0.0);
-            for i in 0..n {
-                self.dv[i] += self.p[i] * alpha;
-                let r = self.r[i] - self.q[i] * alpha;
-                self.r[i] = r;
-                let z = r.component_mul(&self.inv_diag[i]);
-                self.z[i] = z;
-                rz_next += r.dot(&z);
-                rr_next += r.norm_squared();
-            }
+            let (mut rz_next, rr_next) = kernels::cg_update_jacobi(flat_mut(&mut self.dv), flat(&self.p), flat_mut(&mut self.r), flat(&self.q), flat(&self.inv_diag), flat_mut(&mut self.z), alpha);
             rz_next += self.region.apply(&self.r, &mut self.z);
             let beta = rz_next / rz;
             rz = rz_next;
-            for i in 0..n {
-                self.p[i] = self.z[i] + self.p[i] * beta;
-            }
+            kernels::cg_direction(flat_mut(&mut self.p), flat(&self.z), beta);
             iterations += 1;
             residual = rr_next.sqrt() / b_norm;
         }
