@@ -23,14 +23,13 @@
 //! stiffness, in the implicit system, by the same weights: each node's share of the
 //! point's row sum). Each point is drawn towards the axis by a spring across its push
 //! ([`towards_axis`]), and rubs with the skin's friction ([`super::side_friction`]). The
-//! 1 mm scalpel laid flat reaches its rated 10 N with either integrator; the blade's
-//! plate on its edge under the explicit integrator is held to 9.1 N, then the skin
-//! beyond its end pulls the points past it
-//! (docs/tool-tissue.md, "The shaft's side").
+//! 1 mm scalpel laid flat reaches its rated 10 N with either integrator, and so does the
+//! blade's plate on its edge, since a point that the skin beyond the tool's end draws
+//! past it is taken again beside it (docs/tool-tissue.md, "The shaft's side").
 
 use super::contact::{Contact, SideHold};
 use super::side_friction::{side_friction, stick_contacts};
-use super::side_hold::{Slot, side_contact};
+use super::side_hold::{Slot, side_contact, within_ends};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
 use crate::math::{Vec3, barycentric_closest, closest_point_on_segment, segment_over_triangle, segment_triangle_closest, segment_triangle_intersection, triangle_normal};
@@ -88,10 +87,20 @@ pub(crate) fn apply_face_contacts(
             if contacts.len() + 12 > super::contact_room(nodes) {
                 break;
             }
-            // A point in contact stays the material point it was; a new one is taken
-            // where the axis's stretch ends.
-            let w = side.memory.face_point(t, end, side.body).unwrap_or(fresh);
-            let point: Vec3 = (0..3).map(|k| corners[k] * w[k]).sum();
+            // A new point is taken where the axis's stretch over the triangle ends; a
+            // point in contact stays the material point it was while it is beside the
+            // tool, and one the skin beyond the tool's end drew past it is taken again
+            // where the stretch ends (the part of the triangle still beside the tool),
+            // keeping the way it came in. Let go, the triangles round a plate's end went
+            // unheld one after another and the skin closed over the plate laid on its
+            // edge (held to 9.1 N under the explicit integrator).
+            let at = |w: [f64; 3]| -> Vec3 { (0..3).map(|k| corners[k] * w[k]).sum() };
+            let beside = |w: [f64; 3]| within_ends(tool, (at(w) - tool.tip).dot(&tool.axis));
+            let w = match side.memory.face_point(t, end, side.body) {
+                Some(kept) if beside(kept) || !beside(fresh) => kept,
+                _ => fresh,
+            };
+            let point = at(w);
             let radial = super::contact::tool_penetration(tool, &point, true).map(|p| (p.direction, p.depth_m));
             let Some((direction, depth)) = side_contact(side.memory, slot(end), side.body, tool, &point, radial, side.max_depth_m) else { continue };
             side.memory.keep_face_point(t, end, w);

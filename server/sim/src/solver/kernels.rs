@@ -280,6 +280,7 @@ dispatch! {
         let n = x.len().min(p.len()).min(r.len()).min(q.len()).min(w.len());
         let (mut sum, mut largest) = ([0f64; 4], [0f64; 4]);
         #[inline(always)]
+        #[allow(clippy::too_many_arguments)]
         fn lane(x: &mut f64, p: f64, r: &mut f64, q: f64, w: f64, alpha: f64, sum: &mut f64, largest: &mut f64) {
             *x += p * alpha;
             *r -= q * alpha;
@@ -310,6 +311,7 @@ dispatch! {
         let n = x.len().min(p.len()).min(r.len()).min(q.len()).min(w.len()).min(z.len());
         let (mut rz, mut rr) = ([0f64; 4], [0f64; 4]);
         #[inline(always)]
+        #[allow(clippy::too_many_arguments)]
         fn lane(x: &mut f64, p: f64, r: &mut f64, q: f64, w: f64, z: &mut f64, alpha: f64, rz: &mut f64, rr: &mut f64) {
             *x += p * alpha;
             *r -= q * alpha;
