@@ -269,6 +269,16 @@ impl Holder {
         self.held_triangle[index] = None;
     }
 
+    /// Body `index` comes back where body `twin` holds the skin (a forceps' second jaw
+    /// reopening out of the closed plate): it holds as the twin does, its tip on the
+    /// twin's triangle. Taken as new, the skin that the closed plate holds over the
+    /// jaw's tip was a triangle crossed above it, so the jaw counted as through the skin
+    /// and was held no more (reopened 6 mm deep in the implicit skin, it slid under the
+    /// skin beside the dent: the skin 4.6 mm past its tip).
+    pub fn take_twin(&mut self, index: usize, twin: usize) {
+        self.held_triangle[index] = self.held_triangle[twin];
+    }
+
     /// The live triangle the tool's axis crosses nearest its tip, anywhere along the
     /// tool: whether the tool is through the skin.
     pub fn first_crossing(&mut self, tool: &PlacedTool, nodes: &Nodes, topo: &Topology, grid: &PointGrid, max_edge_m: f64) -> Option<Crossing> {

@@ -287,7 +287,10 @@ impl MassSpring {
                 // A tool that appears below the skin is through it; the skin is not
                 // dragged to its tip.
                 // A forceps' jaw that reopens is as its twin was.
-                (Some(_), None) if let Some(twin) = self.twins[i].filter(|&t| self.placed[t].is_some()) => self.pierced[twin],
+                (Some(_), None) if let Some(twin) = self.twins[i].filter(|&t| self.placed[t].is_some()) => {
+                    self.holder.take_twin(i, twin);
+                    self.pierced[twin]
+                }
                 (Some(tool), None) => self.holder.first_crossing(&tool, &self.nodes, &self.topo, &self.grid, self.max_edge_m).is_some(),
                 (Some(_), Some(_)) => self.pierced[i],
             };
