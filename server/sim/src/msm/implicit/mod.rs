@@ -213,7 +213,9 @@ impl ImplicitSolver {
         self.p[..n].copy_from_slice(&self.z[..n]);
 
         // PCG on A·dv = b. An iteration is one pass over the springs and three over the
-        // nodes (the preconditioned residual is not stored: it is remade where needed).
+        // nodes: the product's node terms, then the update of dv, r and z and the next
+        // direction, these two over the coordinates flat, four lanes at a time (their
+        // sums in four partial sums: solver::kernels).
         let b_norm = b_norm2.sqrt();
         let mut iterations = 0;
         let mut residual = if b_norm > 0.0 { rr.sqrt() / b_norm } else { 0.0 };
