@@ -253,6 +253,9 @@ fn a_tool_laid_along_the_skin_and_pressed_to_its_rated_force_never_goes_through(
             (plate.clone(), "3 x 0.4 mm blade plate flat down", 0, FRAC_PI_2, 0.0002),
             (scene.clone(), "1 mm scalpel", 0, 0.0, 0.0005),
             (plate.clone(), "3 x 0.4 mm blade plate on its edge", 0, 0.0, 0.0015),
+            // Rolled halfway: the box reaches (half width + half thickness)/√2 above and
+            // below its axis.
+            (plate.clone(), "3 x 0.4 mm blade plate rolled 45 degrees", 0, std::f64::consts::FRAC_PI_4, (0.0015 + 0.0002) * std::f64::consts::FRAC_1_SQRT_2),
         ] {
             let pressed = press_laid_flat(&scene, tool, roll, half);
             println!("{} integrator, {name} laid flat: held up to {:.2} N, rated force reached {}, through {}", if implicit { "implicit" } else { "explicit" }, pressed.held_n, pressed.rated_reached, pressed.through);
