@@ -56,9 +56,11 @@ pub(crate) fn accumulate(
 /// Adds the spring forces to `f`, in three passes: the spring vectors and squared
 /// lengths (gathers), 1/length over a contiguous array (vectorised square roots and
 /// divisions, off any dependency chain), then the forces. Springs are stored sorted by
-/// their first node (they come from sorted edges; cuts disturb the order only locally),
-/// so the force on that node is summed in a register over each run of springs sharing
-/// it, which avoids a store → load chain on `f[a]`. `each` sees every spring (its
+/// their first node (they come from sorted edges; a cut's removal moves the last spring
+/// into the hole it leaves, `SpringSet::remove`, and its new springs come last, so after
+/// cuts the order holds between those places), so the force on that node is summed in a
+/// register over each run of springs sharing it, which avoids a store → load chain on
+/// `f[a]` (a run broken by a moved spring is only summed in more pieces). `each` sees every spring (its
 /// index, the spring, its vector and its inverse length) in the force pass.
 #[inline]
 fn spring_forces(x: &[Vec3], f: &mut [Vec3], springs: &[Spring], scratch: &mut SpringScratch, mut each: impl FnMut(usize, &Spring, Vec3, f64)) {
