@@ -95,12 +95,11 @@ pub(crate) fn apply_face_contacts(
             // unheld one after another and the skin closed over the plate laid on its
             // edge (held to 9.1 N under the explicit integrator).
             let at = |w: [f64; 3]| -> Vec3 { (0..3).map(|k| corners[k] * w[k]).sum() };
-            let beside = |w: [f64; 3]| within_ends(tool, (at(w) - tool.tip).dot(&tool.axis));
-            let w = match side.memory.face_point(t, end, side.body) {
-                Some(kept) if beside(kept) || !beside(fresh) => kept,
-                _ => fresh,
+            let beside = |p: &Vec3| within_ends(tool, (p - tool.tip).dot(&tool.axis));
+            let (w, point) = match side.memory.face_point(t, end, side.body).map(|kept| (kept, at(kept))) {
+                Some((kept, p)) if beside(&p) || !beside(&at(fresh)) => (kept, p),
+                _ => (fresh, at(fresh)),
             };
-            let point = at(w);
             let radial = super::contact::tool_penetration(tool, &point, true).map(|p| (p.direction, p.depth_m));
             let Some((direction, depth)) = side_contact(side.memory, slot(end), side.body, tool, &point, radial, side.max_depth_m) else { continue };
             side.memory.keep_face_point(t, end, w);

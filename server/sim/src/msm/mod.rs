@@ -282,15 +282,20 @@ impl MassSpring {
                 (Some(now), Some(before)) => (now.tip - before.tip) / self.dt_s,
                 _ => Vec3::zeros(),
             };
+            // A forceps' jaw that comes back (reopening) is as its twin is: through the
+            // skin if the twin is, else holding where the twin holds.
+            let back_as = match (self.placed[i], self.previous_placed[i]) {
+                (Some(_), None) => self.twins[i].filter(|&t| self.placed[t].is_some()),
+                _ => None,
+            };
+            if let Some(twin) = back_as {
+                self.holder.take_twin(i, twin);
+            }
             self.pierced[i] = match (self.placed[i], self.previous_placed[i]) {
                 (None, _) => false,
+                (Some(_), None) if let Some(twin) = back_as => self.pierced[twin],
                 // A tool that appears below the skin is through it; the skin is not
                 // dragged to its tip.
-                // A forceps' jaw that reopens is as its twin was.
-                (Some(_), None) if let Some(twin) = self.twins[i].filter(|&t| self.placed[t].is_some()) => {
-                    self.holder.take_twin(i, twin);
-                    self.pierced[twin]
-                }
                 (Some(tool), None) => self.holder.first_crossing(&tool, &self.nodes, &self.topo, &self.grid, self.max_edge_m).is_some(),
                 (Some(_), Some(_)) => self.pierced[i],
             };
