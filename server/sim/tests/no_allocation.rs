@@ -223,6 +223,36 @@ fn multirate_haptic_steps_allocate_nothing() {
     }
 }
 
+/// Forceps under a multirate schedule: the haptic loop splits them into their jaws and
+/// renders each against a patch of its own, allocating nothing either, while they press
+/// the block and close on it.
+#[test]
+fn multirate_haptic_steps_with_forceps_allocate_nothing() {
+    let text = r#"{ "name": "block",
+        "model": { "branched-grid": {
+            "volume": { "box": { "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 } },
+            "centre": true,
+            "materials": [ { "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 } ],
+            "level": 1,
+            "fixed": [ { "side": { "side": "-z" } } ],
+            "solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } } } },
+        "tools": [ { "name": "forceps", "shape": { "forceps": { "width_m": 0.003, "thickness_m": 0.002, "length_m": 0.06, "opening_m": 0.004 } } } ] }"#;
+    let mut model = cutsim_sim::build_tissue(&scene(text)).unwrap_or_else(|e| panic!("{e}"));
+    // The block's top is at z = 5 mm: pressed 2 mm in over 100 steps, closed from step 150.
+    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: i >= 150 }];
+    let mut feedback = [ToolFeedback::default()];
+    for i in 0..100 {
+        model.step(&press(i), &mut feedback);
+    }
+    let allocations = allocations_during(|| {
+        for i in 100..400 {
+            model.step(&press(i), &mut feedback);
+        }
+    });
+    assert!(feedback[0].force_n.z > 0.0, "the closed forceps press the block: {:?}", feedback[0].force_n);
+    assert_eq!(allocations, 0, "multirate haptic steps with forceps allocated");
+}
+
 /// A step that must wait for a background result (a slow worker, a loaded machine)
 /// allocates nothing either, even the first time its thread waits: a blocking channel
 /// receive registers the thread with the channel and allocated there, which a loaded

@@ -847,7 +847,7 @@ fn forceps_press_with_both_jaws_and_the_skin_rises_between_them_unless_they_are_
 }
 
 #[test]
-fn forceps_cannot_cut_and_the_branched_grid_holds_them_in_single_rate_only() {
+fn forceps_cannot_cut_and_the_branched_grid_holds_them_under_either_schedule() {
     let mut json = serde_json::to_value(with_forceps()).unwrap();
     json["tools"][1]["can_cut"] = serde_json::json!(true);
     let e = Scene::from_json_str(&json.to_string(), "cutting forceps", None).unwrap_err();
@@ -858,9 +858,8 @@ fn forceps_cannot_cut_and_the_branched_grid_holds_them_in_single_rate_only() {
     let scene = Scene::from_json_str(&liver.to_string(), "liver with forceps", Some(&root().join("server/scenes"))).unwrap_or_else(|e| panic!("{e}"));
     assert!(matches!(scene.tools[1].shape, cutsim_sim::scene::ToolShapeSpec::Forceps { .. }));
     liver["model"]["branched-grid"]["schedule"] = serde_json::json!({ "multirate": { "deformation_every_steps": 33 } });
-    let e = Scene::from_json_str(&liver.to_string(), "liver with forceps, multirate", Some(&root().join("server/scenes"))).unwrap_err();
-    assert_eq!(e.path, "tools[1].shape", "{e}");
-    assert!(e.message.contains("forceps' jaws (two plates) are held against the branched grid by the single-rate step only"), "{e}");
+    let scene = Scene::from_json_str(&liver.to_string(), "liver with forceps, multirate", Some(&root().join("server/scenes"))).unwrap_or_else(|e| panic!("{e}"));
+    assert!(matches!(scene.tools[1].shape, cutsim_sim::scene::ToolShapeSpec::Forceps { .. }));
 }
 
 /// Forceps pressed 6 mm into the skin open, then closed and opened again while held
@@ -1410,6 +1409,91 @@ fn forceps_closed_on_the_grid_while_pressed_keep_pushing() {
     assert!(reopened_least > -1.0, "reopened, the tissue dragged the jaws down with {:.2} N", -reopened_least);
 }
 
+/// The 60 × 60 × 40 mm block of [`grid_block_with_probe`] (2 mm voxels) with forceps
+/// whose jaws are thick for the grid (4 × 3 mm: the block's vertices hold them, not the
+/// insides of its triangles), inner flats 8 mm apart, 3,000 N/m.
+fn grid_block_with_thick_forceps() -> Scene {
+    let mut json = serde_json::to_value(grid_block_with_probe(0.003, 3000.0)).unwrap();
+    json["model"]["branched-grid"]["solver"] = serde_json::json!({ "preconditioner": "cholesky", "cg_max_iterations": 400 });
+    json["tools"][0]["name"] = serde_json::json!("forceps");
+    json["tools"][0]["shape"] = serde_json::json!({ "forceps": { "width_m": 0.004, "thickness_m": 0.003, "length_m": 0.08, "opening_m": 0.008 } });
+    Scene::from_json_str(&json.to_string(), "block with thick forceps", None).unwrap()
+}
+
+/// Forceps pressed 6 mm into the block at 50 mm/s and held open until 460 ms, closed (the
+/// button held) until 1,300 ms, then reopened until 1,640 ms, by `step(command)`, which
+/// returns the force on the forceps: the force open at 459 ms, the least from 1,200 ms
+/// (closed) and the least over the last 200 ms (reopened), N.
+fn press_close_reopen(top: Vec3, mut step: impl FnMut(cutsim_sim::tool::ToolCommand) -> f64) -> (f64, f64, f64) {
+    let (x, y) = (top.x + 0.0003, top.y + 0.0002);
+    let (mut open, mut closed, mut reopened) = (0.0, f64::INFINITY, f64::INFINITY);
+    for ms in 0..1640u32 {
+        let tip = Vec3::new(x, y, top.z + 0.002 - 0.05e-3 * f64::from(ms.min(160)));
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: (460..1300).contains(&ms) };
+        let force = step(command);
+        match ms {
+            459 => open = force,
+            1200..1300 => closed = closed.min(force),
+            1440.. => reopened = reopened.min(force),
+            _ => {}
+        }
+    }
+    (open, closed, reopened)
+}
+
+/// Under a multirate schedule (deformation every 33 ms) forceps are two bodies too
+/// (crate::tool::bodies): the haptic loop splits the command into its jaws', renders
+/// each jaw's plate against a patch of its own and sums their forces; each deformation
+/// step meets the jaws where the haptic loop had them at its step, and the jaws move
+/// 0.2 mm (a tenth of a voxel) per deformation step (multirate's
+/// `JAW_TRAVEL_PER_DEFORMATION_VOXELS`; at 1.5 mm a step the closed jaws held nothing).
+/// Pressed 6 mm in open, closed and reopened, side by side with the single-rate step:
+/// open, both jaws push the tissue; closed, the two as one plate keep pushing it;
+/// reopened, they press it again. Jaws thin for the grid are refused under a multirate
+/// schedule, naming the field.
+#[test]
+fn under_multirate_forceps_press_the_grid_with_both_jaws() {
+    let scene = grid_block_with_thick_forceps();
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+    let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
+    let top = grid.broad_top().unwrap();
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 1];
+    let single = press_close_reopen(top, |command| {
+        grid.step(&[command], &mut feedback);
+        feedback[0].force_n.z
+    });
+    let schedule = cutsim_sim::scene::MultirateSpec { deformation_every_steps: serde_json::from_value(serde_json::json!(33)).unwrap() };
+    let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
+    let mut jaws_open = [0.0; 2];
+    let mut ms = 0;
+    let multi = press_close_reopen(top, |command| {
+        model.step(&[command], &mut feedback);
+        // What each jaw's deformation step pushes with.
+        if ms == 459 {
+            jaws_open = [-model.patch(0).applied.z, -model.patch(1).applied.z];
+        }
+        ms += 1;
+        feedback[0].force_n.z
+    });
+    let c = model.with_grid(|g| g.counters());
+    println!(
+        "forceps 4 × 3 mm 6 mm in, single-rate / multirate: open {:.2} / {:.2} N (the jaws' deformation {:.2} and {:.2} N), closed at least {:.2} / {:.2} N, reopened at least {:.2} / {:.2} N; multirate {} of {} solves at the cap",
+        single.0, multi.0, jaws_open[0], jaws_open[1], single.1, multi.1, single.2, multi.2, c.solver_cap_hits, c.solves
+    );
+    assert_eq!(c.blowups_contained, 0);
+    assert!(jaws_open.iter().all(|&f| f > 0.1), "open, each jaw pushes the tissue: {jaws_open:?} N");
+    for (phase, single, multi) in [("open", single.0, multi.0), ("closed", single.1, multi.1), ("reopened", single.2, multi.2)] {
+        assert!(single > 0.2 && multi > 0.5 * single, "{phase}: multirate {multi:.2} N against single-rate {single:.2} N");
+    }
+
+    let mut json = serde_json::to_value(grid_block_with_forceps()).unwrap();
+    json["model"]["branched-grid"]["schedule"] = serde_json::json!({ "multirate": { "deformation_every_steps": 33 } });
+    let thin = Scene::from_json_str(&json.to_string(), "block with forceps, multirate", None).unwrap();
+    let e = cutsim_sim::multirate::build_from_scene(&thin, &schedule).err().expect("thin jaws are refused under a multirate schedule");
+    assert_eq!(e.path, "tools[0].shape.forceps.thickness_m", "{e}");
+    assert!(e.message.contains("at least 2.83 mm thick"), "{e}");
+}
+
 /// A scalpel blade's plate against the branched grid is a plate (grid::hold::Plate; the
 /// unit tests there check its geometry against the capsule round it): pressed point
 /// first with its button released into the block (2 mm vertex spacing), at five
@@ -1594,3 +1678,4 @@ fn a_shaft_drawn_along_the_grid_is_held_back_by_coulomb_friction() {
         assert!(sliding.abs() < 0.05, "{what}, frictionless: pull over press {sliding:.3}");
     }
 }
+

@@ -171,10 +171,11 @@ pub fn build_auto(scene: &Scene, spec: &BranchedGridSpec) -> Result<BranchedGrid
 /// built with that step, and its haptic steps per deformation step; the grid's
 /// [`FidelityChoice`] reports both choices.
 pub fn build_auto_multirate(scene: &Scene, spec: &BranchedGridSpec, longest: u32) -> Result<(BranchedGrid, u32), SceneError> {
-    let mut patches = vec![crate::multirate::patch::ContactPatch::default(); crate::tool::tool_shapes(scene).len()];
+    let mut patches = Vec::new();
     build_auto_multirate_with(scene, spec, longest, &mut |grid, period_s| {
         let margin_m = crate::multirate::patch_margin_m(grid, period_s);
-        let step = &mut |grid: &mut BranchedGrid, commands: &[ToolCommand], feedback: &mut [ToolFeedback]| grid.deformation_step(commands, &[], &mut patches, margin_m, feedback);
+        patches.resize(grid.body_count(), crate::multirate::patch::ContactPatch::default());
+        let step = &mut |grid: &mut BranchedGrid, commands: &[ToolCommand], feedback: &mut [ToolFeedback]| grid.deformation_step_of_tools(commands, &mut patches, margin_m, feedback);
         time_probe_with(grid, 10, CALIBRATION_STEPS / 3, Some(period_s * 1e6), step).p99_us
     })
 }

@@ -21,7 +21,7 @@ use crate::math::{Matrix3, Vec3, closest_point_on_segment};
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{Tissue, TissueCounters};
 use crate::multirate::patch::ContactPatch;
-use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
+use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
 
 /// The grid's frame in the scene: `world = rotation · local + translation`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -270,18 +270,44 @@ impl BranchedGrid {
 
     /// Advances one step; see the module documentation.
     pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
+        self.advance_tools(commands, feedback, None);
+    }
+
+    /// A step with the scene's tools' `commands` and `feedback`, split into and gathered
+    /// from the bodies the grid meets (forceps as their jaws).
+    fn advance_tools(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], multirate: Option<Deformation<'_>>) {
         debug_assert_eq!(commands.len(), self.scene_tools.len());
         debug_assert_eq!(feedback.len(), self.scene_tools.len());
         // Taken out for the step and put back: no allocation.
         match self.bodies.take() {
-            None => self.advance(commands, feedback, None),
+            None => self.advance(commands, feedback, multirate),
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
-                self.advance(&bodies.commands, &mut bodies.feedback, None);
+                self.advance(&bodies.commands, &mut bodies.feedback, multirate);
                 self.counters.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }
         }
+    }
+
+    /// A deformation step as [`Self::deformation_step`] from the scene's tools' commands,
+    /// split into the bodies' by the grid itself (its jaws moving for one deformation
+    /// step): for timing a deformation step (crate::grid::fidelity), where no haptic loop
+    /// splits them. `patches`: one per body.
+    pub fn deformation_step_of_tools(&mut self, commands: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+        self.advance_tools(commands, feedback, Some(Deformation { path: &[], patches, margin_m }));
+    }
+
+    /// How many bodies the grid meets (its tools, forceps as two jaws).
+    pub fn body_count(&self) -> usize {
+        self.tools.len()
+    }
+
+    /// Whether a tool whose thinnest half-size is `half_size_m` fits between the
+    /// surface's vertices, so that the insides of its triangles hold it (face_contact),
+    /// not its vertices alone.
+    pub fn holds_between_vertices(&self, half_size_m: f64) -> bool {
+        self.fits_between_vertices(half_size_m)
     }
 
     /// One deformation step of a multirate schedule (crate::multirate): a step as
@@ -290,10 +316,16 @@ impl BranchedGrid {
     /// step, one per tool per step) that also publishes each tool's contact patch into
     /// `patches`: its compliance from this step's system, the contact force the step
     /// ended with, and its vertices within `margin_m` of the tool as the step and its cuts
-    /// leave them.
-    pub fn deformation_step(&mut self, commands: &[ToolCommand], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
-        // Refused at load (crate::scene): the haptic loop renders one solid per tool, not two jaws.
-        debug_assert!(self.bodies.is_none(), "forceps under a multirate schedule");
+    /// leave them. Everything here is per body (forceps as their two jaws,
+    /// crate::tool::bodies): the haptic loop splits the tools' commands into the bodies'
+    /// at its own rate and hands over each body's `sections` (a jaw's plate open, the
+    /// closed pair as one), so that the deformation meets the jaws where the haptic loop
+    /// renders them.
+    pub fn deformation_step(&mut self, commands: &[ToolCommand], sections: &[Section], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+        debug_assert_eq!(sections.len(), self.tools.len());
+        for (tool, section) in self.tools.iter_mut().zip(sections) {
+            tool.section = *section;
+        }
         self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }
 

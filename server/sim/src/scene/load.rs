@@ -214,16 +214,7 @@ impl Scene {
             let (reach_m, length_m, tip) = match &tool.shape {
                 super::ToolShapeSpec::Cylinder { radius_m, length_m, tip } => (radius_m.get() * (1.0 - 1e-12), length_m, tip),
                 super::ToolShapeSpec::Blade { width_m, length_m, .. } => (0.5 * width_m.get(), length_m, &None),
-                super::ToolShapeSpec::Forceps { width_m, length_m, .. } => {
-                    if !grid.schedule.is_single_rate() {
-                        return Err(SceneError::new(
-                            origin,
-                            format!("tools[{i}].shape"),
-                            "forceps' jaws (two plates) are held against the branched grid by the single-rate step only; a multirate schedule's haptic loop renders one solid per tool (a capsule or a blade's plate): use a cylinder or a blade, or \"schedule\": \"single-rate\"",
-                        ));
-                    }
-                    (0.5 * width_m.get(), length_m, &None)
-                }
+                super::ToolShapeSpec::Forceps { width_m, length_m, .. } => (0.5 * width_m.get(), length_m, &None),
             };
             if *tip == Some(super::TipSpec::Flat) {
                 return Err(SceneError::new(

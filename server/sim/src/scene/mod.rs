@@ -470,7 +470,9 @@ pub enum ToolShapeSpec {
     /// axis), on either side of the axis with their inner flats `opening_m` apart; the
     /// command's button (`cut`, the jaw) closes them, inner flats touching. Blunt: they
     /// press and rub, never cut (`can_cut` must be false); grasping is not modelled. On
-    /// the branched grid, under the single-rate schedule only.
+    /// the branched grid under either schedule; under a multirate one the jaws must be
+    /// thick enough for its vertices to hold them (at least the diagonal of a voxel's
+    /// largest face) and close at a tenth of a voxel per deformation step.
     Forceps { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM, opening_m: JawOpeningM },
 }
 

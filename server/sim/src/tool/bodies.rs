@@ -61,6 +61,9 @@ pub(crate) struct Bodies {
     of: Vec<Body>,
     /// Per tool: its jaws' half gap now and open, m (0, 0 for a tool without jaws).
     half_gap_m: Vec<(f64, f64)>,
+    /// Per tool: how fast its jaws open and close, m/s ([`JAW_SPEED_M_PER_S`] unless a
+    /// multirate schedule slows them: [`Bodies::pace_jaws_for`]).
+    jaw_speed_m_per_s: Vec<f64>,
     /// Per body: its centre's offset from its tool's tip this step (world frame); None
     /// while it is away (the second jaw of closed forceps).
     arm: Vec<Option<Vec3>>,
@@ -93,18 +96,31 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
         }
     }
     let n = of.len();
-    (shapes, Some(Bodies { of, half_gap_m, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
+    let jaw_speed_m_per_s = vec![JAW_SPEED_M_PER_S; tools.len()];
+    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
 }
 
 impl Bodies {
+    /// Slows every forceps' jaws so that they move at most `travel_m` in a deformation
+    /// step of `period_s` (a multirate schedule's, crate::multirate): the deformation
+    /// meets the jaws only at its steps, and jaws that moved far between two of them
+    /// passed the tissue they were closing on instead of pushing it aside.
+    pub fn pace_jaws_for(&mut self, period_s: f64, travel_m: f64) {
+        for (speed, (open, _)) in self.jaw_speed_m_per_s.iter_mut().zip(&self.half_gap_m) {
+            if *open > 0.0 {
+                *speed = JAW_SPEED_M_PER_S.min(travel_m / period_s);
+            }
+        }
+    }
+
     /// The bodies' commands from the tools' (`tools`: the scene's shapes) for a step of
     /// `dt_s`, and the jaws' sections in `shapes` (the bodies' shapes): a forceps' jaws
-    /// move towards closed while its button is held, else towards open, at
-    /// [`JAW_SPEED_M_PER_S`].
+    /// move towards closed while its button is held, else towards open, at their speed
+    /// ([`JAW_SPEED_M_PER_S`] unless paced: [`Bodies::pace_jaws_for`]).
     pub fn split(&mut self, commands: &[ToolCommand], tools: &[ToolShape], shapes: &mut [ToolShape], dt_s: f64) {
-        for (command, (now, open)) in commands.iter().zip(self.half_gap_m.iter_mut()) {
+        for ((command, (now, open)), speed) in commands.iter().zip(self.half_gap_m.iter_mut()).zip(&self.jaw_speed_m_per_s) {
             let target = if command.cut { 0.0 } else { *open };
-            let travel = JAW_SPEED_M_PER_S * dt_s;
+            let travel = speed * dt_s;
             // Snapped to the target within a nanometre (steps of the travel do not sum
             // exactly to it).
             *now = if (target - *now).abs() <= travel + 1e-9 { target } else { *now + travel.copysign(target - *now) };
@@ -186,6 +202,26 @@ mod tests {
             edge_local: Vec3::x(),
             tip_shape: TipShape::Flat,
         }
+    }
+
+    /// Paced for a multirate schedule, the jaws move the travel allowed per deformation
+    /// step over each of its periods, and a tool without jaws is untouched.
+    #[test]
+    fn paced_jaws_move_the_allowed_travel_per_deformation_step() {
+        let probe = ToolShape { name: "probe".into(), section: Section::Round, radius_m: 3e-3, ..forceps() };
+        let tools = [probe, forceps()];
+        let (mut shapes, bodies) = expand(&tools);
+        let mut bodies = bodies.expect("forceps make bodies");
+        bodies.pace_jaws_for(0.033, 2e-4);
+        assert_eq!(bodies.jaw_speed_m_per_s[0], JAW_SPEED_M_PER_S, "a probe has no jaws");
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true };
+        for _ in 0..33 {
+            bodies.split(&[close, close], &tools, &mut shapes, 1e-3);
+        }
+        assert!((bodies.half_gap_m[1].0 - (4e-3 - 2e-4)).abs() < 1e-12, "{:?}", bodies.half_gap_m[1]);
+        // Slower than the jaws' own speed only: a long travel leaves them at it.
+        bodies.pace_jaws_for(0.033, 1.0);
+        assert_eq!(bodies.jaw_speed_m_per_s[1], JAW_SPEED_M_PER_S);
     }
 
     #[test]
