@@ -1569,10 +1569,12 @@ fn under_multirate_a_blade_plate_cuts_with_its_edge_and_pushes_with_its_flat() {
 /// [`a_blade_plate_pressed_into_the_grid_keeps_pushing_the_tissue`] pressed point first
 /// into the block: each deformation step holds its end (the tool moved 1.65 mm since the
 /// last, three times the contact's rated depth: without the allowance for that travel
-/// every contact let go as it was made, and the plate went 30 mm in at 0 N). What the
-/// haptic loop renders of it is printed, not asserted: it renders the points under the
-/// end that the deformation held, but the patch, moved as a whole, slides off a plate
-/// this thin at times (docs/branched-grid.md, "Tools").
+/// every contact let go as it was made, and the plate went 30 mm in at 0 N), and the
+/// haptic loop renders it: the points under the end that the deformation held, the patch
+/// balanced on its own contact where none of it resists (along the plate's width:
+/// multirate::patch, `balance_at`). Balancing the deformation's force there, the patch
+/// slid off the plate's end at one position and the device felt 0 N from 20 mm on while
+/// the deformation pushed with 6.5–8.9 N.
 #[test]
 fn under_multirate_a_blade_plate_pressed_point_first_is_held_by_the_deformation() {
     let mut scene = serde_json::to_value(grid_block_with_blade_plate()).unwrap();
@@ -1603,6 +1605,8 @@ fn under_multirate_a_blade_plate_pressed_point_first_is_held_by_the_deformation(
         let least = rendered.iter().map(|r| r.0).fold(f64::INFINITY, f64::min);
         println!("multirate blade plate pressed point first at ({:.1}, {:.1}) mm: the deformation pushes with 1 N from {:.1} mm, {applied:.2} N at 30 mm; rendered {force:.2} N at 30 mm, at least {least:.2} N from 20 mm on", off.0 * 1e3, off.1 * 1e3, held_from.unwrap_or(f64::NAN) * 1e3);
         assert!(held_from.is_some_and(|d| d < 0.01) && applied >= 3.0, "at {off:?} the deformation pushes with {applied:.2} N at 30 mm (1 N from {held_from:?})");
+        assert!((0.7..=1.3).contains(&(force / applied)), "at {off:?} the device feels {force:.2} N at 30 mm where the deformation pushes with {applied:.2} N");
+        assert!(least >= 3.0, "at {off:?} the force rendered fell to {least:.2} N from 20 mm on");
     }
 }
 
@@ -1678,4 +1682,5 @@ fn a_shaft_drawn_along_the_grid_is_held_back_by_coulomb_friction() {
         assert!(sliding.abs() < 0.05, "{what}, frictionless: pull over press {sliding:.3}");
     }
 }
+
 

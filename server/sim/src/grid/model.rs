@@ -21,7 +21,7 @@ use crate::math::{Matrix3, Vec3, closest_point_on_segment};
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{Tissue, TissueCounters};
 use crate::multirate::patch::ContactPatch;
-use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
+use crate::tool::{ToolCommand, ToolFeedback, ToolShape};
 
 /// The grid's frame in the scene: `world = rotation · local + translation`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -318,13 +318,13 @@ impl BranchedGrid {
     /// ended with, and its vertices within `margin_m` of the tool as the step and its cuts
     /// leave them. Everything here is per body (forceps as their two jaws,
     /// crate::tool::bodies): the haptic loop splits the tools' commands into the bodies'
-    /// at its own rate and hands over each body's `sections` (a jaw's plate open, the
+    /// at its own rate and hands over each body's shape (`bodies`: a jaw's plate open, the
     /// closed pair as one), so that the deformation meets the jaws where the haptic loop
     /// renders them.
-    pub fn deformation_step(&mut self, commands: &[ToolCommand], sections: &[Section], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
-        debug_assert_eq!(sections.len(), self.tools.len());
-        for (tool, section) in self.tools.iter_mut().zip(sections) {
-            tool.section = *section;
+    pub fn deformation_step(&mut self, commands: &[ToolCommand], bodies: &[ToolShape], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+        debug_assert_eq!(bodies.len(), self.tools.len());
+        for (tool, body) in self.tools.iter_mut().zip(bodies) {
+            tool.section = body.section;
         }
         self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }

@@ -112,8 +112,8 @@ pub struct Multirate {
 struct Job {
     grid: BranchedGrid,
     commands: Vec<ToolCommand>,
-    /// The bodies' sections at the job's step (a forceps' jaws open or closed).
-    sections: Vec<Section>,
+    /// The bodies' shapes at the job's step (a forceps' jaws open or closed).
+    shapes: Vec<ToolShape>,
     /// The haptic steps' commands over the period before (one per tool per step): the
     /// deformation step cuts along them.
     path: Vec<ToolCommand>,
@@ -128,7 +128,14 @@ impl Job {
     fn run(mut self: Box<Self>) -> Box<Self> {
         let started = std::time::Instant::now();
         let job = &mut *self;
-        job.grid.deformation_step(&job.commands, &job.sections, &job.path, &mut job.patches, job.margin_m, &mut job.feedback);
+        job.grid.deformation_step(&job.commands, &job.shapes, &job.path, &mut job.patches, job.margin_m, &mut job.feedback);
+        // What each patch's own contact gives where the deformation had the tool: the
+        // haptic loop balances that, not the deformation's force (patch::ContactPatch's
+        // `balanced`).
+        for ((patch, shape), command) in job.patches.iter_mut().zip(&job.shapes).zip(&job.commands) {
+            let then = capsule(shape, command, patch.blade_pushes);
+            patch.balance_at(then.as_ref());
+        }
         job.published.refresh(&mut job.grid);
         job.published.took_ns = started.elapsed().as_nanos() as u64;
         self
@@ -304,7 +311,7 @@ impl Multirate {
         let job = Box::new(Job {
             grid,
             commands: vec![ToolCommand::default(); count],
-            sections: tools.iter().map(|t| t.section).collect(),
+            shapes: tools.clone(),
             path: Vec::with_capacity(count * every as usize),
             patches: vec![ContactPatch::default(); count],
             feedback: vec![ToolFeedback::default(); count],
@@ -396,8 +403,8 @@ impl Multirate {
             self.fade_left = self.every;
         }
         job.commands.copy_from_slice(commands);
-        for (section, tool) in job.sections.iter_mut().zip(&self.tools) {
-            *section = tool.section;
+        for (shape, tool) in job.shapes.iter_mut().zip(&self.tools) {
+            shape.section = tool.section;
         }
         std::mem::swap(&mut job.path, &mut self.path);
         self.path.clear();

@@ -57,6 +57,17 @@ pub struct ContactPatch {
     /// own implicit contact with the tool where it was then), N: `positions` already
     /// include its effect.
     pub applied: Vec3,
+    /// The force the patch's own contact puts on the tissue with the tool where the
+    /// deformation step had it and the patch as published (`u = 0`), N: what the haptic
+    /// loop's solve balances, `u = C (F(u) − balanced)`, so that at that pose the patch
+    /// stays where the deformation left it ([`ContactPatch::balance_at`]). It differs
+    /// from `applied` where the patch's contact, its vertices and points moved as a
+    /// whole, cannot reproduce the deformation's own: balancing `applied` instead, 0.2 N
+    /// across a 3 × 0.4 mm blade plate pressed point first (a force of the deformation's
+    /// that no patch contact reproduces, along the plate's width) slid the patch 2.4 mm
+    /// (its compliance: 12 mm/N) off the plate's end within the first solve, and the
+    /// device felt nothing while the deformation pushed with 6.6 N.
+    pub balanced: Vec3,
     /// The relative residual the compliance solves reached (the largest of the three).
     pub compliance_residual: f64,
     /// Per vertex: where it sticks to the tool, from the tool's tip, m (world frame);
@@ -128,6 +139,7 @@ impl ContactPatch {
         self.positions.clear();
         self.compliance = Matrix3::zeros();
         self.applied = Vec3::zeros();
+        self.balanced = Vec3::zeros();
         self.compliance_residual = 0.0;
         self.anchors.clear();
         self.friction = Friction::default();
@@ -200,7 +212,7 @@ impl ContactPatch {
         // k (I − n nᵀ) over those that stick).
         let residual_at = |u: &Vec3, exact: bool| {
             let (force, stiffness) = self.forces(tool, u, sliding, released, exact);
-            (u - self.compliance * (force - self.applied), stiffness)
+            (u - self.compliance * (force - self.balanced), stiffness)
         };
         let mut u = Vec3::zeros();
         let (mut residual, mut stiffness) = residual_at(&u, false);
@@ -268,6 +280,33 @@ impl ContactPatch {
             }
         }
         changed
+    }
+
+    /// Sets [`Self::balanced`] from the patch's own contact with `then`, the tool where
+    /// the deformation step that made the patch had it (None: away), and the patch as
+    /// published: its force `F₀` and stiffness `K₀` there. Balancing `applied`, the solve
+    /// at that pose moves the patch by `u = (I + C K₀)⁻¹ C (F₀ − applied)`: where the
+    /// contact is stiff (C K₀ ≫ 1) by little, rendering `applied` (the solved state's
+    /// force, as wanted), but along a direction no contact of the patch resists (K₀ = 0:
+    /// along a thin plate's width, where its end's points are pushed along its axis and
+    /// its flats' across it) by the whole of C times the difference, off the tool. So
+    /// along each eigendirection e of K₀ (eigenvalue λ) the patch balances its own force
+    /// `F₀` in the proportion `1 / (1 + c λ)` (c: the compliance's mean diagonal) and
+    /// `applied` in the rest: `applied` where the contact is stiff, `F₀` (no slide) where
+    /// nothing resists. Balancing `F₀` everywhere instead rendered a 5 mm probe's force
+    /// in a block at 0.50 times the deformation's (its vertices' penalties at the
+    /// published positions differ from the solved contact forces by up to 60 %).
+    pub fn balance_at(&mut self, then: Option<&Capsule>) {
+        self.balanced = self.applied;
+        let Some(tool) = then else { return };
+        let (own, stiffness) = self.forces(tool, &Vec3::zeros(), &VertexSet::default(), &VertexSet::default(), false);
+        let c = self.compliance.trace() / 3.0;
+        let eigen = ((stiffness + stiffness.transpose()) * 0.5).symmetric_eigen();
+        for (k, lambda) in eigen.eigenvalues.iter().enumerate() {
+            let e = eigen.eigenvectors.column(k);
+            let resisted = c * lambda.max(0.0);
+            self.balanced += e * (e.dot(&(own - self.applied)) / (1.0 + resisted * resisted));
+        }
     }
 
     /// After the haptic step's `contact` was rendered: each vertex in contact keeps the
@@ -504,7 +543,7 @@ mod tests {
         let tool = Capsule { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.06), radius_m: 1.5e-3f64.hypot(0.2e-3), stiffness_n_per_m: 20_000.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.0005, plate: Some(plate) };
         let positions = vec![Vec3::new(0.0, 0.0, 1.61e-3), Vec3::new(-0.565e-3, 0.0, 1.87e-3), Vec3::new(0.39e-3, 0.0, 1.72e-3)];
         let compliance = Matrix3::from_diagonal(&Vec3::new(0.0139, 0.0141, 0.0094));
-        let patch = ContactPatch { vertices: vec![0, 1, 2], held: vec![Some(-Vec3::z()); 3], positions, compliance, applied: Vec3::new(0.0, 0.0, -1.38), tool_tip_m: Some(Vec3::new(0.0, 0.0, 1.65e-3)), ..ContactPatch::default() };
+        let patch = ContactPatch { vertices: vec![0, 1, 2], held: vec![Some(-Vec3::z()); 3], positions, compliance, applied: Vec3::new(0.0, 0.0, -1.38), balanced: Vec3::new(0.0, 0.0, -1.38), tool_tip_m: Some(Vec3::new(0.0, 0.0, 1.65e-3)), ..ContactPatch::default() };
         let contact = patch.solve(&tool);
         // Only the highest point stays in: u (1 + kC) = C (−k · 1.87 mm + 1.38 N).
         let u = 0.0094 * (-20_000.0 * 1.87e-3 + 1.38) / (1.0 + 20_000.0 * 0.0094);
@@ -512,6 +551,31 @@ mod tests {
         assert!((contact.displacement_m.z - u).abs() < 1e-8, "{contact:?} against u = {u}");
         assert!((contact.force_n.z - 20_000.0 * (1.87e-3 + u)).abs() < 1e-3, "{contact:?}");
         assert!(contact.force_n.z > 1.0);
+    }
+
+    /// A patch under a 3 × 0.4 mm plate's end whose deformation step ended with a force
+    /// along the plate's width, which none of its contacts (pushed along the axis)
+    /// resists: balanced on the deformation's force the patch slides that force times
+    /// its compliance (7 mm) off the end and nothing is rendered; balanced on its own
+    /// force along the width (`balance_at`) it stays under the end, and the press along
+    /// the axis, which its contacts resist, is still the deformation's.
+    #[test]
+    fn a_patch_balances_its_own_force_where_its_contact_does_not_resist() {
+        let plate = crate::grid::hold::Plate { edge: Vec3::x(), flat: Vec3::y(), half_width: 1.5e-3, half_thickness: 0.2e-3 };
+        let tool = Capsule { tip: Vec3::zeros(), top: Vec3::new(0.0, 0.0, 0.06), radius_m: 1.5e-3f64.hypot(0.2e-3), stiffness_n_per_m: 20_000.0, rotation: Matrix3::identity(), holds: true, max_depth_m: 0.0005, plate: Some(plate) };
+        // Pressed 0.15 mm in by the end where the deformation had the tool.
+        let positions = vec![Vec3::new(-0.5e-3, 0.0, 0.15e-3), Vec3::new(0.4e-3, 0.0, 0.15e-3)];
+        let compliance = Matrix3::from_diagonal(&Vec3::new(0.014, 0.014, 0.009));
+        let applied = Vec3::new(0.5, 0.0, -6.0);
+        let mut patch = ContactPatch { vertices: vec![0, 1], held: vec![Some(-Vec3::z()); 2], anchors: vec![None; 2], positions, compliance, applied, balanced: applied, tool_tip_m: Some(Vec3::zeros()), ..ContactPatch::default() };
+        let slid = patch.solve(&tool);
+        assert!(slid.contacts == 0 && slid.force_n.norm() == 0.0, "balancing the deformation's force it slid off: {slid:?}");
+        patch.balance_at(Some(&tool));
+        assert!(patch.balanced.x.abs() < 1e-9 && (patch.balanced.z - applied.z).abs() < 0.01 * applied.z.abs(), "{:?}", patch.balanced);
+        let held = patch.solve(&tool);
+        assert_eq!(held.contacts, 2, "{held:?}");
+        assert!(held.displacement_m.x.abs() < 1e-9, "{held:?}");
+        assert!((held.force_n.z + applied.z).abs() < 0.05 * applied.z.abs(), "the press is the deformation's: {held:?}");
     }
 
     #[test]
@@ -544,6 +608,7 @@ mod tests {
         let mut moved = flat_patch(1e-3);
         moved.positions.iter_mut().for_each(|x| *x += settled.displacement_m);
         moved.applied = -settled.force_n;
+        moved.balanced = moved.applied;
         let again = moved.solve(&probe(1e-3));
         assert!((again.force_n - settled.force_n).norm() < 1e-9 * settled.force_n.norm().max(1.0), "{again:?} vs {settled:?}");
         assert!(again.displacement_m.norm() < 1e-9);
