@@ -1682,5 +1682,3 @@ fn a_shaft_drawn_along_the_grid_is_held_back_by_coulomb_friction() {
         assert!(sliding.abs() < 0.05, "{what}, frictionless: pull over press {sliding:.3}");
     }
 }
-
-
