@@ -165,6 +165,16 @@ fn grid_allocations_with_a_probe_held(extra: &str) -> (u64, Vec3) {
 /// [`grid_allocations_with_a_probe_held`] with `material` added to the block's material
 /// and a probe of `radius_m`.
 fn grid_allocations_with_a_probe_held_in(material: &str, extra: &str, radius_m: f64) -> (u64, Vec3) {
+    let probe = format!(r#"{{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": {radius_m}, "length_m": 0.06 }} }} }}"#);
+    grid_allocations_pressing(material, extra, &probe, radius_m, None, 300)
+}
+
+/// A 40 × 20 × 10 mm block (1 mm voxels, its top at z = 5 mm) with `material` added to
+/// its material, `extra` grid settings and the tool `tool` (JSON), lowered upright, its
+/// tip `end_m` above the point that presses (a ball end's radius), 2 mm into the block
+/// over 100 steps and held, its button held from step `close_from`: the allocations over
+/// steps 100 to `until`, and the last force on the tool.
+fn grid_allocations_pressing(material: &str, extra: &str, tool: &str, end_m: f64, close_from: Option<usize>, until: usize) -> (u64, Vec3) {
     let text = format!(
         r#"{{ "name": "block", "gravity_m_per_s2": [0, 0, -9.81],
         "model": {{ "branched-grid": {{
@@ -174,16 +184,16 @@ fn grid_allocations_with_a_probe_held_in(material: &str, extra: &str, radius_m: 
             "level": 1,
             "fixed": [ {{ "side": {{ "side": "-z" }} }} ],
             {extra} }} }},
-        "tools": [ {{ "name": "probe", "shape": {{ "cylinder": {{ "radius_m": {radius_m}, "length_m": 0.06 }} }} }} ] }}"#
+        "tools": [ {tool} ] }}"#
     );
     let mut model = cutsim_sim::build_tissue(&scene(&text)).unwrap_or_else(|e| panic!("{e}"));
-    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 + radius_m - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: false }];
+    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 + end_m - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: close_from.is_some_and(|from| i >= from) }];
     let mut feedback = [ToolFeedback::default()];
     for i in 0..100 {
         model.step(&press(i), &mut feedback);
     }
     let allocations = allocations_during(|| {
-        for i in 100..300 {
+        for i in 100..until {
             model.step(&press(i), &mut feedback);
         }
     });
@@ -228,28 +238,11 @@ fn multirate_haptic_steps_allocate_nothing() {
 /// the block and close on it.
 #[test]
 fn multirate_haptic_steps_with_forceps_allocate_nothing() {
-    let text = r#"{ "name": "block",
-        "model": { "branched-grid": {
-            "volume": { "box": { "size_m": [0.04, 0.02, 0.01], "voxel_size_m": 0.001 } },
-            "centre": true,
-            "materials": [ { "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 } ],
-            "level": 1,
-            "fixed": [ { "side": { "side": "-z" } } ],
-            "solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } } } },
-        "tools": [ { "name": "forceps", "shape": { "forceps": { "width_m": 0.003, "thickness_m": 0.002, "length_m": 0.06, "opening_m": 0.004 } } } ] }"#;
-    let mut model = cutsim_sim::build_tissue(&scene(text)).unwrap_or_else(|e| panic!("{e}"));
-    // The block's top is at z = 5 mm: pressed 2 mm in over 100 steps, closed from step 150.
-    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: i >= 150 }];
-    let mut feedback = [ToolFeedback::default()];
-    for i in 0..100 {
-        model.step(&press(i), &mut feedback);
-    }
-    let allocations = allocations_during(|| {
-        for i in 100..400 {
-            model.step(&press(i), &mut feedback);
-        }
-    });
-    assert!(feedback[0].force_n.z > 0.0, "the closed forceps press the block: {:?}", feedback[0].force_n);
+    let forceps = r#"{ "name": "forceps", "shape": { "forceps": { "width_m": 0.003, "thickness_m": 0.002, "length_m": 0.06, "opening_m": 0.004 } } }"#;
+    let multirate = r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#;
+    // Closed from step 150.
+    let (allocations, force) = grid_allocations_pressing("", multirate, forceps, 0.0, Some(150), 400);
+    assert!(force.z > 0.0, "the closed forceps press the block: {force:?}");
     assert_eq!(allocations, 0, "multirate haptic steps with forceps allocated");
 }
 

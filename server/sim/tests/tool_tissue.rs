@@ -1382,25 +1382,14 @@ fn forceps_closed_on_the_grid_while_pressed_keep_pushing() {
     let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
     let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
     let top = grid.broad_top().unwrap();
-    let (x, y) = (top.x + 0.0003, top.y + 0.0002);
     let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
-    // 8 mm of travel at 50 mm/s from 2 mm above, then held: open until 460 ms, closed
-    // until 760 ms, open again until 1,100 ms.
-    let (mut open_pressed, mut closed_least, mut reopened_least) = (0.0, f64::INFINITY, f64::INFINITY);
-    for step in 0..1100u32 {
-        let tip = Vec3::new(x, y, top.z + 0.002 - 0.05e-3 * f64::from(step.min(160)));
-        let closed = (460..760).contains(&step);
-        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed };
+    // Closed until 760 ms, the force read from when the jaws have met; open again until
+    // 1,100 ms.
+    let timeline = CloseAndReopen { closed: 460..760, closed_read_from: 500, reopened_read_from: 760, end: 1100 };
+    let (open_pressed, closed_least, reopened_least) = press_close_reopen(top, &timeline, |command| {
         grid.step(&[command], &mut feedback);
-        let force = feedback[0].force_n.z;
-        match step {
-            459 => open_pressed = force,
-            // From when the jaws have met.
-            500..760 => closed_least = closed_least.min(force),
-            760.. => reopened_least = reopened_least.min(force),
-            _ => {}
-        }
-    }
+        feedback[0].force_n.z
+    });
     let c = grid.counters();
     println!("grid, forceps 6 mm in: {open_pressed:.2} N open, at least {closed_least:.2} N closed, at least {reopened_least:.2} N reopened; {} of {} solves at the cap, worst residual {:.1e}", c.solver_cap_hits, c.solves, c.solver_max_residual);
     assert_eq!(grid.counters().blowups_contained, 0);
@@ -1420,26 +1409,43 @@ fn grid_block_with_thick_forceps() -> Scene {
     Scene::from_json_str(&json.to_string(), "block with thick forceps", None).unwrap()
 }
 
-/// Forceps pressed 6 mm into the block at 50 mm/s and held open until 460 ms, closed (the
-/// button held) until 1,300 ms, then reopened until 1,640 ms, by `step(command)`, which
-/// returns the force on the forceps: the force open at 459 ms, the least from 1,200 ms
-/// (closed) and the least over the last 200 ms (reopened), N.
-fn press_close_reopen(top: Vec3, mut step: impl FnMut(cutsim_sim::tool::ToolCommand) -> f64) -> (f64, f64, f64) {
+/// When forceps pressed into the grid are closed (the button held over `closed`, from
+/// 460 ms) and open again until `end`, and from when the force is read closed (to the
+/// end of `closed`) and reopened (to `end`), ms.
+struct CloseAndReopen {
+    closed: std::ops::Range<u32>,
+    closed_read_from: u32,
+    reopened_read_from: u32,
+    end: u32,
+}
+
+/// Forceps pressed into the block 0.3 and 0.2 mm off its top's vertex, 8 mm of travel at
+/// 50 mm/s from 2 mm above (6 mm in) and held, open until `timeline.closed` begins,
+/// closed over it and open again, by `step(command)`, which returns the force on the
+/// forceps: the force open just before they close, and the least closed and reopened
+/// over the timeline's reading windows, N.
+fn press_close_reopen(top: Vec3, timeline: &CloseAndReopen, mut step: impl FnMut(cutsim_sim::tool::ToolCommand) -> f64) -> (f64, f64, f64) {
     let (x, y) = (top.x + 0.0003, top.y + 0.0002);
     let (mut open, mut closed, mut reopened) = (0.0, f64::INFINITY, f64::INFINITY);
-    for ms in 0..1640u32 {
+    for ms in 0..timeline.end {
         let tip = Vec3::new(x, y, top.z + 0.002 - 0.05e-3 * f64::from(ms.min(160)));
-        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: (460..1300).contains(&ms) };
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: timeline.closed.contains(&ms) };
         let force = step(command);
-        match ms {
-            459 => open = force,
-            1200..1300 => closed = closed.min(force),
-            1440.. => reopened = reopened.min(force),
-            _ => {}
+        if ms + 1 == timeline.closed.start {
+            open = force;
+        } else if (timeline.closed_read_from..timeline.closed.end).contains(&ms) {
+            closed = closed.min(force);
+        } else if ms >= timeline.reopened_read_from {
+            reopened = reopened.min(force);
         }
     }
     (open, closed, reopened)
 }
+
+/// The timeline of [`under_multirate_forceps_press_the_grid_with_both_jaws`]: closed
+/// until 1,300 ms (the paced jaws meet 660 ms after the button), the force read over the
+/// last 100 ms closed and the last 200 ms reopened.
+const SLOW_CLOSE_AND_REOPEN: CloseAndReopen = CloseAndReopen { closed: 460..1300, closed_read_from: 1200, reopened_read_from: 1440, end: 1640 };
 
 /// Under a multirate schedule (deformation every 33 ms) forceps are two bodies too
 /// (crate::tool::bodies): the haptic loop splits the command into its jaws', renders
@@ -1458,7 +1464,7 @@ fn under_multirate_forceps_press_the_grid_with_both_jaws() {
     let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
     let top = grid.broad_top().unwrap();
     let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 1];
-    let single = press_close_reopen(top, |command| {
+    let single = press_close_reopen(top, &SLOW_CLOSE_AND_REOPEN, |command| {
         grid.step(&[command], &mut feedback);
         feedback[0].force_n.z
     });
@@ -1466,7 +1472,7 @@ fn under_multirate_forceps_press_the_grid_with_both_jaws() {
     let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
     let mut jaws_open = [0.0; 2];
     let mut ms = 0;
-    let multi = press_close_reopen(top, |command| {
+    let multi = press_close_reopen(top, &SLOW_CLOSE_AND_REOPEN, |command| {
         model.step(&[command], &mut feedback);
         // What each jaw's deformation step pushes with.
         if ms == 459 {

@@ -303,13 +303,6 @@ impl BranchedGrid {
         self.tools.len()
     }
 
-    /// Whether a tool whose thinnest half-size is `half_size_m` fits between the
-    /// surface's vertices, so that the insides of its triangles hold it (face_contact),
-    /// not its vertices alone.
-    pub fn holds_between_vertices(&self, half_size_m: f64) -> bool {
-        self.fits_between_vertices(half_size_m)
-    }
-
     /// One deformation step of a multirate schedule (crate::multirate): a step as
     /// [`Self::step`] (its own implicit contact with the tools where `commands` put them,
     /// and cuts, also along `path`: the haptic steps' commands since the last deformation
@@ -756,7 +749,7 @@ impl BranchedGrid {
         let limit = self.max_voxels_per_step.unwrap_or(0);
         let mut removed: Vec<usize> = Vec::new();
         let mut tips: Vec<(usize, Vec3)> = Vec::new();
-        let half_voxel = self.topo.layout.spacing_m.iter().copied().fold(f64::INFINITY, f64::min) * 0.5;
+        let half_voxel = self.topo.layout.smallest_side_m() * 0.5;
         let tools = self.tools.len();
         let mut moved = None;
         for (i, command) in commands.iter().enumerate() {

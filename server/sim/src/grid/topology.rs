@@ -40,6 +40,11 @@ impl Layout {
         Self { voxels, levels, side, cells: voxels.map(|n| n.div_ceil(side)), spacing_m }
     }
 
+    /// A voxel's smallest side, m.
+    pub fn smallest_side_m(&self) -> f64 {
+        self.spacing_m.into_iter().fold(f64::INFINITY, f64::min)
+    }
+
     pub fn voxel_index(&self, v: [usize; 3]) -> usize {
         v[0] + self.voxels[0] * (v[1] + self.voxels[1] * v[2])
     }

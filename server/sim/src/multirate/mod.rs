@@ -273,17 +273,16 @@ pub fn build_from_scene(scene: &Scene, schedule: &MultirateSpec) -> Result<Multi
 fn refuse_thin_jaws(scene: &Scene, grid: &BranchedGrid, every: u32) -> Result<(), SceneError> {
     for (i, tool) in grid.tools().iter().enumerate() {
         let Section::Jaws { half_thickness_m, .. } = tool.section else { continue };
-        if grid.holds_between_vertices(half_thickness_m) {
-            let mut sides = grid.topology().layout.spacing_m;
-            sides.sort_by(f64::total_cmp);
+        let held_from = grid.held_by_vertices_from_m();
+        if half_thickness_m < held_from {
             return Err(SceneError::new(
                 &scene.origin,
                 format!("tools[{i}].shape.forceps.thickness_m"),
                 format!(
                     "jaws {:.2} mm thick fit between this grid's surface vertices ({:.2} mm voxels), where the insides of its triangles hold them, and a multirate deformation step ({every} haptic steps) does not hold those steadily: under a multirate schedule forceps' jaws must be at least {:.2} mm thick here (the diagonal of a voxel's largest face); or use \"schedule\": \"single-rate\"",
                     2.0 * half_thickness_m * 1e3,
-                    sides[0] * 1e3,
-                    sides[1].hypot(sides[2]) * 1e3
+                    grid.topology().layout.smallest_side_m() * 1e3,
+                    2.0 * held_from * 1e3
                 ),
             ));
         }
@@ -300,8 +299,7 @@ impl Multirate {
         // The grid's own bodies, as it expands them.
         let (tools, mut bodies) = crate::tool::bodies::expand(&scene_tools);
         if let Some(bodies) = bodies.as_mut() {
-            let voxel = grid.topology().layout.spacing_m.iter().copied().fold(f64::INFINITY, f64::min);
-            bodies.pace_jaws_for(every as f64 * dt_s, JAW_TRAVEL_PER_DEFORMATION_VOXELS * voxel);
+            bodies.pace_jaws_for(every as f64 * dt_s, JAW_TRAVEL_PER_DEFORMATION_VOXELS * grid.topology().layout.smallest_side_m());
         }
         let count = tools.len();
         let margin_m = patch_margin_m(&grid, every as f64 * dt_s);

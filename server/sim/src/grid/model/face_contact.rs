@@ -169,7 +169,7 @@ impl BranchedGrid {
     /// line lies over it, also once the point it held slid off the end's corner.
     fn plate_end_contacts(&self, at: &ToolAt<'_>, candidates: &[u32], out: &mut Vec<FaceContact>) {
         let Some(plate) = &at.capsule.plate else { return };
-        let lines = end_lines(plate.half_thickness, self.topo.layout.spacing_m.into_iter().fold(f64::INFINITY, f64::min));
+        let lines = end_lines(plate.half_thickness, self.topo.layout.smallest_side_m());
         for line in 0..lines {
             let across = if lines == 1 { 0.0 } else { (2.0 * line as f64 / (lines - 1) as f64 - 1.0) * END_LINES_REACH * plate.half_thickness };
             let middle = at.capsule.a + plate.flat * across;
@@ -199,14 +199,22 @@ impl BranchedGrid {
     }
 
     /// Whether a tool whose thinnest half-size is `radius` (a capsule's radius, half a
-    /// plate's thickness) can touch the surface between its vertices: a ball
-    /// narrower than half the diagonal of a voxel's largest face rests on a flat face of
-    /// the surface without touching a vertex (they stand at the voxels' face centres).
-    /// Wider tools meet vertices first and are held by them alone.
+    /// plate's thickness) can touch the surface between its vertices, under
+    /// [`Self::held_by_vertices_from_m`]. Wider tools meet vertices first and are held by
+    /// them alone.
     pub(super) fn fits_between_vertices(&self, radius: f64) -> bool {
+        radius < self.held_by_vertices_from_m()
+    }
+
+    /// The thinnest half-size (a capsule's radius, half a plate's thickness) of a tool
+    /// the surface's vertices hold, m: half the diagonal of a voxel's largest face. A
+    /// ball narrower than that rests on a flat face of the surface without touching a
+    /// vertex (they stand at the voxels' face centres), and the insides of the triangles
+    /// hold it.
+    pub fn held_by_vertices_from_m(&self) -> f64 {
         let mut sides = self.topo.layout.spacing_m;
         sides.sort_by(f64::total_cmp);
-        radius < 0.5 * sides[1].hypot(sides[2])
+        0.5 * sides[1].hypot(sides[2])
     }
 
     /// A new point under the tip on the triangle `nearest` names: its point nearest the
