@@ -174,7 +174,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
                 let (width_m, thickness_m, jaw_opening_m) = match t.section {
                     cutsim_sim::tool::Section::Round => (0.0, 0.0, 0.0),
                     cutsim_sim::tool::Section::Plate { half_width_m, half_thickness_m } => (2.0 * half_width_m, 2.0 * half_thickness_m, 0.0),
-                    cutsim_sim::tool::Section::Jaws { half_width_m, half_thickness_m, half_gap_m } => (2.0 * half_width_m, 2.0 * half_thickness_m, 2.0 * half_gap_m),
+                    cutsim_sim::tool::Section::Jaws { half_width_m, half_thickness_m, half_gap_m, .. } => (2.0 * half_width_m, 2.0 * half_thickness_m, 2.0 * half_gap_m),
                 };
                 pb::ToolInfo {
                     name: t.name.clone(),

@@ -105,23 +105,33 @@ fn steps_with_contact_allocate_nothing() {
     }
 }
 
-/// Forceps (the probe replaced) pressed into the skin, their jaws closed and opened:
-/// splitting a forceps into its jaws and summing their feedback allocates nothing.
+/// Forceps (the probe replaced) pressed into the skin, their jaws closed on it, lifted
+/// with it grasped, lowered and opened: splitting a forceps into its jaws, summing their
+/// feedback and grasping allocate nothing.
 #[test]
-fn forceps_pressing_closing_and_opening_allocate_nothing() {
+fn forceps_pressing_closing_grasping_and_opening_allocate_nothing() {
     let text = std::fs::read_to_string(scenes_dir().join("skin-patch.json"))
         .unwrap()
         .replace(r#"{ "cylinder": { "radius_m": 0.003, "length_m": 0.08, "tip": "round" } }"#, r#"{ "forceps": { "width_m": 0.002, "thickness_m": 0.001, "length_m": 0.08, "opening_m": 0.008 } }"#);
     assert!(text.contains("forceps"), "the probe's shape in skin-patch.json changed");
     let mut m = build(&cutsim_sim::scene::Scene::from_json_str(&text, "forceps", None).unwrap());
     let (mut commands, mut fb) = lower_tool_1(&mut m);
+    let mut grasped = 0;
     let count = allocations_during(|| {
-        for closed in [true, false] {
-            commands[1].cut = closed;
-            run(&mut m, &commands, &mut fb, 100);
+        commands[1].cut = true;
+        run(&mut m, &commands, &mut fb, 100);
+        grasped = m.grasped_nodes(1);
+        for rise in [4e-5, -4e-5] {
+            for _ in 0..100 {
+                commands[1].pose.position_m.z += rise;
+                run(&mut m, &commands, &mut fb, 1);
+            }
         }
+        commands[1].cut = false;
+        run(&mut m, &commands, &mut fb, 100);
     });
     assert_eq!(count, 0, "forceps steps allocated {count} times");
+    assert!(grasped > 0, "the closed jaws grasp the skin between them");
     assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "the jaws are pushed back: {:?}", fb[1]);
 }
 

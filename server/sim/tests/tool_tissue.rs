@@ -866,8 +866,7 @@ fn forceps_cannot_cut_and_the_branched_grid_holds_them_under_either_schedule() {
 /// there, with either integrator: the skin never gets half an edge past a jaw's tip on
 /// its centre line (held still, a plate lets it creep a little past its tip: a single
 /// 2 × 1 mm blade plate held 6 mm in, 0.37 mm), they press the skin again once they have
-/// moved, and the closing squeezes the skin that rose between the jaws out sideways
-/// rather than letting the closed plate through.
+/// moved, and closing grasps the skin that rose between the jaws.
 #[test]
 fn forceps_closed_and_reopened_while_pressed_keep_holding_the_skin() {
     for implicit in [false, true] {
@@ -896,8 +895,10 @@ fn forceps_closed_and_reopened_while_pressed_keep_holding_the_skin() {
                 commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed };
                 skin.step(&commands, &mut feedback);
                 step += 1;
-                // The jaws' centre lines once they have moved (4 mm at 0.1 m/s: 40 steps).
-                let lines: &[f64] = if at < 50 { &[] } else if closed { &[0.0] } else { &[-0.0045, 0.0045] };
+                // The jaws' centre lines once they have moved (4 mm at 0.1 m/s: 40 steps);
+                // closed on the skin that rose between them, they stop on it with their
+                // inner flats a skin thickness (2 mm) apart and grasp it.
+                let lines: &[f64] = if at < 50 { &[] } else if closed { &[-0.0015, 0.0015] } else { &[-0.0045, 0.0045] };
                 for &y in lines {
                     let past = skin_height(&skin, (0.0, y)).map_or(f64::NEG_INFINITY, |z| z - tip.z);
                     assert!(past < allowed, "{integrator}, phase {phase} ({}): the skin {:.2} mm past the jaw at y = {y}", if closed { "closed" } else { "open" }, past * 1e3);
@@ -907,12 +908,105 @@ fn forceps_closed_and_reopened_while_pressed_keep_holding_the_skin() {
             }
             let force = feedback[1].force_n.z;
             println!("{integrator}, phase {phase} ({}): {force:.2} N at the end, at least {weakest:.2} N; the skin at most {:.3} mm past a jaw's tip so far", if closed { "closed" } else { "open" }, worst * 1e3);
-            // Held, closing and reopening, they never let go of the skin (the implicit
-            // skin's force dips as the jaws meet: 0.58 N at the step before).
-            if phase > 0 {
+            // Held and reopening, they never let go of the skin. Closing, they grasp the
+            // fold between the jaws, and squeezing it drags them down by its friction for
+            // a while (implicit: to −0.30 N; before grasping, the force dipped to 0.58 N
+            // as the jaws met), then press again.
+            if closed {
+                assert!(skin.grasped_nodes(1) > 0, "{integrator}: the closed jaws hold the skin between them");
+                assert!(force > 0.5, "{integrator}, phase {phase}: the forceps let go of the skin 6 mm in ({force:.2} N)");
+            } else if phase > 0 {
                 assert!(weakest > 0.5, "{integrator}, phase {phase}: the forceps let go of the skin 6 mm in ({weakest:.2} N)");
             }
         }
+    }
+}
+
+/// What [`grasp_and_lift`] saw.
+#[derive(Debug)]
+struct GraspRun {
+    /// Nodes held when the jaws have closed.
+    grasped: usize,
+    /// The skin's highest point on the forceps' axis while lifted, above its rest, m.
+    highest_m: f64,
+    /// The strongest pull of the skin on the forceps (downwards), N.
+    strongest_pull_n: f64,
+    /// How far the forceps had been lifted when the skin slipped out, m.
+    slipped_at_m: Option<f64>,
+    /// After the lift (and the release, if any): nodes held, the force, the skin on the axis.
+    end: (usize, f64, f64),
+}
+
+/// The default scene with forceps pinching with `grip_n`: pressed 6 mm in open (from
+/// 2 mm above at 50 mm/s), closed there, lifted `lift_m` at 20 mm/s with the button
+/// held, then, with `release`, let go of and held still for 0.3 s.
+fn grasp_and_lift(implicit: bool, grip_n: f64, lift_m: f64, release: bool) -> GraspRun {
+    let scene = edit(&with_forceps(), |s| {
+        s["tools"][1]["shape"]["forceps"]["grip_force_n"] = serde_json::json!(grip_n);
+        if implicit {
+            use_implicit_integrator(s);
+        }
+    });
+    let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+    let dt = scene.time_step_s.get();
+    let mut skin = cutsim_sim::msm::build_from_scene(&scene, spec).unwrap();
+    let mut commands = vec![cutsim_sim::tool::ToolCommand::default(); 2];
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 2];
+    let lift_steps = (lift_m / (0.02 * dt)).round() as u32;
+    let phases = [(160, -0.05, false), (200, 0.0, true), (lift_steps, 0.02, true), (if release { 300 } else { 0 }, 0.0, false)];
+    let mut tip_z = 0.002;
+    let mut run = GraspRun { grasped: 0, highest_m: f64::NEG_INFINITY, strongest_pull_n: 0.0, slipped_at_m: None, end: (0, 0.0, 0.0) };
+    for (phase, &(steps, speed, closed)) in phases.iter().enumerate() {
+        for at in 0..steps {
+            tip_z += speed * dt;
+            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, tip_z), Quat::identity()), active: true, cut: closed };
+            skin.step(&commands, &mut feedback);
+            if phase == 2 {
+                let held = skin.grasped_nodes(1);
+                if held > 0 {
+                    run.highest_m = run.highest_m.max(skin_height(&skin, (0.0, 0.0)).unwrap_or(f64::NEG_INFINITY));
+                    run.strongest_pull_n = run.strongest_pull_n.max(-feedback[1].force_n.z);
+                } else if run.slipped_at_m.is_none() {
+                    run.slipped_at_m = Some(0.02 * dt * f64::from(at + 1));
+                }
+            }
+        }
+        if phase == 1 {
+            run.grasped = skin.grasped_nodes(1);
+        }
+    }
+    run.end = (skin.grasped_nodes(1), feedback[1].force_n.norm(), skin_height(&skin, (0.0, 0.0)).unwrap_or(f64::NAN));
+    run
+}
+
+/// Forceps pressed 6 mm into the skin open and closed there grasp the skin that rose
+/// between their jaws: lifted, they carry it up with them, the skin pulling them back
+/// by at most the jaws' friction on it (2 μ_s × the grip); pulled on, it slips out of
+/// them, later under a firmer grip; released, it falls back. Both integrators.
+/// (docs/tool-tissue.md, "Grasping".)
+#[test]
+fn forceps_closed_on_the_skin_grasp_it_and_lift_it_until_it_slips_or_is_released() {
+    let mu_static = 0.5;
+    for implicit in [false, true] {
+        let integrator = if implicit { "implicit" } else { "explicit" };
+        let [firm, light] = [6.8, 3.0].map(|grip| grasp_and_lift(implicit, grip, 0.03, false));
+        for (grip, run) in [(3.0, &light), (6.8, &firm)] {
+            println!("{integrator}, grip {grip} N: {} nodes grasped; lifted, the skin rose to {:.2} mm, pulling the forceps back with up to {:.2} N (friction's limit {:.1} N); slipped out {}; after the lift {:.3} N",
+                run.grasped, run.highest_m * 1e3, run.strongest_pull_n, 2.0 * mu_static * grip, run.slipped_at_m.map_or("never".to_owned(), |m| format!("{:.1} mm up", m * 1e3)), run.end.1);
+            assert!(run.grasped >= 2, "{integrator}, grip {grip} N: the closed jaws hold the skin between them ({} nodes)", run.grasped);
+            assert!(run.highest_m > 3e-3, "{integrator}, grip {grip} N: the grasped skin rose only {:.2} mm", run.highest_m * 1e3);
+            assert!(run.strongest_pull_n > 1.0, "{integrator}, grip {grip} N: the grasped skin pulled back with only {:.2} N", run.strongest_pull_n);
+            assert!(run.strongest_pull_n <= 1.05 * 2.0 * mu_static * grip, "{integrator}, grip {grip} N: {:.2} N held, beyond friction's {:.1} N", run.strongest_pull_n, 2.0 * mu_static * grip);
+        }
+        let slipped = light.slipped_at_m.expect("pulled 30 mm up, the skin slips out of a 3 N grip");
+        assert!(light.end.0 == 0 && light.end.1 < 0.05, "{integrator}: slipped out, nothing pulls the forceps ({:.3} N)", light.end.1);
+        assert!(firm.slipped_at_m.is_none_or(|m| m > slipped) && firm.highest_m > light.highest_m && firm.strongest_pull_n > light.strongest_pull_n, "{integrator}: a firmer grip holds on longer: {firm:?} against {light:?}");
+        // Lifted 10 mm (the tip 4 mm above the skin's rest, the skin still held) and let
+        // go of: the skin falls back to rest.
+        let released = grasp_and_lift(implicit, 3.0, 0.01, true);
+        println!("{integrator}, lifted 10 mm and released: the skin rose to {:.2} mm and is back at {:.3} mm, {} nodes held, {:.3} N", released.highest_m * 1e3, released.end.2 * 1e3, released.end.0, released.end.1);
+        assert!(released.slipped_at_m.is_none() && released.highest_m > 2e-3, "{integrator}: held while lifted 10 mm: {released:?}");
+        assert!(released.end.0 == 0 && released.end.2.abs() < 5e-4 && released.end.1 < 0.05, "{integrator}: released, the skin falls back: {released:?}");
     }
 }
 

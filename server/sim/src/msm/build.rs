@@ -167,6 +167,13 @@ impl MassSpring {
         // The skin meets bodies: the tools, forceps as their two jaws.
         let (scene_tools, (tools, bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
         let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], crate::tool::bodies::Bodies::twins);
+        // Grasp springs as stiff as the holds' under the implicit integrator; under the
+        // explicit one, the contact's (what its substeps are stable for).
+        let grasp_stiffness = match params.integrator {
+            IntegratorChoice::ImplicitEuler { .. } => super::HELD_STIFFNESS_OVER_CONTACT,
+            IntegratorChoice::SymplecticEuler { .. } => 1.0,
+        };
+        let grasps = super::grasp::Grasps::new(&scene_tools, bodies.as_ref(), params.material.thickness_m, mean_edge_m, n, grasp_stiffness);
         let foundation = params.foundation.map(|f| Foundation::new(f, &nodes, &topo));
         // A tool's contact and the foundation's spring may act on one node together.
         let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max)
@@ -229,6 +236,7 @@ impl MassSpring {
             tools,
             bodies,
             twins,
+            grasps,
             nodes,
             springs,
             topo,

@@ -21,6 +21,7 @@ pub(crate) mod flat;
 pub(crate) mod forces;
 pub mod foundation;
 pub(crate) mod face_hold;
+pub(crate) mod grasp;
 pub(crate) mod hold;
 pub(crate) mod side_friction;
 pub(crate) mod side_hold;
@@ -92,6 +93,11 @@ fn contact_room(nodes: &state::Nodes) -> usize {
     CONTACTS_PER_NODE * nodes.len()
 }
 
+/// The skin's friction coefficients as the stick springs take them.
+fn skin_friction((static_coefficient, dynamic_coefficient): hold::Friction) -> crate::grid::friction::Friction {
+    crate::grid::friction::Friction { static_coefficient, dynamic_coefficient }
+}
+
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
 /// step by step, the force would switch on and off with the pose's millisecond jitter,
 /// and a haptic proxy pulled through the cut would stick and slip at the loop rate (a
@@ -137,6 +143,8 @@ pub struct MassSpring {
     bodies: Option<crate::tool::bodies::Bodies>,
     /// Per body, the body whose state it takes when it comes back ([`crate::tool::bodies::Bodies::twins`]).
     twins: Vec<Option<usize>>,
+    /// What the forceps hold ([`grasp`]); None without forceps.
+    grasps: Option<grasp::Grasps>,
     placed: Vec<Option<PlacedTool>>,
     /// Where each tool was last step (the blade's velocity through the skin).
     previous_placed: Vec<Option<PlacedTool>>,
@@ -193,6 +201,9 @@ impl MassSpring {
         match self.bodies.take() {
             None => self.step_bodies(commands, feedback),
             Some(mut bodies) => {
+                if let Some(grasps) = self.grasps.as_mut() {
+                    grasps.begin_step(commands, &self.scene_tools, &mut bodies, &self.nodes, &self.grid);
+                }
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
                 self.step_bodies(&bodies.commands, &mut bodies.feedback);
                 self.counters.force_clamps += bodies.gather(&self.scene_tools, feedback);
@@ -217,6 +228,7 @@ impl MassSpring {
                     self.timed(|s| s.add_contacts(commands, feedback, weight), |t, ns| t.contacts_ns += ns);
                     self.timed(|s| s.hold_skin(feedback, weight), |t, ns| t.contacts_ns += ns);
                     self.timed(|s| s.push_with_flats(feedback, weight), |t, ns| t.contacts_ns += ns);
+                    self.timed(|s| s.grasp_skin(feedback, weight, f64::from(k) / f64::from(substeps)), |t, ns| t.contacts_ns += ns);
                     check = self.timed(
                         |s| explicit::substep(&mut s.nodes, h, s.mass_damping_per_s, s.foundation.as_ref()),
                         |t, ns| t.integrate_ns += ns,
@@ -230,9 +242,13 @@ impl MassSpring {
                 self.timed(|s| s.add_contacts(commands, feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 self.timed(|s| s.hold_skin(feedback, 1.0), |t, ns| t.contacts_ns += ns);
                 self.timed(|s| s.push_with_flats(feedback, 1.0), |t, ns| t.contacts_ns += ns);
+                self.timed(|s| s.grasp_skin(feedback, 1.0, 1.0), |t, ns| t.contacts_ns += ns);
                 let check = self.timed(|s| s.implicit_step(), |t, ns| t.integrate_ns += ns);
                 let drag = hold::Drag { mass_damping_per_s: self.mass_damping_per_s, foundation: self.foundation.as_ref() };
                 self.holder.rub_after_solve(&mut self.nodes, drag, self.dt_s, self.spring_damping_s, feedback);
+                if let Some(grasps) = self.grasps.as_mut() {
+                    grasps.after_solve(&self.nodes, self.holder.friction().map(skin_friction), &self.placed, feedback);
+                }
                 check
             }
         };
@@ -395,6 +411,15 @@ impl MassSpring {
         }
     }
 
+    /// The forceps pull what they grasp ([`grasp`]), with the tools a fraction `s` of
+    /// their way through the step.
+    fn grasp_skin(&mut self, feedback: &mut [ToolFeedback], weight: f64, s: f64) {
+        let h = self.substep_s();
+        let Some(grasps) = self.grasps.as_mut() else { return };
+        let contacts = matches!(self.integrator, Integrator::ImplicitEuler(_)).then_some(&mut self.contacts);
+        grasps.pull(&mut self.nodes, self.holder.friction().map(skin_friction), s, h, contacts, &self.placed, feedback, weight);
+    }
+
     /// The time one integration substep covers, s.
     fn substep_s(&self) -> f64 {
         match &self.integrator {
@@ -490,6 +515,9 @@ impl MassSpring {
         reserve(&mut self.contacts, contact_room(&self.nodes));
         reserve(&mut self.face_scratch, 3 * self.topo.tris.len());
         reserve(&mut self.cut_reactions, MAX_CUT_REACTIONS_PER_TOOL * self.tools.len());
+        if let Some(grasps) = self.grasps.as_mut() {
+            grasps.reserve(self.nodes.len());
+        }
     }
 
     fn implicit_step(&mut self) -> f64 {
@@ -715,6 +743,11 @@ impl MassSpring {
     }
 
     /// The incisions made so far, with their curves and lips.
+    /// How many nodes scene tool `tool` (forceps) holds ([`grasp`]).
+    pub fn grasped_nodes(&self, tool: usize) -> usize {
+        self.grasps.as_ref().map_or(0, |g| g.held_by(tool))
+    }
+
     pub fn incisions(&self) -> &[Incision] {
         self.cutter.as_ref().map_or(&[], |c| &c.incisions)
     }

@@ -442,6 +442,10 @@ fn default_contact_stiffness() -> StiffnessNPerM {
     StiffnessNPerM(200.0)
 }
 
+fn default_grip_force() -> ForceN {
+    ForceN(3.0)
+}
+
 fn default_max_force() -> ForceN {
     ForceN(20.0)
 }
@@ -469,11 +473,24 @@ pub enum ToolShapeSpec {
     /// direction, `thickness_m` across its flat, `length_m` from the tip along the +z
     /// axis), on either side of the axis with their inner flats `opening_m` apart; the
     /// command's button (`cut`, the jaw) closes them, inner flats touching. Blunt: they
-    /// press and rub, never cut (`can_cut` must be false); grasping is not modelled. On
+    /// press and rub, never cut (`can_cut` must be false). On the skin, jaws closing on
+    /// the skin between them stop on it and grasp it, held by friction with the skin's
+    /// coefficients under `grip_force_n` (docs/tool-tissue.md, "Grasping"). On
     /// the branched grid under either schedule; under a multirate one the jaws must be
     /// thick enough for its vertices to hold them (at least the diagonal of a voxel's
     /// largest face) and close at a tenth of a voxel per deformation step.
-    Forceps { width_m: BladeWidthM, thickness_m: BladeThicknessM, length_m: ToolLengthM, opening_m: JawOpeningM },
+    Forceps {
+        width_m: BladeWidthM,
+        thickness_m: BladeThicknessM,
+        length_m: ToolLengthM,
+        opening_m: JawOpeningM,
+        /// How hard the hand pinches the closed jaws together, N (the device's jaw is a
+        /// button): each jaw's inner flat presses the grasped skin with it. Default 3 N,
+        /// the least pinch that held a 5 N pull on porcine bowel in Heijnsdijk et al.
+        /// 2004 (mean pinch applied 6.8 N).
+        #[serde(default = "default_grip_force")]
+        grip_force_n: ForceN,
+    },
 }
 
 impl ToolShapeSpec {

@@ -64,6 +64,9 @@ pub(crate) struct Bodies {
     /// Per tool: how fast its jaws open and close, m/s ([`JAW_SPEED_M_PER_S`] unless a
     /// multirate schedule slows them: [`Bodies::pace_jaws_for`]).
     jaw_speed_m_per_s: Vec<f64>,
+    /// Per tool: the half gap at which closing jaws stop, m (0: they close fully; the
+    /// skin's grasp stops them on the fold between them: crate::msm::grasp).
+    closed_half_gap_m: Vec<f64>,
     /// Per body: its centre's offset from its tool's tip this step (world frame); None
     /// while it is away (the second jaw of closed forceps).
     arm: Vec<Option<Vec3>>,
@@ -80,7 +83,7 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
     }
     let (mut shapes, mut of, mut half_gap_m) = (Vec::new(), Vec::new(), Vec::new());
     for (tool, shape) in tools.iter().enumerate() {
-        let Section::Jaws { half_width_m, half_thickness_m, half_gap_m: open } = shape.section else {
+        let Section::Jaws { half_width_m, half_thickness_m, half_gap_m: open, .. } = shape.section else {
             shapes.push(shape.clone());
             of.push(Body { tool, jaw: None });
             half_gap_m.push((0.0, 0.0));
@@ -97,7 +100,8 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
     }
     let n = of.len();
     let jaw_speed_m_per_s = vec![JAW_SPEED_M_PER_S; tools.len()];
-    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
+    let closed_half_gap_m = vec![0.0; tools.len()];
+    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
 }
 
 impl Bodies {
@@ -113,13 +117,36 @@ impl Bodies {
         }
     }
 
+    /// Tool `tool`'s jaws' half gap now, m (0 for a tool without jaws, and for closed
+    /// forceps).
+    pub fn half_gap_m(&self, tool: usize) -> f64 {
+        self.half_gap_m[tool].0
+    }
+
+    /// Where tool `tool`'s jaws stop closing from the next step on: their inner flats
+    /// `2 half_gap_m` apart (0: touching). Jaws already closer stay where they are.
+    pub fn stop_closing_at(&mut self, tool: usize, half_gap_m: f64) {
+        self.closed_half_gap_m[tool] = half_gap_m;
+    }
+
+    /// The body of tool `tool`'s first jaw (the one that is the closed plate), if it
+    /// has jaws.
+    pub fn first_jaw(&self, tool: usize) -> Option<usize> {
+        self.of.iter().position(|b| b.tool == tool && b.jaw.is_some_and(|j| j.side == 0))
+    }
+
     /// The bodies' commands from the tools' (`tools`: the scene's shapes) for a step of
     /// `dt_s`, and the jaws' sections in `shapes` (the bodies' shapes): a forceps' jaws
-    /// move towards closed while its button is held, else towards open, at their speed
+    /// move towards closed (or the half gap they stop at: [`Bodies::stop_closing_at`])
+    /// while its button is held, else towards open, at their speed
     /// ([`JAW_SPEED_M_PER_S`] unless paced: [`Bodies::pace_jaws_for`]).
     pub fn split(&mut self, commands: &[ToolCommand], tools: &[ToolShape], shapes: &mut [ToolShape], dt_s: f64) {
-        for ((command, (now, open)), speed) in commands.iter().zip(self.half_gap_m.iter_mut()).zip(&self.jaw_speed_m_per_s) {
-            let target = if command.cut { 0.0 } else { *open };
+        for (((command, (now, open)), speed), closed) in commands.iter().zip(self.half_gap_m.iter_mut()).zip(&self.jaw_speed_m_per_s).zip(&self.closed_half_gap_m) {
+            let target = match command.cut {
+                true if *now <= *closed => *now,
+                true => closed.min(*open),
+                false => *open,
+            };
             let travel = speed * dt_s;
             // Snapped to the target within a nanometre (steps of the travel do not sum
             // exactly to it).
@@ -194,7 +221,7 @@ mod tests {
             name: "forceps".into(),
             radius_m: 1e-3_f64.hypot(4e-3 + 1e-3),
             length_m: 0.08,
-            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3 },
+            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0 },
             contact_stiffness_n_per_m: 300.0,
             can_cut: false,
             max_force_n: 3.0,
@@ -222,6 +249,33 @@ mod tests {
         // Slower than the jaws' own speed only: a long travel leaves them at it.
         bodies.pace_jaws_for(0.033, 1.0);
         assert_eq!(bodies.jaw_speed_m_per_s[1], JAW_SPEED_M_PER_S);
+    }
+
+    /// Jaws told to stop closing at a half gap (the skin's grasp: crate::msm::grasp) stop
+    /// there, stay where they are if already closer, and open as ever when the button is
+    /// released.
+    #[test]
+    fn closing_jaws_stop_where_they_are_told() {
+        let tools = [forceps()];
+        let (mut shapes, bodies) = expand(&tools);
+        let mut bodies = bodies.unwrap();
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true };
+        bodies.stop_closing_at(0, 1e-3);
+        for _ in 0..100 {
+            bodies.split(&[close], &tools, &mut shapes, 1e-3);
+        }
+        assert!((bodies.half_gap_m(0) - 1e-3).abs() < 1e-12, "{}", bodies.half_gap_m(0));
+        assert_eq!(shapes[0].section, Section::Plate { half_width_m: 1e-3, half_thickness_m: 5e-4 }, "two jaws, not the closed plate");
+        assert!(bodies.commands[1].active);
+        bodies.stop_closing_at(0, 2e-3);
+        bodies.split(&[close], &tools, &mut shapes, 1e-3);
+        assert!((bodies.half_gap_m(0) - 1e-3).abs() < 1e-12, "closer already: they stay");
+        bodies.stop_closing_at(0, 0.0);
+        bodies.split(&[close], &tools, &mut shapes, 1e-3);
+        assert!((bodies.half_gap_m(0) - 9e-4).abs() < 1e-12, "let go: they close on");
+        bodies.split(&[ToolCommand { cut: false, ..close }], &tools, &mut shapes, 1e-3);
+        assert!((bodies.half_gap_m(0) - 1e-3).abs() < 1e-12, "released: they open");
+        assert_eq!(bodies.first_jaw(0), Some(0));
     }
 
     #[test]
