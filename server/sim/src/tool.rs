@@ -53,8 +53,9 @@ pub enum Section {
     Plate { half_width_m: f64, half_thickness_m: f64 },
     /// Forceps' jaws: two such rectangles on either side of the axis across the flat,
     /// their inner flats `2 half_gap_m` apart when open (closed: touching), pinched
-    /// together with `grip_force_n` on what they grasp (crate::msm::grasp).
-    Jaws { half_width_m: f64, half_thickness_m: f64, half_gap_m: f64, grip_force_n: f64 },
+    /// together with `grip_force_n` on what they grasp within `grip_length_m` of the tip
+    /// (crate::msm::grasp).
+    Jaws { half_width_m: f64, half_thickness_m: f64, half_gap_m: f64, grip_force_n: f64, grip_length_m: f64 },
 }
 
 impl Section {
@@ -262,10 +263,10 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                     let (half_width_m, half_thickness_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get());
                     (half_width_m.hypot(half_thickness_m), Section::Plate { half_width_m, half_thickness_m })
                 }
-                ToolShapeSpec::Forceps { width_m, thickness_m, opening_m, grip_force_n, .. } => {
+                ToolShapeSpec::Forceps { width_m, thickness_m, opening_m, grip_force_n, grip_length_m, length_m } => {
                     let (half_width_m, half_thickness_m, half_gap_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get(), 0.5 * opening_m.get());
                     // Bounded by the open jaws' outer corners.
-                    (half_width_m.hypot(half_gap_m + 2.0 * half_thickness_m), Section::Jaws { half_width_m, half_thickness_m, half_gap_m, grip_force_n: grip_force_n.get() })
+                    (half_width_m.hypot(half_gap_m + 2.0 * half_thickness_m), Section::Jaws { half_width_m, half_thickness_m, half_gap_m, grip_force_n: grip_force_n.get(), grip_length_m: grip_length_m.get().min(length_m.get()) })
                 }
             };
             // The branched grid's tools are capsules (its scenes refuse a flat tip).
@@ -362,7 +363,7 @@ mod tests {
     #[test]
     fn open_jaws_are_two_plates_and_the_gap_between_them_is_outside() {
         // Jaws 2 mm wide (along the edge, x) and 1 mm thick, inner flats 8 mm apart.
-        let jaws = PlacedTool { section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0 }, ..blade(0.0) };
+        let jaws = PlacedTool { section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0, grip_length_m: 0.01 }, ..blade(0.0) };
         assert_eq!(jaws.flat_normal(), Vec3::y());
         assert!(jaws.section_exit(&Vec3::zeros()).is_none() && jaws.section_exit(&Vec3::new(0.0, 3.9e-3, 0.0)).is_none(), "the gap is outside");
         // In the +y jaw near its inner flat: out towards the axis; near its outer flat:

@@ -1782,3 +1782,71 @@ fn a_shaft_drawn_along_the_grid_is_held_back_by_coulomb_friction() {
         assert!(sliding.abs() < 0.05, "{what}, frictionless: pull over press {sliding:.3}");
     }
 }
+
+
+/// Forceps laid along the lip of an incision (axis along it, flats level: one jaw above
+/// the skin, one below), closed on it and drawn 8 mm away from the wound at 20 mm/s:
+/// the grasped lip follows them, the skin pulling them back by less than the jaws'
+/// friction holds; both integrators feel the same; released, the lip springs back
+/// towards the wound. (docs/tool-tissue.md, "Grasping".)
+#[test]
+fn forceps_grasp_the_lip_of_an_incision_and_retract_it() {
+    let mut holding = Vec::new();
+    for implicit in [false, true] {
+        let integrator = if implicit { "implicit" } else { "explicit" };
+        let scene = edit(&with_forceps(), |s| {
+            if implicit {
+                use_implicit_integrator(s);
+            }
+        });
+        let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+        let mut skin = cutsim_sim::msm::build_from_scene(&scene, spec).unwrap();
+        let mut commands = vec![cutsim_sim::tool::ToolCommand::default(); 2];
+        let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 2];
+        // A 40 mm incision along x at 0.1 m/s, 5 mm deep; then 0.5 s for the wound to open.
+        for k in 0..=400 {
+            let x = -0.02 + 0.04 * f64::from(k) / 400.0;
+            commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity()), active: true, cut: true };
+            skin.step(&commands, &mut feedback);
+        }
+        commands[0] = cutsim_sim::tool::ToolCommand::default();
+        for _ in 0..500 {
+            skin.step(&commands, &mut feedback);
+        }
+        assert_eq!(skin.incisions().len(), 1);
+        // The upper lip's edge at the middle of the wound.
+        let lip = |skin: &cutsim_sim::msm::MassSpring| {
+            skin.positions().iter().enumerate().filter(|&(i, p)| skin.node_alive(i as u32) && p.x.abs() < 0.002 && p.y > 0.0).map(|(_, p)| p.y).fold(f64::INFINITY, f64::min)
+        };
+        let edge = lip(&skin);
+        // Axis along +x from 5 mm before the middle, edge along +y, flats' normal +z;
+        // the jaws' gripping tips (10 mm) centred 1 mm inside the lip.
+        let turn = Quat::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(cutsim_sim::math::Matrix3::from_columns(&[Vec3::y(), Vec3::z(), Vec3::x()])));
+        let mut y = edge + 0.001;
+        let (mut strongest, mut grasped) = (0.0_f64, 0);
+        // Closed there, drawn away, held, released.
+        for (phase, (steps, speed, closed)) in [(200, 0.0, true), (400, 0.02, true), (200, 0.0, true), (300, 0.0, false)].into_iter().enumerate() {
+            for _ in 0..steps {
+                y += speed * 1e-3;
+                commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(-0.005, y, 0.0), turn), active: true, cut: closed };
+                skin.step(&commands, &mut feedback);
+                strongest = strongest.max(-feedback[1].force_n.y);
+            }
+            if phase == 0 {
+                grasped = skin.grasped_nodes(1);
+            }
+            if phase == 2 {
+                let (retracted, pull) = (lip(&skin) - edge, -feedback[1].force_n.y);
+                println!("{integrator}: {grasped} nodes grasped at the lip; drawn 8 mm away it followed {:.2} mm, the skin pulling back with {pull:.2} N held (up to {strongest:.2} N while moving)", retracted * 1e3);
+                assert!(retracted > 0.0065, "{integrator}: the grasped lip followed only {:.2} mm of 8", retracted * 1e3);
+                assert!(pull > 0.2 && strongest <= 1.05 * 3.0, "{integrator}: the lip pulls back with {pull:.2} N (up to {strongest:.2} N; friction holds 3 N)");
+                holding.push(pull);
+            }
+        }
+        assert!(grasped >= 3, "{integrator}: the closed jaws hold the lip ({grasped} nodes)");
+        let back = lip(&skin) - edge;
+        println!("{integrator}: released, the lip is {:.2} mm from where it was after 0.3 s", back * 1e3);
+        assert!(skin.grasped_nodes(1) == 0 && back < 0.002, "{integrator}: released, the lip springs back towards the wound ({:.2} mm away)", back * 1e3);
+    }
+    assert!((holding[0] - holding[1]).abs() <= 0.1 * holding[0], "the integrators feel the held lip alike: {holding:?} N");
+}

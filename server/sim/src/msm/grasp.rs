@@ -84,6 +84,7 @@ struct Forceps {
     tool: usize,
     body: usize,
     half_width_m: f64,
+    /// How far from the tip the jaws grip, m.
     length_m: f64,
     /// The half gap the jaws stop at on a fold of skin, m.
     grip_half_gap_m: f64,
@@ -122,12 +123,12 @@ impl Grasps {
             .iter()
             .enumerate()
             .filter_map(|(tool, shape)| {
-                let Section::Jaws { half_width_m, half_gap_m, grip_force_n, .. } = shape.section else { return None };
+                let Section::Jaws { half_width_m, half_gap_m, grip_force_n, grip_length_m, .. } = shape.section else { return None };
                 Some(Forceps {
                     tool,
                     body: bodies.first_jaw(tool)?,
                     half_width_m,
-                    length_m: shape.length_m,
+                    length_m: grip_length_m,
                     grip_half_gap_m: (0.5 * thickness_m).min(half_gap_m),
                     grip_force_n,
                     stiffness_n_per_m: stiffness_over_contact * shape.contact_stiffness_n_per_m,
@@ -200,9 +201,10 @@ impl Grasps {
     ///   goes where the node goes. (A spring as soft as the explicit contacts' let the
     ///   node lag its anchor by millimetres and slip out of the jaws before friction
     ///   limited it.)
-    /// - Implicit (`contacts`): the spring at the step's start, and the spring in the
-    ///   system across the flats' normal; the force sent back and the sliding wait for
-    ///   the solved state ([`Grasps::after_solve`]).
+    /// - Implicit (`contacts`; `h` the step): the spring at the step's start, and the
+    ///   spring in the system across the flats' normal, its anchor moving with the
+    ///   forceps over the step; the force sent back and the sliding wait for the solved
+    ///   state ([`Grasps::after_solve`]).
     #[allow(clippy::too_many_arguments)]
     pub fn pull(&mut self, nodes: &mut Nodes, friction: Option<Friction>, s: f64, h: f64, mut contacts: Option<&mut Vec<Contact>>, placed: &[Option<PlacedTool>], feedback: &mut [ToolFeedback], weight: f64) {
         let friction = friction.unwrap_or_default();
@@ -219,9 +221,14 @@ impl Grasps {
                 let i = held.node as usize;
                 let (x, anchor) = (nodes.x[i], frame.world(&held.anchor));
                 if let Some(contacts) = contacts.as_deref_mut() {
-                    let (pull, _) = stick_force(&x, &anchor, &frame.normal, f.stiffness_n_per_m, normal_n, friction);
+                    // The solve takes a contact's rest point where it is at the step's
+                    // start, moving at its drive over the step (its damping then acts on
+                    // the node's velocity relative to it, not on the node's own).
+                    let start = f.before.unwrap_or(now);
+                    let (pull, _) = stick_force(&x, &start.world(&held.anchor), &frame.normal, f.stiffness_n_per_m, normal_n, friction);
                     nodes.f[i] += pull;
-                    super::side_friction::stick_contacts(&[held.node], &[1.0], &frame.normal, f.stiffness_n_per_m, &Vec3::zeros(), contacts);
+                    let velocity = (now.tip - start.tip) / h;
+                    super::side_friction::stick_contacts(&[held.node], &[1.0], &frame.normal, f.stiffness_n_per_m, &velocity, contacts);
                     continue;
                 }
                 let (m, v) = (nodes.mass[i], nodes.v[i]);
@@ -278,7 +285,7 @@ mod tests {
             name: "forceps".into(),
             radius_m: 5e-3,
             length_m: 0.08,
-            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0 },
+            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0, grip_length_m: 0.01 },
             contact_stiffness_n_per_m: 200.0,
             can_cut: false,
             max_force_n: 10.0,

@@ -446,6 +446,10 @@ fn default_grip_force() -> ForceN {
     ForceN(3.0)
 }
 
+fn default_grip_length() -> ToolLengthM {
+    ToolLengthM(0.01)
+}
+
 fn default_max_force() -> ForceN {
     ForceN(20.0)
 }
@@ -490,6 +494,10 @@ pub enum ToolShapeSpec {
         /// 2004 (mean pinch applied 6.8 N).
         #[serde(default = "default_grip_force")]
         grip_force_n: ForceN,
+        /// How far from the tip the jaws grip, m: tissue forceps grip with their
+        /// serrated tips, not their whole length. Default 10 mm; at most `length_m`.
+        #[serde(default = "default_grip_length")]
+        grip_length_m: ToolLengthM,
     },
 }
 

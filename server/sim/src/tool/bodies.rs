@@ -221,7 +221,7 @@ mod tests {
             name: "forceps".into(),
             radius_m: 1e-3_f64.hypot(4e-3 + 1e-3),
             length_m: 0.08,
-            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0 },
+            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0, grip_length_m: 0.01 },
             contact_stiffness_n_per_m: 300.0,
             can_cut: false,
             max_force_n: 3.0,
