@@ -178,6 +178,18 @@ impl PlacedTool {
         self.axis.cross(&self.edge)
     }
 
+    /// `x` in the tool's frame: [along its axis from the tip, along its edge, across
+    /// its flat] (where a point held by the tool is kept as the tool moves and turns).
+    pub fn to_frame(&self, x: &Vec3) -> [f64; 3] {
+        let from_tip = x - self.tip;
+        [from_tip.dot(&self.axis), from_tip.dot(&self.edge), from_tip.dot(&self.flat_normal())]
+    }
+
+    /// The point at `[along, edge, flat]` in the tool's frame ([`Self::to_frame`]), world.
+    pub fn from_frame(&self, [along, edge, flat]: [f64; 3]) -> Vec3 {
+        self.tip + self.axis * along + self.edge * edge + self.flat_normal() * flat
+    }
+
     /// Where a point at `offset` from the axis (across it) lies in the cross-section:
     /// how far it is from the way out and the way out (unit, across the axis); None
     /// outside. A plate's way out is through the nearer of its flat or its edge (back).
@@ -263,10 +275,10 @@ pub fn tool_shapes(scene: &crate::scene::Scene) -> Vec<ToolShape> {
                     let (half_width_m, half_thickness_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get());
                     (half_width_m.hypot(half_thickness_m), Section::Plate { half_width_m, half_thickness_m })
                 }
-                ToolShapeSpec::Forceps { width_m, thickness_m, opening_m, grip_force_n, grip_length_m, length_m } => {
+                ToolShapeSpec::Forceps { width_m, thickness_m, opening_m, grip_force_n, grip_length_m, .. } => {
                     let (half_width_m, half_thickness_m, half_gap_m) = (0.5 * width_m.get(), 0.5 * thickness_m.get(), 0.5 * opening_m.get());
                     // Bounded by the open jaws' outer corners.
-                    (half_width_m.hypot(half_gap_m + 2.0 * half_thickness_m), Section::Jaws { half_width_m, half_thickness_m, half_gap_m, grip_force_n: grip_force_n.get(), grip_length_m: grip_length_m.get().min(length_m.get()) })
+                    (half_width_m.hypot(half_gap_m + 2.0 * half_thickness_m), Section::Jaws { half_width_m, half_thickness_m, half_gap_m, grip_force_n: grip_force_n.get(), grip_length_m: grip_length_m.get() })
                 }
             };
             // The branched grid's tools are capsules (its scenes refuse a flat tip).
@@ -358,6 +370,18 @@ mod tests {
         let moved = blade(0.0).moved(Vec3::new(0.0, 0.0, 1e-3), axis);
         assert!(moved.edge.dot(&axis).abs() < 1e-15 && (moved.edge.norm() - 1.0).abs() < 1e-15);
         assert!((moved.top - moved.tip - axis * 0.04).norm() < 1e-15);
+    }
+
+    /// A point's place in a tool's frame is along its axis, its edge and its flat's
+    /// normal from the tip, and maps back.
+    #[test]
+    fn a_point_goes_into_the_tools_frame_and_back() {
+        let tool = PlacedTool { tip: Vec3::new(0.01, 0.0, 0.0), ..blade(0.0) };
+        let (axis, edge, normal) = (tool.axis, tool.edge, tool.flat_normal());
+        let x = tool.tip + axis * 0.003 + edge * 0.002 - normal * 0.001;
+        let local = tool.to_frame(&x);
+        assert!((Vec3::from(local) - Vec3::new(0.003, 0.002, -0.001)).norm() < 1e-15, "{local:?}");
+        assert!((tool.from_frame(local) - x).norm() < 1e-15);
     }
 
     #[test]

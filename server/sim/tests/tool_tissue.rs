@@ -853,6 +853,11 @@ fn forceps_cannot_cut_and_the_branched_grid_holds_them_under_either_schedule() {
     let e = Scene::from_json_str(&json.to_string(), "cutting forceps", None).unwrap_err();
     assert_eq!(e.path, "tools[1].can_cut", "{e}");
     assert!(e.message.contains("forceps are blunt"), "{e}");
+    json["tools"][1]["can_cut"] = serde_json::json!(false);
+    json["tools"][1]["shape"]["forceps"]["grip_length_m"] = serde_json::json!(0.1);
+    let e = Scene::from_json_str(&json.to_string(), "forceps gripping beyond their jaws", None).unwrap_err();
+    assert_eq!(e.path, "tools[1].shape.forceps.grip_length_m", "{e}");
+    assert!(e.message.contains("grip length 0.1 m, jaws 0.08 m long"), "{e}");
     let mut liver: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root().join("server/scenes/liver.json")).unwrap()).unwrap();
     liver["tools"][1]["shape"] = serde_json::json!({ "forceps": { "width_m": 0.002, "thickness_m": 0.001, "length_m": 0.08, "opening_m": 0.008 } });
     let scene = Scene::from_json_str(&liver.to_string(), "liver with forceps", Some(&root().join("server/scenes"))).unwrap_or_else(|e| panic!("{e}"));

@@ -173,7 +173,7 @@ impl MassSpring {
             IntegratorChoice::ImplicitEuler { .. } => super::HELD_STIFFNESS_OVER_CONTACT,
             IntegratorChoice::SymplecticEuler { .. } => 1.0,
         };
-        let grasps = super::grasp::Grasps::new(&scene_tools, bodies.as_ref(), params.material.thickness_m, mean_edge_m, n, grasp_stiffness);
+        let grasps = super::grasp::Grasps::new(&scene_tools, bodies.as_ref(), params.material.thickness_m, mean_edge_m, grasp_stiffness);
         let foundation = params.foundation.map(|f| Foundation::new(f, &nodes, &topo));
         // A tool's contact and the foundation's spring may act on one node together.
         let max_contact_stiffness = tools.iter().map(|t| t.contact_stiffness_n_per_m).fold(0.0, f64::max)

@@ -4,23 +4,22 @@
 //! and it rises between them. Closing on nothing, the jaws meet. Closing on skin, they
 //! stop where they meet the fold between them, and hold it by friction:
 //!
-//! - **Stop.** While the button closes them, if skin lies between the jaws (the box
-//!   between their inner flats, as long as the jaws, as wide as them plus half an edge
-//!   of the mesh: the jaws pinch the triangles they cover, whose nodes carry the grip),
-//!   the jaws stop closing with their inner flats one skin thickness apart: a fold of
-//!   two layers squeezed to half their thickness ([`Bodies::stop_closing_at`]). The
-//!   skin between them is held across the flats by the jaws' own contact, as it was
-//!   while open.
-//! - **Grasp.** Once they have stopped, every node between them is grasped: anchored
-//!   where it is in the forceps' frame, it is drawn towards its anchor by a stick
-//!   spring in the plane of the flats (the side friction's: super::side_friction), and
-//!   moves with the forceps. The hand pinches the jaws with the forceps' grip force
+//! - **Grasp.** While the button closes them, the nodes between the jaws are taken (the
+//!   box between their inner flats, `grip_length_m` from the tip, as wide as the jaws
+//!   plus half an edge of the mesh: the jaws pinch the triangles they cover, whose nodes
+//!   carry the grip): each is anchored where it is in the forceps' frame, drawn towards
+//!   its anchor in the plane of the flats, and moves with the forceps.
+//! - **Stop.** Holding skin, the jaws stop closing with their inner flats one skin
+//!   thickness apart: a fold of two layers squeezed to half their thickness
+//!   ([`Bodies::stop_closing_at`]). The skin between them is held across the flats by
+//!   the jaws' own contact, as it was while open.
+//! - **Grip.** The hand pinches the jaws with the forceps' grip force
 //!   (`grip_force_n`, a scene parameter: the device's jaw is a button), each jaw's
 //!   flat pressing the fold with it, so the grasped nodes share a normal force of twice
 //!   the grip, and each sticks within the skin's static cone, μ_s times its share;
-//!   beyond it, it slides at the dynamic force, its anchor following it. A node whose
-//!   anchor has slid out of the jaws is let go; when the last goes, the jaws close on
-//!   the rest of their way. Releasing the button lets go of everything (the jaws open).
+//!   beyond it, it slides at the dynamic force, its anchor following it. A node pulled
+//!   more than half an edge out of the gripping tips is let go; when the last goes, the
+//!   jaws close the rest of their way. Releasing the button lets go of everything (the jaws open).
 //! - **Force.** The device feels the springs' pull, about the forceps' tip; under the
 //!   implicit integrator the springs are in the system (two contacts across the flats'
 //!   normal) and the force is that of the solved state.
@@ -37,44 +36,12 @@ use crate::math::Vec3;
 use crate::tool::bodies::Bodies;
 use crate::tool::{PlacedTool, Section, ToolCommand, ToolFeedback, ToolShape};
 
-/// The forceps' frame for one step: where their tip is, and their edge, axis and
-/// flats' normal (axis × edge), unit.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Frame {
-    tip: Vec3,
-    edge: Vec3,
-    axis: Vec3,
-    normal: Vec3,
-}
-
-impl Frame {
-    fn of(shape: &ToolShape, command: &ToolCommand) -> Self {
-        let placed = PlacedTool::new(shape, &command.pose);
-        Self { tip: placed.tip, edge: placed.edge, axis: placed.axis, normal: placed.axis.cross(&placed.edge) }
-    }
-
-    /// `x` in the frame: (along the edge, along the axis from the tip, across the flats).
-    fn local(&self, x: &Vec3) -> Vec3 {
-        let d = x - self.tip;
-        Vec3::new(d.dot(&self.edge), d.dot(&self.axis), d.dot(&self.normal))
-    }
-
-    fn world(&self, local: &Vec3) -> Vec3 {
-        self.tip + self.edge * local.x + self.axis * local.y + self.normal * local.z
-    }
-
-    /// The frame a fraction `s` of the way from `before` to `self` (the tip moved
-    /// along a line; its directions are this step's).
-    fn swept_from(&self, before: &Frame, s: f64) -> Frame {
-        Frame { tip: before.tip + (self.tip - before.tip) * s, ..*self }
-    }
-}
-
-/// A grasped node and its anchor, in the forceps' frame ([`Frame::local`]).
+/// A grasped node and its anchor in the forceps' frame ([`PlacedTool::to_frame`]:
+/// along the axis from the tip, along the edge, across the flats).
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Held {
     node: u32,
-    anchor: Vec3,
+    anchor: [f64; 3],
 }
 
 /// One pair of forceps and what it holds.
@@ -83,25 +50,45 @@ struct Forceps {
     /// The scene's tool, and the body of its first jaw (its feedback carries the grasp's).
     tool: usize,
     body: usize,
-    half_width_m: f64,
-    /// How far from the tip the jaws grip, m.
-    length_m: f64,
+    tips: Tips,
     /// The half gap the jaws stop at on a fold of skin, m.
     grip_half_gap_m: f64,
     grip_force_n: f64,
     /// The grasp springs' stiffness, N/m.
     stiffness_n_per_m: f64,
     held: Vec<Held>,
-    /// This step's frame and last step's (None while the forceps are away).
-    frame: Option<Frame>,
-    before: Option<Frame>,
+    /// Where the forceps are this step and were last step (None while away).
+    now: Option<PlacedTool>,
+    before: Option<PlacedTool>,
+}
+
+/// The jaws' gripping tips: as wide as the jaws, `length_m` from the tip.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Tips {
+    half_width_m: f64,
+    length_m: f64,
+}
+
+impl Tips {
+    /// Whether a point at `local` (the forceps' frame, [`PlacedTool::to_frame`]) lies
+    /// within `margin_m` of the tips along the axis and the edge, the edge's way widened
+    /// by `reach_m` (the triangles the jaws cover); across the flats, anywhere.
+    fn contain(&self, [along, edge, _]: [f64; 3], reach_m: f64, margin_m: f64) -> bool {
+        edge.abs() <= self.half_width_m + reach_m + margin_m && (-margin_m..=self.length_m + margin_m).contains(&along)
+    }
 }
 
 impl Forceps {
-    /// Whether a point at `local` lies between jaws whose inner flats are `2 half_gap`
-    /// apart, within the jaws' length and their width plus `reach_m` either side.
-    fn between_jaws(&self, local: &Vec3, half_gap_m: f64, reach_m: f64) -> bool {
-        local.x.abs() <= self.half_width_m + reach_m && (0.0..=self.length_m).contains(&local.y) && local.z.abs() < half_gap_m
+    /// The normal force each grasped node takes: both jaws' flats press the fold with
+    /// the grip, shared by its nodes, N.
+    fn normal_share_n(&self) -> f64 {
+        2.0 * self.grip_force_n / self.held.len() as f64
+    }
+
+    /// The forceps `s` of their way from last step's pose to this step's (the tip moved
+    /// along a line; the directions are this step's).
+    fn swept(&self, now: &PlacedTool, s: f64) -> PlacedTool {
+        self.before.map_or(*now, |before| now.moved(before.tip + (now.tip - before.tip) * s, now.axis))
     }
 }
 
@@ -115,9 +102,9 @@ pub(crate) struct Grasps {
 
 impl Grasps {
     /// The grasps of `tools` (the scene's), on a skin `thickness_m` thick with edges
-    /// `mean_edge_m` long and `nodes` nodes; springs `stiffness_over_contact` times the
-    /// tools' contact stiffness. None without forceps.
-    pub fn new(tools: &[ToolShape], bodies: Option<&Bodies>, thickness_m: f64, mean_edge_m: f64, nodes: usize, stiffness_over_contact: f64) -> Option<Self> {
+    /// `mean_edge_m` long; springs `stiffness_over_contact` times the tools' contact
+    /// stiffness. None without forceps. Room to grasp is made by [`Grasps::reserve`].
+    pub fn new(tools: &[ToolShape], bodies: Option<&Bodies>, thickness_m: f64, mean_edge_m: f64, stiffness_over_contact: f64) -> Option<Self> {
         let bodies = bodies?;
         let forceps: Vec<Forceps> = tools
             .iter()
@@ -127,13 +114,12 @@ impl Grasps {
                 Some(Forceps {
                     tool,
                     body: bodies.first_jaw(tool)?,
-                    half_width_m,
-                    length_m: grip_length_m,
+                    tips: Tips { half_width_m, length_m: grip_length_m },
                     grip_half_gap_m: (0.5 * thickness_m).min(half_gap_m),
                     grip_force_n,
                     stiffness_n_per_m: stiffness_over_contact * shape.contact_stiffness_n_per_m,
-                    held: Vec::with_capacity(nodes),
-                    frame: None,
+                    held: Vec::new(),
+                    now: None,
                     before: None,
                 })
             })
@@ -141,7 +127,7 @@ impl Grasps {
         (!forceps.is_empty()).then_some(Self { forceps, reach_m: 0.5 * mean_edge_m })
     }
 
-    /// Makes room to grasp every one of `nodes` nodes (after a cut added some).
+    /// Makes room to grasp every one of `nodes` nodes (at build, and after a cut added some).
     pub fn reserve(&mut self, nodes: usize) {
         for f in &mut self.forceps {
             f.held.reserve(nodes.saturating_sub(f.held.len()));
@@ -154,33 +140,33 @@ impl Grasps {
     }
 
     /// Before the jaws move this step (`commands`: the scene tools'; `nodes` as the
-    /// last step left them): lets go where the button is released, a node died or slid
-    /// out of the jaws; stops closing jaws on skin between them, and grasps it once
-    /// they have stopped.
+    /// last step left them): lets go where the button is released, a node died or was
+    /// pulled out of the jaws; while the jaws close, takes the skin between them; stops
+    /// the jaws on what they hold.
     pub fn begin_step(&mut self, commands: &[ToolCommand], tools: &[ToolShape], bodies: &mut Bodies, nodes: &Nodes, grid: &PointGrid) {
         let reach_m = self.reach_m;
         for f in &mut self.forceps {
             let command = &commands[f.tool];
-            f.before = f.frame;
-            f.frame = (command.active && command.pose.is_finite()).then(|| Frame::of(&tools[f.tool], command));
-            let Some(frame) = f.frame.filter(|_| command.cut) else {
+            f.before = f.now;
+            f.now = (command.active && command.pose.is_finite()).then(|| PlacedTool::new(&tools[f.tool], &command.pose));
+            let Some(now) = f.now.filter(|_| command.cut) else {
                 f.held.clear();
                 bodies.stop_closing_at(f.tool, 0.0);
                 continue;
             };
             // A node pulled out of the jaws (by more than half an edge) is let go.
-            let Forceps { half_width_m, length_m, .. } = *f;
-            let within = |local: &Vec3| local.x.abs() <= half_width_m + 2.0 * reach_m && (-reach_m..=length_m + reach_m).contains(&local.y);
-            f.held.retain(|h| nodes.alive[h.node as usize] && within(&frame.local(&nodes.x[h.node as usize])));
+            let tips = f.tips;
+            f.held.retain(|h| nodes.alive[h.node as usize] && tips.contain(now.to_frame(&nodes.x[h.node as usize]), reach_m, reach_m));
             let half_gap_m = bodies.half_gap_m(f.tool);
             if half_gap_m > f.grip_half_gap_m + 1e-9 {
                 // Closing: the skin between the jaws is taken as they close on it.
-                let (reach, top) = (tools[f.tool].radius_m + reach_m, frame.tip + frame.axis * f.length_m);
-                let (min, max) = (frame.tip.inf(&top).add_scalar(-reach), frame.tip.sup(&top).add_scalar(reach));
+                let (reach, top) = (tools[f.tool].radius_m + reach_m, now.tip + now.axis * f.tips.length_m);
+                let (min, max) = (now.tip.inf(&top).add_scalar(-reach), now.tip.sup(&top).add_scalar(reach));
                 grid.query_box(&min, &max, |node| {
                     let i = node as usize;
-                    let local = frame.local(&nodes.x[i]);
-                    if nodes.alive[i] && nodes.free[i] != Vec3::zeros() && f.between_jaws(&local, half_gap_m, reach_m) && !f.held.iter().any(|h| h.node == node) {
+                    let local = now.to_frame(&nodes.x[i]);
+                    let between = f.tips.contain(local, reach_m, 0.0) && local[2].abs() < half_gap_m;
+                    if between && nodes.alive[i] && nodes.free[i] != Vec3::zeros() && !f.held.iter().any(|h| h.node == node) {
                         f.held.push(Held { node, anchor: local });
                     }
                 });
@@ -209,42 +195,46 @@ impl Grasps {
     pub fn pull(&mut self, nodes: &mut Nodes, friction: Option<Friction>, s: f64, h: f64, mut contacts: Option<&mut Vec<Contact>>, placed: &[Option<PlacedTool>], feedback: &mut [ToolFeedback], weight: f64) {
         let friction = friction.unwrap_or_default();
         for f in &mut self.forceps {
-            let (Some(now), Some(jaw_tip)) = (f.frame, placed[f.body].map(|p| p.tip)) else { continue };
+            let (Some(now), Some(jaw_tip)) = (f.now, placed[f.body].map(|p| p.tip)) else { continue };
             if f.held.is_empty() {
                 continue;
             }
-            let frame = f.before.map_or(now, |before| now.swept_from(&before, s));
-            let across = tangent_projection(&frame.normal);
-            let normal_n = 2.0 * f.grip_force_n / f.held.len() as f64;
+            let (normal_n, k) = (f.normal_share_n(), f.stiffness_n_per_m);
+            let normal = now.flat_normal();
             let fb = &mut feedback[f.body];
+            if let Some(contacts) = contacts.as_deref_mut() {
+                // The solve takes a contact's rest point where it is at the step's
+                // start, moving at its drive over the step (its damping then acts on the
+                // node's velocity relative to it, not on the node's own).
+                let start = f.before.unwrap_or(now);
+                let velocity = (now.tip - start.tip) / h;
+                for held in &f.held {
+                    let (pull, _) = stick_force(&nodes.x[held.node as usize], &start.from_frame(held.anchor), &normal, k, normal_n, friction);
+                    nodes.f[held.node as usize] += pull;
+                    super::side_friction::stick_contacts(&[held.node], &[1.0], &normal, k, &velocity, contacts);
+                }
+                continue;
+            }
+            let frame = f.swept(&now, s);
+            let across = tangent_projection(&normal);
+            // The first jaw's tip, swept with the forceps.
+            let lever_from = jaw_tip - now.tip + frame.tip;
             for held in &mut f.held {
                 let i = held.node as usize;
-                let (x, anchor) = (nodes.x[i], frame.world(&held.anchor));
-                if let Some(contacts) = contacts.as_deref_mut() {
-                    // The solve takes a contact's rest point where it is at the step's
-                    // start, moving at its drive over the step (its damping then acts on
-                    // the node's velocity relative to it, not on the node's own).
-                    let start = f.before.unwrap_or(now);
-                    let (pull, _) = stick_force(&x, &start.world(&held.anchor), &frame.normal, f.stiffness_n_per_m, normal_n, friction);
-                    nodes.f[i] += pull;
-                    let velocity = (now.tip - start.tip) / h;
-                    super::side_friction::stick_contacts(&[held.node], &[1.0], &frame.normal, f.stiffness_n_per_m, &velocity, contacts);
-                    continue;
-                }
-                let (m, v) = (nodes.mass[i], nodes.v[i]);
-                let needed = across * ((anchor - x - v * h) * (m / (h * h)) - nodes.f[i]);
+                let (x, m, v) = (nodes.x[i], nodes.mass[i], nodes.v[i]);
+                let needed = across * ((frame.from_frame(held.anchor) - x - v * h) * (m / (h * h)) - nodes.f[i]);
                 let size = needed.norm();
                 let force = if size <= friction.static_coefficient * normal_n {
                     needed
                 } else {
                     let sliding = needed * (friction.dynamic_coefficient * normal_n / size);
                     let v_next = v + (nodes.f[i] + sliding) * (h / m);
-                    held.anchor = frame.local(&(x + v_next * h));
+                    held.anchor = frame.to_frame(&(x + v_next * h));
                     sliding
                 };
                 nodes.f[i] += force;
                 fb.force_n -= force * weight;
-                fb.torque_nm -= (x - (jaw_tip - now.tip + frame.tip)).cross(&force) * weight;
+                fb.torque_nm -= (x - lever_from).cross(&force) * weight;
             }
         }
     }
@@ -255,50 +245,21 @@ impl Grasps {
     pub fn after_solve(&mut self, nodes: &Nodes, friction: Option<Friction>, placed: &[Option<PlacedTool>], feedback: &mut [ToolFeedback]) {
         let friction = friction.unwrap_or_default();
         for f in &mut self.forceps {
-            let (Some(frame), Some(jaw_tip)) = (f.frame, placed[f.body].map(|p| p.tip)) else { continue };
+            let (Some(now), Some(jaw_tip)) = (f.now, placed[f.body].map(|p| p.tip)) else { continue };
             if f.held.is_empty() {
                 continue;
             }
-            let normal_n = 2.0 * f.grip_force_n / f.held.len() as f64;
+            let (normal_n, k, normal) = (f.normal_share_n(), f.stiffness_n_per_m, now.flat_normal());
             let fb = &mut feedback[f.body];
-            for h in &mut f.held {
-                let x = nodes.x[h.node as usize];
-                let (pull, sliding) = stick_force(&x, &frame.world(&h.anchor), &frame.normal, f.stiffness_n_per_m, normal_n, friction);
+            for held in &mut f.held {
+                let x = nodes.x[held.node as usize];
+                let (pull, sliding) = stick_force(&x, &now.from_frame(held.anchor), &normal, k, normal_n, friction);
                 if sliding {
-                    h.anchor = frame.local(&slid_anchor(&x, &pull, f.stiffness_n_per_m));
+                    held.anchor = now.to_frame(&slid_anchor(&x, &pull, k));
                 }
                 fb.force_n -= pull;
                 fb.torque_nm -= (x - jaw_tip).cross(&pull);
             }
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::math::{Pose, Quat};
-
-    #[test]
-    fn the_frame_maps_the_edge_axis_and_flats_normal() {
-        let shape = ToolShape {
-            name: "forceps".into(),
-            radius_m: 5e-3,
-            length_m: 0.08,
-            section: Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0, grip_length_m: 0.01 },
-            contact_stiffness_n_per_m: 200.0,
-            can_cut: false,
-            max_force_n: 10.0,
-            cutting_shape: None,
-            edge_local: Vec3::x(),
-            tip_shape: crate::tool::TipShape::Flat,
-        };
-        let command = ToolCommand { pose: Pose::new(Vec3::new(0.01, 0.0, 0.0), Quat::identity()), active: true, cut: true };
-        let frame = Frame::of(&shape, &command);
-        assert_eq!((frame.edge, frame.axis, frame.normal), (Vec3::x(), Vec3::z(), Vec3::y()));
-        let x = Vec3::new(0.012, -0.001, 0.003);
-        let local = frame.local(&x);
-        assert!((local - Vec3::new(0.002, 0.003, -0.001)).norm() < 1e-15);
-        assert!((frame.world(&local) - x).norm() < 1e-15);
     }
 }

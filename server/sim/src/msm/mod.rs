@@ -93,11 +93,6 @@ fn contact_room(nodes: &state::Nodes) -> usize {
     CONTACTS_PER_NODE * nodes.len()
 }
 
-/// The skin's friction coefficients as the stick springs take them.
-fn skin_friction((static_coefficient, dynamic_coefficient): hold::Friction) -> crate::grid::friction::Friction {
-    crate::grid::friction::Friction { static_coefficient, dynamic_coefficient }
-}
-
 /// The cutting force follows the blade's velocity smoothed over this time, s. Taken
 /// step by step, the force would switch on and off with the pose's millisecond jitter,
 /// and a haptic proxy pulled through the cut would stick and slip at the loop rate (a
@@ -247,7 +242,7 @@ impl MassSpring {
                 let drag = hold::Drag { mass_damping_per_s: self.mass_damping_per_s, foundation: self.foundation.as_ref() };
                 self.holder.rub_after_solve(&mut self.nodes, drag, self.dt_s, self.spring_damping_s, feedback);
                 if let Some(grasps) = self.grasps.as_mut() {
-                    grasps.after_solve(&self.nodes, self.holder.friction().map(skin_friction), &self.placed, feedback);
+                    grasps.after_solve(&self.nodes, self.holder.friction().map(side_friction::stick_friction), &self.placed, feedback);
                 }
                 check
             }
@@ -417,7 +412,7 @@ impl MassSpring {
         let h = self.substep_s();
         let Some(grasps) = self.grasps.as_mut() else { return };
         let contacts = matches!(self.integrator, Integrator::ImplicitEuler(_)).then_some(&mut self.contacts);
-        grasps.pull(&mut self.nodes, self.holder.friction().map(skin_friction), s, h, contacts, &self.placed, feedback, weight);
+        grasps.pull(&mut self.nodes, self.holder.friction().map(side_friction::stick_friction), s, h, contacts, &self.placed, feedback, weight);
     }
 
     /// The time one integration substep covers, s.
@@ -742,12 +737,12 @@ impl MassSpring {
         feedback.first().copied().unwrap_or_default()
     }
 
-    /// The incisions made so far, with their curves and lips.
     /// How many nodes scene tool `tool` (forceps) holds ([`grasp`]).
     pub fn grasped_nodes(&self, tool: usize) -> usize {
         self.grasps.as_ref().map_or(0, |g| g.held_by(tool))
     }
 
+    /// The incisions made so far, with their curves and lips.
     pub fn incisions(&self) -> &[Incision] {
         self.cutter.as_ref().map_or(&[], |c| &c.incisions)
     }

@@ -34,9 +34,14 @@ use crate::tool::PlacedTool;
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn side_friction(memory: &mut SideMemory, slot: Slot, body: usize, tool: &PlacedTool, at: &Vec3, push: &Vec3, normal_n: f64, stiffness: f64, (static_coefficient, dynamic_coefficient): Friction) -> Vec3 {
     let anchor = memory.anchor(slot, body, tool).unwrap_or(*at);
-    let (pull, _) = stick_force(at, &anchor, push, stiffness, normal_n, crate::grid::friction::Friction { static_coefficient, dynamic_coefficient });
+    let (pull, _) = stick_force(at, &anchor, push, stiffness, normal_n, stick_friction((static_coefficient, dynamic_coefficient)));
     memory.keep_anchor(slot, body, tool, &slid_anchor(at, &pull, stiffness));
     pull
+}
+
+/// The skin's friction coefficients (static, dynamic) as the stick springs take them.
+pub(crate) fn stick_friction((static_coefficient, dynamic_coefficient): Friction) -> crate::grid::friction::Friction {
+    crate::grid::friction::Friction { static_coefficient, dynamic_coefficient }
 }
 
 /// The stick springs of a point's friction as the implicit system's contacts: across

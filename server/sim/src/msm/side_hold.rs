@@ -130,14 +130,12 @@ impl SideMemory {
     /// Where friction holds `slot` against body `body` (world frame), if it has been
     /// anchored during its contact.
     pub fn anchor(&self, slot: Slot, body: usize, tool: &PlacedTool) -> Option<Vec3> {
-        let [along, edge, flat] = self.live(slot, body)?.anchor?;
-        Some(tool.tip + tool.axis * along + tool.edge * edge + tool.flat_normal() * flat)
+        Some(tool.from_frame(self.live(slot, body)?.anchor?))
     }
 
     /// Keeps `slot`'s anchor at `at` (world frame), in the tool's frame.
     pub fn keep_anchor(&mut self, slot: Slot, body: usize, tool: &PlacedTool, at: &Vec3) {
-        let from_tip = at - tool.tip;
-        let anchor = [from_tip.dot(&tool.axis), from_tip.dot(&tool.edge), from_tip.dot(&tool.flat_normal())];
+        let anchor = tool.to_frame(at);
         if let Some(t) = self.slot(slot).as_mut().filter(|t| t.body == body) {
             t.anchor = Some(anchor);
         }

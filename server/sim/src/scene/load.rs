@@ -116,6 +116,15 @@ impl Scene {
                     "forceps are blunt: their jaws press and rub but do not cut (their button closes them); set can_cut to false, or use a blade to cut",
                 ));
             }
+            if let super::ToolShapeSpec::Forceps { length_m, grip_length_m, .. } = &tool.shape
+                && grip_length_m.get() > length_m.get()
+            {
+                return Err(SceneError::new(
+                    origin,
+                    format!("tools[{i}].shape.forceps.grip_length_m"),
+                    format!("the jaws grip along their own length at most: grip length {} m, jaws {} m long", grip_length_m.get(), length_m.get()),
+                ));
+            }
             if let Some(j) = self.tools[..i].iter().position(|t| t.name == tool.name) {
                 return Err(SceneError::new(
                     origin,

@@ -495,7 +495,8 @@ pub enum ToolShapeSpec {
         #[serde(default = "default_grip_force")]
         grip_force_n: ForceN,
         /// How far from the tip the jaws grip, m: tissue forceps grip with their
-        /// serrated tips, not their whole length. Default 10 mm; at most `length_m`.
+        /// serrated tips, not their whole length. Default 10 mm; at most `length_m`
+        /// (refused beyond it).
         #[serde(default = "default_grip_length")]
         grip_length_m: ToolLengthM,
     },
