@@ -243,17 +243,21 @@ fn multirate_haptic_steps_allocate_nothing() {
     }
 }
 
-/// Forceps under a multirate schedule: the haptic loop splits them into their jaws and
-/// renders each against a patch of its own, allocating nothing either, while they press
-/// the block and close on it.
+/// Forceps on the grid, single-rate and under a multirate schedule (whose haptic loop
+/// splits them into their jaws and renders each against a patch of its own), allocate
+/// nothing while they press the block and close on it: fully on a frictionless block,
+/// pinching the tissue between them where it has friction (tool::bodies::Bodies::pinch).
 #[test]
-fn multirate_haptic_steps_with_forceps_allocate_nothing() {
+fn grid_steps_with_forceps_allocate_nothing() {
     let forceps = r#"{ "name": "forceps", "shape": { "forceps": { "width_m": 0.003, "thickness_m": 0.002, "length_m": 0.06, "opening_m": 0.004 } } }"#;
-    let multirate = r#""solver": { "preconditioner": "cholesky" }, "schedule": { "multirate": { "deformation_every_steps": 10 } }"#;
-    // Closed from step 150.
-    let (allocations, force) = grid_allocations_pressing("", multirate, forceps, 0.0, Some(150), 400);
-    assert!(force.z > 0.0, "the closed forceps press the block: {force:?}");
-    assert_eq!(allocations, 0, "multirate haptic steps with forceps allocated");
+    for schedule in ["", r#", "schedule": { "multirate": { "deformation_every_steps": 10 } }"#] {
+        for material in ["", r#", "friction": { "static_coefficient": 0.5, "dynamic_coefficient": 0.4 }"#] {
+            // Closed from step 150.
+            let (allocations, force) = grid_allocations_pressing(material, &format!(r#""solver": {{ "preconditioner": "cholesky" }}{schedule}"#), forceps, 0.0, Some(150), 400);
+            assert!(force.z > 0.0, "the closed forceps press the block: {force:?}");
+            assert_eq!(allocations, 0, "steps with forceps allocated (schedule {schedule:?}, material {material:?})");
+        }
+    }
 }
 
 /// A step that must wait for a background result (a slow worker, a loaded machine)

@@ -1855,3 +1855,120 @@ fn forceps_grasp_the_lip_of_an_incision_and_retract_it() {
     }
     assert!((holding[0] - holding[1]).abs() <= 0.1 * holding[0], "the integrators feel the held lip alike: {holding:?} N");
 }
+
+/// What a lift of a grasp on the grid gave: the jaws' half gap where they stopped (m),
+/// the tissue's highest rise on the axis over its rest (m), the strongest pull on the
+/// forceps (downwards, N), the pull at the end of the hold, lifted (N), and the force
+/// 0.3 s after the button was released (N).
+#[derive(Debug)]
+struct GridLift {
+    stopped_half_gap_m: f64,
+    rise_m: f64,
+    pull_n: f64,
+    held_n: f64,
+    released_n: f64,
+}
+
+/// Forceps pressed 6 mm into the grid block open (8 mm at 50 mm/s from 2 mm above) and
+/// held, closed (the button held from 460 ms: the jaws have `close_ms` to close), lifted
+/// 10 mm at 20 mm/s, held 300 ms, and released for 300 ms, by `step(command)`, which
+/// returns the force on the forceps along z, the jaws' half gap and the height of the
+/// tissue's surface on the forceps' axis.
+fn grasp_and_lift_grid(top: Vec3, close_ms: u32, mut step: impl FnMut(cutsim_sim::tool::ToolCommand) -> (f64, f64, Option<f64>)) -> GridLift {
+    let (lift_from, release_at) = (460 + close_ms, 460 + close_ms + 800);
+    let mut lift = GridLift { stopped_half_gap_m: 0.0, rise_m: f64::NEG_INFINITY, pull_n: 0.0, held_n: 0.0, released_n: 0.0 };
+    let mut rest = None;
+    for ms in 0..release_at + 300 {
+        let down = 0.05e-3 * f64::from(ms.min(160));
+        let up = 0.02e-3 * f64::from(ms.clamp(lift_from, lift_from + 500) - lift_from);
+        let tip = Vec3::new(top.x + 0.0003, top.y + 0.0002, top.z + 0.002 - down + up);
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: (460..release_at).contains(&ms) };
+        let (force, half_gap, surface) = step(command);
+        if ms == 0 {
+            rest = surface;
+        }
+        if ms + 1 == lift_from {
+            lift.stopped_half_gap_m = half_gap;
+        }
+        if (lift_from..release_at).contains(&ms) {
+            lift.pull_n = lift.pull_n.max(-force);
+            if let (Some(z), Some(rest)) = (surface, rest) {
+                lift.rise_m = lift.rise_m.max(z - rest);
+            }
+        }
+        if ms + 1 == release_at {
+            lift.held_n = -force;
+        }
+        lift.released_n = force;
+    }
+    lift
+}
+
+/// The grid block with forceps (`thick`: [`grid_block_with_thick_forceps`], else
+/// [`grid_block_with_forceps`]) gripping with `grip_n`, and its material's friction
+/// (static, dynamic; None: frictionless).
+fn grid_forceps_scene(thick: bool, grip_n: f64, friction: Option<(f64, f64)>) -> Scene {
+    let mut json = serde_json::to_value(if thick { grid_block_with_thick_forceps() } else { grid_block_with_forceps() }).unwrap();
+    json["tools"][0]["shape"]["forceps"]["grip_force_n"] = serde_json::json!(grip_n);
+    if let Some((s, d)) = friction {
+        json["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": s, "dynamic_coefficient": d });
+    }
+    Scene::from_json_str(&json.to_string(), "block with forceps", None).unwrap()
+}
+
+/// Forceps closed on the branched grid grasp it by friction (tool::bodies::Bodies::pinch,
+/// docs/branched-grid.md "Tools"): pressed 6 mm into the block open, the tissue rises
+/// between the jaws; closed on it, they stop on the ridge, their inner flats half a voxel
+/// apart (1 mm), and the tissue's friction under them, pressed with the grip, holds it:
+/// lifted 10 mm, the block follows and pulls the forceps back, at most with the
+/// friction's limit (2 μ_s × grip); released, it lets go. On a
+/// frictionless block nothing would hold it, and the jaws close fully, as before. Thin
+/// jaws (2 × 1 mm) and thick ones (4 × 3 mm, also under a multirate schedule, whose
+/// haptic loop stops the jaws on the force it renders).
+#[test]
+fn forceps_closed_on_the_grid_grasp_it_by_friction_and_lift_it() {
+    let surface_on = |grid: &cutsim_sim::grid::BranchedGrid, command: &cutsim_sim::tool::ToolCommand| grid_surface_height(grid, (command.pose.position_m.x, command.pose.position_m.y));
+    let single_rate = |scene: &Scene| {
+        let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+        let mut grid = cutsim_sim::grid::build_from_scene(scene, spec).unwrap();
+        let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
+        let lift = grasp_and_lift_grid(grid.broad_top().unwrap(), 240, |command| {
+            grid.step(&[command], &mut feedback);
+            (feedback[0].force_n.z, grid.jaws_half_gap_m(0).unwrap(), surface_on(&grid, &command))
+        });
+        assert_eq!(grid.counters().blowups_contained, 0);
+        lift
+    };
+    let friction = Some((0.5, 0.4));
+    let limit = |grip: f64| 2.0 * 0.5 * grip;
+    for (thick, grip, friction) in [(false, 3.0, None), (false, 3.0, friction), (true, 3.0, None), (true, 3.0, friction)] {
+        let lift = single_rate(&grid_forceps_scene(thick, grip, friction));
+        let (jaws, rub) = (if thick { "thick" } else { "thin" }, if friction.is_some() { "μ 0.5/0.4" } else { "frictionless" });
+        println!(
+            "grid, {jaws} jaws, {rub}, grip {grip} N: stopped {:.2} mm apart; lifted 10 mm, the tissue rose {:.2} mm, pulling back with up to {:.2} N (friction's limit {:.1} N), {:.2} N at the end of the hold; released, {:.3} N",
+            2e3 * lift.stopped_half_gap_m, lift.rise_m * 1e3, lift.pull_n, limit(grip), lift.held_n, lift.released_n
+        );
+        assert!(lift.released_n.abs() < 0.05, "{jaws}, {rub}: released, the forceps still feel {:.3} N", lift.released_n);
+        if friction.is_none() {
+            assert_eq!(lift.stopped_half_gap_m, 0.0, "{jaws}, frictionless: the jaws close fully");
+            assert!(lift.held_n.abs() < 0.05, "{jaws}, frictionless: nothing holds ({:.3} N)", lift.held_n);
+            continue;
+        }
+        assert!((lift.stopped_half_gap_m - 5e-4).abs() < 1e-9, "{jaws}: the jaws stop a quarter voxel either side of the axis ({:.3} mm)", lift.stopped_half_gap_m * 1e3);
+        assert!(lift.rise_m > 2e-3, "{jaws}: lifted, the tissue follows ({:.2} mm)", lift.rise_m * 1e3);
+        assert!(lift.held_n > 0.5 && lift.pull_n <= 1.05 * limit(grip), "{jaws}, grip {grip} N: held {:.2} N, at most {:.2} N", lift.held_n, lift.pull_n);
+    }
+
+    let scene = grid_forceps_scene(true, 3.0, friction);
+    let schedule = cutsim_sim::scene::MultirateSpec { deformation_every_steps: serde_json::from_value(serde_json::json!(33)).unwrap() };
+    let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
+    let top = model.with_grid(|g| g.broad_top().unwrap());
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
+    // The paced jaws take 0.66 s to close.
+    let multi = grasp_and_lift_grid(top, 840, |command| {
+        model.step(&[command], &mut feedback);
+        (feedback[0].force_n.z, model.jaws_half_gap_m(0).unwrap(), model.with_grid(|g| surface_on(g, &command)))
+    });
+    println!("  multirate (deformation every 33 ms): stopped {:.2} mm apart; the tissue rose {:.2} mm, pulling back with up to {:.2} N, {:.2} N at the end; released, {:.3} N", 2e3 * multi.stopped_half_gap_m, multi.rise_m * 1e3, multi.pull_n, multi.held_n, multi.released_n);
+    assert!((multi.stopped_half_gap_m - 5e-4).abs() < 1e-5 && multi.held_n > 0.5 && multi.pull_n <= 1.05 * limit(3.0) && multi.released_n.abs() < 0.05, "{multi:?}");
+}

@@ -117,6 +117,13 @@ pub struct BranchedGrid {
     contact_vertices: Vec<u32>,
     /// Per contact: whether it is on a triangle's inside (face_contact; its friction is decided before the solve, not moved after it).
     contact_on_face: Vec<bool>,
+    /// Per contact: the share of forceps' grip pressing it, N (0 unless it is under the
+    /// inner flat of a jaw that pinches: tool::bodies::Bodies::pinched); its friction
+    /// takes at least this normal force.
+    contact_pinch_n: Vec<f64>,
+    /// Per body: its pinch (the direction its inner flat presses, tool frame; the grip,
+    /// N), refreshed before each step.
+    pinches: Vec<Option<crate::tool::bodies::Pinch>>,
     /// Per tool: its tip last step (grid frame), for its velocity.
     previous_tips: Vec<Option<Vec3>>,
     /// Per surface vertex: where it stuck to a tool (super::friction); forgotten at every
@@ -157,6 +164,24 @@ struct Deformation<'a> {
     path: &'a [ToolCommand],
     patches: &'a mut [ContactPatch],
     margin_m: f64,
+}
+
+/// How many contacts (surface vertices touching the tools) a step has room for without
+/// allocating: far more than the vertices under a tool's end and along its flats on the
+/// finest grids bundled.
+const CONTACT_ROOM: usize = 1024;
+
+/// Where forceps' jaws that have met tissue stop closing at the latest, in voxels of
+/// their half gap (a quarter voxel: their inner flats half a voxel apart). Pinched
+/// thinner, the tissue between them would have to pass between the grid's surface
+/// vertices, and the jaws met through it, holding nothing (crate::tool::bodies::Bodies::pinch).
+pub const PINCHED_HALF_GAP_VOXELS: f64 = 0.25;
+
+/// Where closing forceps' jaws stop on the tissue at the latest (their half gap, m:
+/// [`PINCHED_HALF_GAP_VOXELS`]); None where no material has friction: nothing would hold
+/// what they pinch, and they close fully, as on the skin without friction.
+pub(crate) fn pinch_floor_m(materials: &[GridMaterial], topo: &Topology) -> Option<f64> {
+    materials.iter().any(|m| m.friction.static_coefficient > 0.0).then(|| PINCHED_HALF_GAP_VOXELS * topo.layout.smallest_side_m())
 }
 
 /// What the last voxel removal did and what each part of it cost.
@@ -213,7 +238,10 @@ impl BranchedGrid {
         let dynamics = Dynamics::new(&topo);
         let n = topo.nodes.len();
         // The grid meets bodies: the tools, forceps as their two jaws.
-        let (scene_tools, (tools, bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
+        let (scene_tools, (tools, mut bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
+        if let (Some(bodies), Some(floor)) = (bodies.as_mut(), pinch_floor_m(&materials, &topo)) {
+            bodies.pinch_no_closer_than(floor);
+        }
         let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], crate::tool::bodies::Bodies::twins);
         let tool_count = tools.len();
         // The per-vertex contact memory, with room for the surface to double through
@@ -222,6 +250,9 @@ impl BranchedGrid {
         let vertices = surface.voxel.len();
         let mut touches = Vec::with_capacity(2 * vertices);
         touches.resize(vertices, None);
+        // Room for the contacts of a step, made here: growing it in a step allocates in
+        // the 1 kHz loop (closing forceps touch more vertices than they did pressed).
+        let contact_room = vertices.min(CONTACT_ROOM);
         let mut grid = BranchedGrid {
             dt_s,
             frame,
@@ -229,15 +260,17 @@ impl BranchedGrid {
             settings,
             materials,
             max_voxels_per_step,
-            contacts: Vec::new(),
+            contacts: Vec::with_capacity(contact_room),
             contact_ranges: vec![(0, 0); tool_count],
-            contact_levers: Vec::new(),
-            contact_vertices: Vec::new(),
-            contact_on_face: Vec::new(),
+            contact_levers: Vec::with_capacity(contact_room),
+            contact_vertices: Vec::with_capacity(contact_room),
+            contact_on_face: Vec::with_capacity(contact_room),
+            contact_pinch_n: Vec::with_capacity(contact_room),
+            pinches: vec![None; tool_count],
             previous_tips: vec![None; tool_count],
             anchors: super::friction::Anchors::with_room(vertices, 2 * vertices),
             touches,
-            touching_scratch: Vec::new(),
+            touching_scratch: Vec::with_capacity(contact_room),
             triangle_scratch: Vec::new(),
             face_scratch: Vec::new(),
             held_faces: vec![Vec::new(); tool_count],
@@ -283,7 +316,13 @@ impl BranchedGrid {
             None => self.advance(commands, feedback, multirate),
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
+                for (body, pinch) in self.pinches.iter_mut().enumerate() {
+                    *pinch = bodies.pinched(body, &self.scene_tools);
+                }
                 self.advance(&bodies.commands, &mut bodies.feedback, multirate);
+                // Closing jaws stop on what pushes them back with the grip (their grasp:
+                // the tissue's friction holds it between them, grid::friction).
+                bodies.pinch(&self.scene_tools);
                 self.counters.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }
@@ -296,6 +335,25 @@ impl BranchedGrid {
     /// splits them. `patches`: one per body.
     pub fn deformation_step_of_tools(&mut self, commands: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
         self.advance_tools(commands, feedback, Some(Deformation { path: &[], patches, margin_m }));
+    }
+
+    /// Scene tool `tool`'s jaws' half gap, m: half the distance between their inner
+    /// flats (0 closed; None for a tool without jaws).
+    pub fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
+        self.bodies.as_ref()?.jaws_half_gap_m(tool)
+    }
+
+    /// How hard what lies between scene tool `tool`'s jaws pushed them apart in the last
+    /// step, N (the lesser jaw's outward force; None for a tool without jaws).
+    pub fn jaws_squeeze_n(&self, tool: usize) -> Option<f64> {
+        let bodies = self.bodies.as_ref()?;
+        bodies.first_jaw(tool).map(|_| bodies.squeeze_n(tool))
+    }
+
+    /// Where closing forceps' jaws stop on this tissue at the latest (their half gap, m),
+    /// None where they close fully (tool::bodies::Bodies::pinch).
+    pub fn pinch_floor_m(&self) -> Option<f64> {
+        pinch_floor_m(&self.materials, &self.topo)
     }
 
     /// How many bodies the grid meets (its tools, forceps as two jaws).
@@ -312,13 +370,15 @@ impl BranchedGrid {
     /// leave them. Everything here is per body (forceps as their two jaws,
     /// crate::tool::bodies): the haptic loop splits the tools' commands into the bodies'
     /// at its own rate and hands over each body's shape (`bodies`: a jaw's plate open, the
-    /// closed pair as one), so that the deformation meets the jaws where the haptic loop
-    /// renders them.
-    pub fn deformation_step(&mut self, commands: &[ToolCommand], bodies: &[ToolShape], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
+    /// closed pair as one) and pinch (`pinches`: tool::bodies::Bodies::pinched), so that
+    /// the deformation meets the jaws where and as the haptic loop renders them.
+    #[allow(clippy::too_many_arguments)]
+    pub fn deformation_step(&mut self, commands: &[ToolCommand], bodies: &[ToolShape], pinches: &[Option<crate::tool::bodies::Pinch>], path: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
         debug_assert_eq!(bodies.len(), self.tools.len());
         for (tool, body) in self.tools.iter_mut().zip(bodies) {
             tool.section = body.section;
         }
+        self.pinches.copy_from_slice(pinches);
         self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }
 
@@ -328,6 +388,7 @@ impl BranchedGrid {
         self.contact_levers.clear();
         self.contact_vertices.clear();
         self.contact_on_face.clear();
+        self.contact_pinch_n.clear();
         self.lead_strokes(commands);
         for (i, (command, fb)) in commands.iter().zip(feedback.iter_mut()).enumerate() {
             *fb = ToolFeedback::default();
@@ -428,7 +489,8 @@ impl BranchedGrid {
                     continue;
                 }
                 let contact = &self.contacts[c];
-                let normal_n = contact.force_after(&self.topo, h).norm();
+                let pressed_n = contact.force_after(&self.topo, h).norm();
+                let normal_n = if pressed_n > 0.0 { pressed_n.max(self.contact_pinch_n[c]) } else { 0.0 };
                 let force = stick_force_after(contact, &self.topo, h);
                 let point = self.surface.position(&self.topo, vertex as usize);
                 let anchor = self.anchors.slot_mut(vertex as usize);
@@ -461,6 +523,9 @@ impl BranchedGrid {
         let ToolPlacement { tip, tool_to_grid, tool_velocity, .. } = placed;
         let k = self.tools[i].contact_stiffness_n_per_m;
         let cutting = self.cutting(i, command);
+        // Under a jaw that pinches, the grip shared among the vertices its inner flat presses.
+        let pinch = self.pinches[i].map(|p| (tool_to_grid * p.inward_local, p.grip_n));
+        let pinch_share_n = pinch.map_or(0.0, |(inward, grip_n)| grip_n / touching.iter().filter(|(_, c)| c.normal.dot(&inward) > 0.5).count().max(1) as f64);
         for &(v, super::hold::Contact { normal, depth, entry }) in &touching {
             let v = v as usize;
             let p = self.surface.position(&self.topo, v);
@@ -472,7 +537,8 @@ impl BranchedGrid {
             // A vertex in contact with the same tool last step keeps its friction anchor.
             let from_tip = self.anchors.get(v).filter(|a| a.tool == i && a.step + 1 >= self.step_index).map(|a| a.from_tip);
             let slip = super::solver::embedded_velocity(&self.topo, element, &weights) - tool_velocity;
-            let (stick_stiffness, stick_force, kept) = Self::rub_about_tip(from_tip, &p, &tip, &normal, k, k * depth, self.friction_at(v), &slip, self.dt_s);
+            let pinch_n = pinch.filter(|(inward, _)| normal.dot(inward) > 0.5).map_or(0.0, |_| pinch_share_n);
+            let (stick_stiffness, stick_force, kept) = Self::rub_about_tip(from_tip, &p, &tip, &normal, k, (k * depth).max(pinch_n), self.friction_at(v), &slip, self.dt_s);
             if let Some(from_tip) = kept {
                 self.anchors.set(v, super::friction::Anchor { tool: i, from_tip, step: self.step_index });
             }
@@ -480,6 +546,7 @@ impl BranchedGrid {
             self.contact_levers.push(p - tip);
             self.contact_vertices.push(v as u32);
             self.contact_on_face.push(false);
+            self.contact_pinch_n.push(pinch_n);
         }
         self.held_face_contacts(i, cutting, &placed, &touching, &mut triangles, &mut faces);
         for f in faces.iter_mut() {
@@ -506,6 +573,7 @@ impl BranchedGrid {
             self.contact_levers.push(f.point - tip);
             self.contact_vertices.push(f.vertex);
             self.contact_on_face.push(true);
+            self.contact_pinch_n.push(0.0);
         }
         self.held_faces[i].clear();
         self.held_faces[i].extend(faces.iter().map(|f| f.held));

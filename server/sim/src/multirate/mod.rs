@@ -41,7 +41,7 @@ use crate::solver::background::Background;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::{ChosenFidelity, Tissue, TissueCounters};
 use crate::grid::hold::Plate;
-use crate::tool::bodies::Bodies;
+use crate::tool::bodies::{Bodies, Pinch};
 use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
 use patch::{Capsule, ContactPatch, MAX_PATCH_VERTICES, PatchContact};
 
@@ -80,6 +80,8 @@ pub struct Multirate {
     scene_tools: Vec<ToolShape>,
     tools: Vec<ToolShape>,
     bodies: Option<Bodies>,
+    /// Per body: its pinch this step (a jaw stopped on what it pinches), for the next job.
+    pinches: Vec<Option<Pinch>>,
     step_index: u64,
     /// Per tool: the patch the haptic loop renders against now.
     patches: Vec<ContactPatch>,
@@ -112,8 +114,10 @@ pub struct Multirate {
 struct Job {
     grid: BranchedGrid,
     commands: Vec<ToolCommand>,
-    /// The bodies' shapes at the job's step (a forceps' jaws open or closed).
+    /// The bodies' shapes and pinches at the job's step (a forceps' jaws open or
+    /// closed, pinching or not: crate::tool::bodies).
     shapes: Vec<ToolShape>,
+    pinches: Vec<Option<Pinch>>,
     /// The haptic steps' commands over the period before (one per tool per step): the
     /// deformation step cuts along them.
     path: Vec<ToolCommand>,
@@ -128,7 +132,7 @@ impl Job {
     fn run(mut self: Box<Self>) -> Box<Self> {
         let started = std::time::Instant::now();
         let job = &mut *self;
-        job.grid.deformation_step(&job.commands, &job.shapes, &job.path, &mut job.patches, job.margin_m, &mut job.feedback);
+        job.grid.deformation_step(&job.commands, &job.shapes, &job.pinches, &job.path, &mut job.patches, job.margin_m, &mut job.feedback);
         // What each patch's own contact gives where the deformation had the tool: the
         // haptic loop balances that, not the deformation's force (patch::ContactPatch's
         // `balanced`).
@@ -300,6 +304,9 @@ impl Multirate {
         let (tools, mut bodies) = crate::tool::bodies::expand(&scene_tools);
         if let Some(bodies) = bodies.as_mut() {
             bodies.pace_jaws_for(every as f64 * dt_s, JAW_TRAVEL_PER_DEFORMATION_VOXELS * grid.topology().layout.smallest_side_m());
+            if let Some(floor) = grid.pinch_floor_m() {
+                bodies.pinch_no_closer_than(floor);
+            }
         }
         let count = tools.len();
         let margin_m = patch_margin_m(&grid, every as f64 * dt_s);
@@ -310,6 +317,7 @@ impl Multirate {
             grid,
             commands: vec![ToolCommand::default(); count],
             shapes: tools.clone(),
+            pinches: vec![None; count],
             path: Vec::with_capacity(count * every as usize),
             patches: vec![ContactPatch::default(); count],
             feedback: vec![ToolFeedback::default(); count],
@@ -325,6 +333,7 @@ impl Multirate {
             scene_tools,
             tools,
             bodies,
+            pinches: vec![None; count],
             step_index: 0,
             patches,
             fading: vec![(Vec3::zeros(), Vec3::zeros()); count],
@@ -360,6 +369,12 @@ impl Multirate {
     /// Body `i`'s patch now (the tools', forceps as their two jaws: crate::tool::bodies).
     pub fn patch(&self, i: usize) -> &ContactPatch {
         &self.patches[i]
+    }
+
+    /// Scene tool `tool`'s jaws' half gap as the haptic loop has them, m: half the
+    /// distance between their inner flats (0 closed; None for a tool without jaws).
+    pub fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
+        self.bodies.as_ref()?.jaws_half_gap_m(tool)
     }
 
     /// The deformation model as the last finished job left it (waits for the pending
@@ -404,6 +419,7 @@ impl Multirate {
         for (shape, tool) in job.shapes.iter_mut().zip(&self.tools) {
             shape.section = tool.section;
         }
+        job.pinches.copy_from_slice(&self.pinches);
         std::mem::swap(&mut job.path, &mut self.path);
         self.path.clear();
         let mut h = StateHasher::new();
@@ -530,7 +546,13 @@ impl Tissue for Multirate {
             None => self.step_bodies(commands, feedback),
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
+                for (body, pinch) in self.pinches.iter_mut().enumerate() {
+                    *pinch = bodies.pinched(body, &self.scene_tools);
+                }
                 self.step_bodies(&bodies.commands, &mut bodies.feedback);
+                // Closing jaws stop on what pushes them back with the grip, as in the
+                // grid's own step (crate::grid::model): the rendered force is the squeeze.
+                bodies.pinch(&self.scene_tools);
                 self.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }
@@ -614,6 +636,7 @@ impl Tissue for Multirate {
             scene_tools: self.scene_tools.clone(),
             tools: self.tools.clone(),
             bodies: self.bodies.clone(),
+            pinches: self.pinches.clone(),
             step_index: self.step_index,
             patches: self.patches.clone(),
             fading: self.fading.clone(),

@@ -10,6 +10,9 @@
 //! slips in between). A forceps' command is split into its jaws' commands, and the jaws'
 //! feedback is summed back into the forceps' (the torque taken about the forceps' tip),
 //! clamped at its limit. Every other tool is one body, passed through as it is.
+//! Closing jaws stop where a model tells them: on the skin's fold (crate::msm::grasp),
+//! or by force on the branched grid ([`Bodies::pinch`]: where what lies between them
+//! pushes back with the grip).
 //!
 //! Nothing here allocates after the model is built: the split and the sum reuse the
 //! buffers made at build time.
@@ -22,6 +25,15 @@ use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
 /// A jaw that jumped its whole travel in one step would land under the skin beside it
 /// instead of pushing it aside.
 pub const JAW_SPEED_M_PER_S: f64 = 0.1;
+
+/// A jaw pinching what lies between the jaws ([`Bodies::pinched`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pinch {
+    /// The direction its inner flat presses (towards the other jaw), in the tool's frame.
+    pub inward_local: Vec3,
+    /// The grip it presses with, N.
+    pub grip_n: f64,
+}
 
 /// One of a forceps' jaws as a body.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -65,8 +77,16 @@ pub(crate) struct Bodies {
     /// multirate schedule slows them: [`Bodies::pace_jaws_for`]).
     jaw_speed_m_per_s: Vec<f64>,
     /// Per tool: the half gap at which closing jaws stop, m (0: they close fully; the
-    /// skin's grasp stops them on the fold between them: crate::msm::grasp).
+    /// skin's grasp stops them on the fold between them, crate::msm::grasp, and the
+    /// grid's pinch on what pushes them back, [`Bodies::pinch`]).
     closed_half_gap_m: Vec<f64>,
+    /// Per tool: its button closes its jaws this step, and they have met something
+    /// between them since it was pressed ([`Bodies::pinch`]).
+    closing: Vec<bool>,
+    met: Vec<bool>,
+    /// Where [`Bodies::pinch`] stops jaws that have met something at the latest, m;
+    /// None: it does not stop them ([`Bodies::pinch_no_closer_than`]).
+    least_pinch_half_gap_m: Option<f64>,
     /// Per body: its centre's offset from its tool's tip this step (world frame); None
     /// while it is away (the second jaw of closed forceps).
     arm: Vec<Option<Vec3>>,
@@ -101,7 +121,8 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
     let n = of.len();
     let jaw_speed_m_per_s = vec![JAW_SPEED_M_PER_S; tools.len()];
     let closed_half_gap_m = vec![0.0; tools.len()];
-    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
+    let (closing, met) = (vec![false; tools.len()], vec![false; tools.len()]);
+    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, closing, met, least_pinch_half_gap_m: None, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
 }
 
 impl Bodies {
@@ -117,6 +138,13 @@ impl Bodies {
         }
     }
 
+    /// Makes [`Bodies::pinch`] stop closing jaws (it does nothing until then), at the
+    /// latest with their inner flats `2 least_half_gap_m` apart once they have met
+    /// something.
+    pub fn pinch_no_closer_than(&mut self, least_half_gap_m: f64) {
+        self.least_pinch_half_gap_m = Some(least_half_gap_m);
+    }
+
     /// Tool `tool`'s jaws' half gap now, m (0 for a tool without jaws, and for closed
     /// forceps).
     pub fn half_gap_m(&self, tool: usize) -> f64 {
@@ -127,6 +155,63 @@ impl Bodies {
     /// `2 half_gap_m` apart (0: touching). Jaws already closer stay where they are.
     pub fn stop_closing_at(&mut self, tool: usize, half_gap_m: f64) {
         self.closed_half_gap_m[tool] = half_gap_m;
+    }
+
+    /// Jaws closed by force, not to a place (the branched grid's grasp): the hand pinches
+    /// them with the forceps' `grip_force_n`, so closing jaws stop where what lies
+    /// between them pushes each jaw back as hard (its outward force in the last step's
+    /// feedback, `self.feedback`), and no closer than [`Bodies::pinch_no_closer_than`]
+    /// once they have met something between them (a model's contact cannot hold a layer
+    /// thinner than its resolution: the grid's vertices pass the jaws' flats). They stay
+    /// there until the button is released. Meeting nothing, they close fully, as ever.
+    /// The skin's jaws stop at one thickness of it instead (crate::msm::grasp).
+    pub fn pinch(&mut self, tools: &[ToolShape]) {
+        let Some(least_half_gap_m) = self.least_pinch_half_gap_m else { return };
+        for (tool, shape) in tools.iter().enumerate() {
+            let Section::Jaws { grip_force_n, .. } = shape.section else { continue };
+            let now = self.half_gap_m[tool].0;
+            if !self.closing[tool] || self.closed_half_gap_m[tool] > 0.0 || now <= 0.0 {
+                continue;
+            }
+            let squeeze = self.squeeze_n(tool);
+            self.met[tool] |= squeeze > 0.0;
+            if squeeze >= grip_force_n || self.met[tool] && now <= least_half_gap_m + 1e-9 {
+                self.closed_half_gap_m[tool] = now;
+            }
+        }
+    }
+
+    /// Body `body`'s pinch, if it is a jaw of forceps stopped on what they pinch
+    /// ([`Bodies::pinch`]): the direction its inner flat presses (towards the other jaw,
+    /// in the tool's frame) and the grip it presses with, N. The tissue's friction under
+    /// the jaws takes its normal force from the grip, not from how far the jaws sank in.
+    pub fn pinched(&self, body: usize, tools: &[ToolShape]) -> Option<Pinch> {
+        let Body { tool, jaw } = self.of[body];
+        let jaw = jaw?;
+        let Section::Jaws { grip_force_n, .. } = tools[tool].section else { return None };
+        if !(self.closing[tool] && self.closed_half_gap_m[tool] > 0.0 && self.half_gap_m[tool].0 <= self.closed_half_gap_m[tool]) {
+            return None;
+        }
+        let inward = Vec3::z().cross(&tools[tool].edge_local) * if jaw.side == 0 { 1.0 } else { -1.0 };
+        Some(Pinch { inward_local: inward, grip_n: grip_force_n })
+    }
+
+    /// How hard what lies between tool `tool`'s jaws pushes them apart, N: the lesser of
+    /// the two jaws' outward forces in the last step's feedback (0 while closed).
+    pub fn squeeze_n(&self, tool: usize) -> f64 {
+        let outward = |(body, (feedback, arm)): (&Body, (&ToolFeedback, &Option<Vec3>))| {
+            if body.tool != tool || body.jaw.is_none() {
+                return None;
+            }
+            Some(arm.and_then(|a| a.try_normalize(1e-12)).map_or(0.0, |out| feedback.force_n.dot(&out)))
+        };
+        let least = self.of.iter().zip(self.feedback.iter().zip(&self.arm)).filter_map(outward).fold(f64::INFINITY, f64::min);
+        if least.is_finite() { least.max(0.0) } else { 0.0 }
+    }
+
+    /// Tool `tool`'s jaws' half gap now, m (None for a tool without jaws).
+    pub fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
+        self.first_jaw(tool).map(|_| self.half_gap_m(tool))
     }
 
     /// The body of tool `tool`'s first jaw (the one that is the closed plate), if it
@@ -141,7 +226,13 @@ impl Bodies {
     /// while its button is held, else towards open, at their speed
     /// ([`JAW_SPEED_M_PER_S`] unless paced: [`Bodies::pace_jaws_for`]).
     pub fn split(&mut self, commands: &[ToolCommand], tools: &[ToolShape], shapes: &mut [ToolShape], dt_s: f64) {
-        for (((command, (now, open)), speed), closed) in commands.iter().zip(self.half_gap_m.iter_mut()).zip(&self.jaw_speed_m_per_s).zip(&self.closed_half_gap_m) {
+        for (tool, (((command, (now, open)), speed), closed)) in commands.iter().zip(self.half_gap_m.iter_mut()).zip(&self.jaw_speed_m_per_s).zip(self.closed_half_gap_m.iter_mut()).enumerate() {
+            // Released, the jaws forget where they stopped ([`Bodies::pinch`]).
+            self.closing[tool] = command.cut && *open > 0.0;
+            if !command.cut {
+                self.met[tool] = false;
+                *closed = 0.0;
+            }
             let target = match command.cut {
                 true if *now <= *closed => *now,
                 true => closed.min(*open),
@@ -276,6 +367,51 @@ mod tests {
         bodies.split(&[ToolCommand { cut: false, ..close }], &tools, &mut shapes, 1e-3);
         assert!((bodies.half_gap_m(0) - 1e-3).abs() < 1e-12, "released: they open");
         assert_eq!(bodies.first_jaw(0), Some(0));
+    }
+
+    /// Pinching (the branched grid's grasp), closing jaws stop where what is between
+    /// them pushes both back with the grip, or at the floor once they have met
+    /// something; they stay there while the button is held, and the jaw stopped presses
+    /// towards the other with the grip. Meeting nothing, or not told to pinch, they close
+    /// fully.
+    #[test]
+    fn pinching_jaws_stop_on_the_grip_or_at_the_floor_once_they_met_something() {
+        let tools = [forceps()];
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true };
+        let open = ToolCommand { cut: false, ..close };
+        // Each jaw pushed outward (its arm's way: −y for the first, +y for the second) with `n`.
+        let push = |b: &mut Bodies, n: f64| {
+            b.feedback[0].force_n = Vec3::new(0.0, -n, 0.1);
+            b.feedback[1].force_n = Vec3::new(0.0, n, 0.1);
+        };
+        let run = |pinching: bool, squeeze_at: &dyn Fn(f64) -> f64| {
+            let (mut shapes, bodies) = expand(&tools);
+            let mut bodies = bodies.unwrap();
+            if pinching {
+                bodies.pinch_no_closer_than(5e-4);
+            }
+            for _ in 0..60 {
+                bodies.split(&[close], &tools, &mut shapes, 1e-3);
+                let n = squeeze_at(bodies.half_gap_m(0));
+                push(&mut bodies, n);
+                bodies.pinch(&tools);
+            }
+            bodies
+        };
+        // Squeezed 3 N (the grip) from 2 mm on: they stop there.
+        let grip = |gap: f64| if gap <= 2e-3 + 1e-9 { 3.0 } else { 0.0 };
+        let mut stopped = run(true, &grip);
+        assert!((stopped.half_gap_m(0) - 2e-3).abs() < 1e-9, "{}", stopped.half_gap_m(0));
+        assert_eq!(stopped.pinched(0, &tools), Some(Pinch { inward_local: Vec3::y(), grip_n: 3.0 }), "the first jaw (−y) presses +y");
+        assert_eq!(stopped.pinched(1, &tools).map(|p| p.inward_local), Some(-Vec3::y()));
+        // Met something softer: at the floor. Met nothing, or not pinching: closed.
+        let soft = run(true, &|gap| if gap <= 2e-3 { 0.2 } else { 0.0 });
+        assert!((soft.half_gap_m(0) - 5e-4).abs() < 1e-9, "{}", soft.half_gap_m(0));
+        assert_eq!(run(true, &|_| 0.0).half_gap_m(0), 0.0);
+        assert_eq!(run(false, &grip).half_gap_m(0), 0.0);
+        // Released: they open, forget the stop and the pinch.
+        stopped.split(&[open], &tools, &mut expand(&tools).0, 1e-3);
+        assert!(stopped.half_gap_m(0) > 2e-3 && stopped.pinched(0, &tools).is_none());
     }
 
     #[test]
