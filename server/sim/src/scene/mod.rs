@@ -480,7 +480,10 @@ pub enum ToolShapeSpec {
     /// press and rub, never cut (`can_cut` must be false). On the skin, jaws closing on
     /// the skin between them stop on it and grasp it, held by friction with the skin's
     /// coefficients under `grip_force_n` (docs/tool-tissue.md, "Grasping"). On
-    /// the branched grid under either schedule; under a multirate one the jaws must be
+    /// the branched grid under either schedule, where its tissue has friction, closing
+    /// jaws stop where it pushes back with `grip_force_n` (or half a voxel apart) and
+    /// its friction holds it (docs/branched-grid.md, "Grasping"); under a multirate
+    /// schedule the jaws must be
     /// thick enough for its vertices to hold them (at least the diagonal of a voxel's
     /// largest face) and close at a tenth of a voxel per deformation step.
     Forceps {
@@ -489,13 +492,14 @@ pub enum ToolShapeSpec {
         length_m: ToolLengthM,
         opening_m: JawOpeningM,
         /// How hard the hand pinches the closed jaws together, N (the device's jaw is a
-        /// button): each jaw's inner flat presses the grasped skin with it. Default 3 N,
+        /// button): each jaw's inner flat presses the grasped tissue with it. Default 3 N,
         /// the least pinch that held a 5 N pull on porcine bowel in Heijnsdijk et al.
         /// 2004 (mean pinch applied 6.8 N).
         #[serde(default = "default_grip_force")]
         grip_force_n: ForceN,
         /// How far from the tip the jaws grip, m: tissue forceps grip with their
-        /// serrated tips, not their whole length. Default 10 mm; at most `length_m`
+        /// serrated tips, not their whole length (the skin's; on the branched grid the
+        /// jaws pinch along their whole flats). Default 10 mm; at most `length_m`
         /// (refused beyond it).
         #[serde(default = "default_grip_length")]
         grip_length_m: ToolLengthM,
