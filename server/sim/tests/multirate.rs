@@ -138,31 +138,42 @@ fn the_same_session_gives_the_same_state_on_the_deformation_thread_and_inline() 
 
 /// Forceps with jaws thick for the block (4 × 3 mm: its vertices hold them) pressed in,
 /// closed and reopened give the same state on the deformation thread and inline: each job
-/// receives the jaws as the haptic loop split them at its step.
+/// receives the jaws as the haptic loop split them at its step, and on tissue with
+/// friction, where closing jaws stop on what they pinch, their pinches too
+/// (tool::bodies::Bodies::pinch).
 #[test]
 fn forceps_give_the_same_state_on_the_deformation_thread_and_inline() {
-    let mut scene: serde_json::Value = serde_json::from_str(&block(10e-3)).unwrap();
-    scene["tools"] = serde_json::json!([{ "name": "forceps", "shape": { "forceps": { "width_m": 0.004, "thickness_m": 0.003, "length_m": 0.05, "opening_m": 0.006 } }, "contact_stiffness_n_per_m": 400, "max_force_n": 100 }]);
-    let run = |inline: bool| {
-        let mut model = Multirate::new(build_grid(&scene.to_string()), 1e-3, 10, inline);
-        let mut feedback = vec![ToolFeedback::default(); 1];
-        let (mut hashes, mut pressed) = (Vec::new(), 0.0f64);
-        for step in 0..900 {
-            // Pressed 3 mm in at 10 mm/s, closed from 350 ms to 650 ms.
-            let tip = probe_depth(0.001 * (f64::from(step) * 0.01).min(3.0)) - Vec3::new(0.0, 0.0, 0.006);
-            let command = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: (350..650).contains(&step) };
-            model.step(&[command], &mut feedback);
-            pressed = pressed.max(feedback[0].force_n.z);
-            if step % 50 == 49 {
-                hashes.push(model.state_hash());
-            }
+    for friction in [false, true] {
+        let mut scene: serde_json::Value = serde_json::from_str(&block(10e-3)).unwrap();
+        scene["tools"] = serde_json::json!([{ "name": "forceps", "shape": { "forceps": { "width_m": 0.004, "thickness_m": 0.003, "length_m": 0.05, "opening_m": 0.006 } }, "contact_stiffness_n_per_m": 400, "max_force_n": 100 }]);
+        if friction {
+            scene["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": 0.5, "dynamic_coefficient": 0.4 });
         }
-        (hashes, pressed)
-    };
-    let (threaded, pressed) = run(false);
-    println!("forceps pressed with up to {pressed:.2} N");
-    assert!(pressed > 0.1, "the forceps pressed the block: {pressed:.2} N");
-    assert_eq!(run(true).0, threaded, "the same state at every checkpoint");
+        let run = |inline: bool| {
+            let mut model = Multirate::new(build_grid(&scene.to_string()), 1e-3, 10, inline);
+            let mut feedback = vec![ToolFeedback::default(); 1];
+            let (mut hashes, mut pressed, mut closed_half_gap) = (Vec::new(), 0.0f64, 0.0);
+            for step in 0..900 {
+                // Pressed 3 mm in at 10 mm/s, closed from 350 ms to 650 ms.
+                let tip = probe_depth(0.001 * (f64::from(step) * 0.01).min(3.0)) - Vec3::new(0.0, 0.0, 0.006);
+                let command = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: (350..650).contains(&step) };
+                model.step(&[command], &mut feedback);
+                pressed = pressed.max(feedback[0].force_n.z);
+                if step == 649 {
+                    closed_half_gap = model.jaws_half_gap_m(0).unwrap();
+                }
+                if step % 50 == 49 {
+                    hashes.push(model.state_hash());
+                }
+            }
+            (hashes, pressed, closed_half_gap)
+        };
+        let (threaded, pressed, closed_half_gap) = run(false);
+        println!("forceps (friction {friction}) pressed with up to {pressed:.2} N, closed to {:.2} mm apart", 2e3 * closed_half_gap);
+        assert!(pressed > 0.1, "the forceps pressed the block: {pressed:.2} N");
+        assert_eq!(closed_half_gap > 0.0, friction, "the jaws stop on what they pinch where the tissue has friction, else close fully");
+        assert_eq!(run(true).0, threaded, "the same state at every checkpoint (friction {friction})");
+    }
 }
 
 #[test]

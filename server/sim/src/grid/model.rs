@@ -343,13 +343,6 @@ impl BranchedGrid {
         self.bodies.as_ref()?.jaws_half_gap_m(tool)
     }
 
-    /// How hard what lies between scene tool `tool`'s jaws pushed them apart in the last
-    /// step, N (the lesser jaw's outward force; None for a tool without jaws).
-    pub fn jaws_squeeze_n(&self, tool: usize) -> Option<f64> {
-        let bodies = self.bodies.as_ref()?;
-        bodies.first_jaw(tool).map(|_| bodies.squeeze_n(tool))
-    }
-
     /// Where closing forceps' jaws stop on this tissue at the latest (their half gap, m),
     /// None where they close fully (tool::bodies::Bodies::pinch).
     pub fn pinch_floor_m(&self) -> Option<f64> {

@@ -198,7 +198,7 @@ impl Bodies {
 
     /// How hard what lies between tool `tool`'s jaws pushes them apart, N: the lesser of
     /// the two jaws' outward forces in the last step's feedback (0 while closed).
-    pub fn squeeze_n(&self, tool: usize) -> f64 {
+    fn squeeze_n(&self, tool: usize) -> f64 {
         let outward = |(body, (feedback, arm)): (&Body, (&ToolFeedback, &Option<Vec3>))| {
             if body.tool != tool || body.jaw.is_none() {
                 return None;
