@@ -1921,7 +1921,7 @@ fn grid_forceps_scene(thick: bool, grip_n: f64, friction: Option<(f64, f64)>) ->
 /// between the jaws; closed on it, they stop on the ridge, their inner flats half a voxel
 /// apart (1 mm), and the tissue's friction under them, pressed with the grip, holds it:
 /// lifted 10 mm, the block follows and pulls the forceps back, at most with the
-/// friction's limit (2 μ_s × grip); released, it lets go. On a
+/// friction's limit (2 μ_s × grip), more under a firmer grip; released, it lets go. On a
 /// frictionless block nothing would hold it, and the jaws close fully, as before. Thin
 /// jaws (2 × 1 mm) and thick ones (4 × 3 mm, also under a multirate schedule, whose
 /// haptic loop stops the jaws on the force it renders).
@@ -1941,7 +1941,8 @@ fn forceps_closed_on_the_grid_grasp_it_by_friction_and_lift_it() {
     };
     let friction = Some((0.5, 0.4));
     let limit = |grip: f64| 2.0 * 0.5 * grip;
-    for (thick, grip, friction) in [(false, 3.0, None), (false, 3.0, friction), (true, 3.0, None), (true, 3.0, friction)] {
+    let mut thin_held = Vec::new();
+    for (thick, grip, friction) in [(false, 3.0, None), (false, 3.0, friction), (false, 6.8, friction), (true, 3.0, None), (true, 3.0, friction)] {
         let lift = single_rate(&grid_forceps_scene(thick, grip, friction));
         let (jaws, rub) = (if thick { "thick" } else { "thin" }, if friction.is_some() { "μ 0.5/0.4" } else { "frictionless" });
         println!(
@@ -1957,7 +1958,13 @@ fn forceps_closed_on_the_grid_grasp_it_by_friction_and_lift_it() {
         assert!((lift.stopped_half_gap_m - 5e-4).abs() < 1e-9, "{jaws}: the jaws stop a quarter voxel either side of the axis ({:.3} mm)", lift.stopped_half_gap_m * 1e3);
         assert!(lift.rise_m > 2e-3, "{jaws}: lifted, the tissue follows ({:.2} mm)", lift.rise_m * 1e3);
         assert!(lift.held_n > 0.5 && lift.pull_n <= 1.05 * limit(grip), "{jaws}, grip {grip} N: held {:.2} N, at most {:.2} N", lift.held_n, lift.pull_n);
+        if !thick {
+            thin_held.push(lift.held_n);
+        }
     }
+    // The grip presses the contacts under the jaws' inner flats: a firmer one holds more
+    // (far less than friction's limit: docs/branched-grid.md, "Grasping").
+    assert!(thin_held[1] > thin_held[0] + 0.05, "thin jaws: held {thin_held:?} N under a 3 N and a 6.8 N grip");
 
     let scene = grid_forceps_scene(true, 3.0, friction);
     let schedule = cutsim_sim::scene::MultirateSpec { deformation_every_steps: serde_json::from_value(serde_json::json!(33)).unwrap() };

@@ -516,9 +516,16 @@ impl BranchedGrid {
         let ToolPlacement { tip, tool_to_grid, tool_velocity, .. } = placed;
         let k = self.tools[i].contact_stiffness_n_per_m;
         let cutting = self.cutting(i, command);
-        // Under a jaw that pinches, the grip shared among the vertices its inner flat presses.
+        self.held_face_contacts(i, cutting, &placed, &touching, &mut triangles, &mut faces);
+        // Under a jaw that pinches, the grip shared among the contacts its inner flat
+        // presses (vertices and points on the triangles' insides).
         let pinch = self.pinches[i].map(|p| (tool_to_grid * p.inward_local, p.grip_n));
-        let pinch_share_n = pinch.map_or(0.0, |(inward, grip_n)| grip_n / touching.iter().filter(|(_, c)| c.normal.dot(&inward) > 0.5).count().max(1) as f64);
+        let pressed = |normal: &Vec3| pinch.is_some_and(|(inward, _)| normal.dot(&inward) > 0.5);
+        let pressed_count = touching.iter().filter(|(_, c)| pressed(&c.normal)).count() + faces.iter().filter(|f| pressed(&f.contact.normal)).count();
+        let pinch_n = |normal: &Vec3| match pinch {
+            Some((_, grip_n)) if pressed(normal) => grip_n / pressed_count as f64,
+            _ => 0.0,
+        };
         for &(v, super::hold::Contact { normal, depth, entry }) in &touching {
             let v = v as usize;
             let p = self.surface.position(&self.topo, v);
@@ -530,7 +537,7 @@ impl BranchedGrid {
             // A vertex in contact with the same tool last step keeps its friction anchor.
             let from_tip = self.anchors.get(v).filter(|a| a.tool == i && a.step + 1 >= self.step_index).map(|a| a.from_tip);
             let slip = super::solver::embedded_velocity(&self.topo, element, &weights) - tool_velocity;
-            let pinch_n = pinch.filter(|(inward, _)| normal.dot(inward) > 0.5).map_or(0.0, |_| pinch_share_n);
+            let pinch_n = pinch_n(&normal);
             let (stick_stiffness, stick_force, kept) = Self::rub_about_tip(from_tip, &p, &tip, &normal, k, (k * depth).max(pinch_n), self.friction_at(v), &slip, self.dt_s);
             if let Some(from_tip) = kept {
                 self.anchors.set(v, super::friction::Anchor { tool: i, from_tip, step: self.step_index });
@@ -541,14 +548,14 @@ impl BranchedGrid {
             self.contact_on_face.push(false);
             self.contact_pinch_n.push(pinch_n);
         }
-        self.held_face_contacts(i, cutting, &placed, &touching, &mut triangles, &mut faces);
         for f in faces.iter_mut() {
             let (normal, depth) = (f.contact.normal, f.contact.depth);
             // The centring spring is a stick spring anchored on the axis; friction adds
             // one of its own anchor (as a vertex's, but decided before the solve only).
             let (centring_stiffness, centring_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
             let point_velocity = super::solver::embedded_velocity(&self.topo, f.element, &f.weights);
-            let (rub_stiffness, rub_force, kept) = Self::rub_about_tip(f.held.anchor_from_tip, &f.point, &tip, &normal, k, k * depth, self.friction_at(f.vertex as usize), &(point_velocity - tool_velocity), self.dt_s);
+            let pinched_n = pinch_n(&normal);
+            let (rub_stiffness, rub_force, kept) = Self::rub_about_tip(f.held.anchor_from_tip, &f.point, &tip, &normal, k, (k * depth).max(pinched_n), self.friction_at(f.vertex as usize), &(point_velocity - tool_velocity), self.dt_s);
             f.held.anchor_from_tip = kept;
             let stick_stiffness = centring_stiffness + rub_stiffness;
             // The two anchors move differently: friction's with the tool; the centring
@@ -566,7 +573,7 @@ impl BranchedGrid {
             self.contact_levers.push(f.point - tip);
             self.contact_vertices.push(f.vertex);
             self.contact_on_face.push(true);
-            self.contact_pinch_n.push(0.0);
+            self.contact_pinch_n.push(pinched_n);
         }
         self.held_faces[i].clear();
         self.held_faces[i].extend(faces.iter().map(|f| f.held));
