@@ -1086,10 +1086,16 @@ fn grid_block_with_probe(radius_m: f64, stiffness: f64) -> Scene {
 fn grid_block_with_rod(radius_m: f64, stiffness: f64, length_m: f64, friction: Option<(f64, f64)>) -> Scene {
     let mut scene = serde_json::to_value(grid_block_with_probe(radius_m, stiffness)).unwrap();
     scene["tools"][0]["shape"]["cylinder"]["length_m"] = serde_json::json!(length_m);
+    with_block_friction(&mut scene, friction);
+    Scene::from_json_str(&scene.to_string(), "block", None).unwrap()
+}
+
+/// Gives the grid block's material (in `scene`, its JSON) the friction `friction`
+/// (static, dynamic; None: leaves it frictionless).
+fn with_block_friction(scene: &mut serde_json::Value, friction: Option<(f64, f64)>) {
     if let Some((s, d)) = friction {
         scene["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": s, "dynamic_coefficient": d });
     }
-    Scene::from_json_str(&scene.to_string(), "block", None).unwrap()
 }
 
 /// A probe pressed into the branched grid holds the surface up to its rated force: each
@@ -1910,14 +1916,12 @@ fn grasp_and_lift_grid(top: Vec3, close_ms: u32, mut step: impl FnMut(cutsim_sim
 fn grid_forceps_scene(thick: bool, grip_n: f64, friction: Option<(f64, f64)>) -> Scene {
     let mut json = serde_json::to_value(if thick { grid_block_with_thick_forceps() } else { grid_block_with_forceps() }).unwrap();
     json["tools"][0]["shape"]["forceps"]["grip_force_n"] = serde_json::json!(grip_n);
-    if let Some((s, d)) = friction {
-        json["model"]["branched-grid"]["materials"][0]["friction"] = serde_json::json!({ "static_coefficient": s, "dynamic_coefficient": d });
-    }
+    with_block_friction(&mut json, friction);
     Scene::from_json_str(&json.to_string(), "block with forceps", None).unwrap()
 }
 
 /// Forceps closed on the branched grid grasp it by friction (tool::bodies::Bodies::pinch,
-/// docs/branched-grid.md "Tools"): pressed 6 mm into the block open, the tissue rises
+/// docs/branched-grid.md "Grasping"): pressed 6 mm into the block open, the tissue rises
 /// between the jaws; closed on it, they stop on the ridge, their inner flats half a voxel
 /// apart (1 mm), and the tissue's friction under them, pressed with the grip, holds it:
 /// lifted 10 mm, the block follows and pulls the forceps back, at most with the

@@ -175,14 +175,7 @@ const CONTACT_ROOM: usize = 1024;
 /// their half gap (a quarter voxel: their inner flats half a voxel apart). Pinched
 /// thinner, the tissue between them would have to pass between the grid's surface
 /// vertices, and the jaws met through it, holding nothing (crate::tool::bodies::Bodies::pinch).
-pub const PINCHED_HALF_GAP_VOXELS: f64 = 0.25;
-
-/// Where closing forceps' jaws stop on the tissue at the latest (their half gap, m:
-/// [`PINCHED_HALF_GAP_VOXELS`]); None where no material has friction: nothing would hold
-/// what they pinch, and they close fully, as on the skin without friction.
-pub(crate) fn pinch_floor_m(materials: &[GridMaterial], topo: &Topology) -> Option<f64> {
-    materials.iter().any(|m| m.friction.static_coefficient > 0.0).then(|| PINCHED_HALF_GAP_VOXELS * topo.layout.smallest_side_m())
-}
+const PINCHED_HALF_GAP_VOXELS: f64 = 0.25;
 
 /// What the last voxel removal did and what each part of it cost.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -238,10 +231,7 @@ impl BranchedGrid {
         let dynamics = Dynamics::new(&topo);
         let n = topo.nodes.len();
         // The grid meets bodies: the tools, forceps as their two jaws.
-        let (scene_tools, (tools, mut bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
-        if let (Some(bodies), Some(floor)) = (bodies.as_mut(), pinch_floor_m(&materials, &topo)) {
-            bodies.pinch_no_closer_than(floor);
-        }
+        let (scene_tools, (tools, bodies)) = (tools.clone(), crate::tool::bodies::expand(&tools));
         let twins = bodies.as_ref().map_or_else(|| vec![None; tools.len()], crate::tool::bodies::Bodies::twins);
         let tool_count = tools.len();
         // The per-vertex contact memory, with room for the surface to double through
@@ -298,6 +288,9 @@ impl BranchedGrid {
         // The preconditioner's first heavy work (a Cholesky factor, the multigrid's
         // coarse grids) is done here, as the model is made, never on a step.
         grid.dynamics.prime(&mut grid.topo, &grid.settings);
+        if let (Some(floor), Some(bodies)) = (grid.pinch_floor_m(), grid.bodies.as_mut()) {
+            bodies.pinch_no_closer_than(floor);
+        }
         grid
     }
 
@@ -316,9 +309,7 @@ impl BranchedGrid {
             None => self.advance(commands, feedback, multirate),
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
-                for (body, pinch) in self.pinches.iter_mut().enumerate() {
-                    *pinch = bodies.pinched(body, &self.scene_tools);
-                }
+                bodies.pinches(&self.scene_tools, &mut self.pinches);
                 self.advance(&bodies.commands, &mut bodies.feedback, multirate);
                 // Closing jaws stop on what pushes them back with the grip (their grasp:
                 // the tissue's friction holds it between them, grid::friction).
@@ -346,7 +337,8 @@ impl BranchedGrid {
     /// Where closing forceps' jaws stop on this tissue at the latest (their half gap, m),
     /// None where they close fully (tool::bodies::Bodies::pinch).
     pub fn pinch_floor_m(&self) -> Option<f64> {
-        pinch_floor_m(&self.materials, &self.topo)
+        // Without friction nothing would hold what they pinch: as on the skin without it.
+        self.materials.iter().any(|m| m.friction.static_coefficient > 0.0).then(|| PINCHED_HALF_GAP_VOXELS * self.topo.layout.smallest_side_m())
     }
 
     /// How many bodies the grid meets (its tools, forceps as two jaws).

@@ -546,9 +546,7 @@ impl Tissue for Multirate {
             None => self.step_bodies(commands, feedback),
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
-                for (body, pinch) in self.pinches.iter_mut().enumerate() {
-                    *pinch = bodies.pinched(body, &self.scene_tools);
-                }
+                bodies.pinches(&self.scene_tools, &mut self.pinches);
                 self.step_bodies(&bodies.commands, &mut bodies.feedback);
                 // Closing jaws stop on what pushes them back with the grip, as in the
                 // grid's own step (crate::grid::model): the rendered force is the squeeze.

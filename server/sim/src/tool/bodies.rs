@@ -196,6 +196,13 @@ impl Bodies {
         Some(Pinch { inward_local: inward, grip_n: grip_force_n })
     }
 
+    /// Every body's pinch ([`Bodies::pinched`]) into `out`, one per body.
+    pub fn pinches(&self, tools: &[ToolShape], out: &mut [Option<Pinch>]) {
+        for (body, pinch) in out.iter_mut().enumerate() {
+            *pinch = self.pinched(body, tools);
+        }
+    }
+
     /// How hard what lies between tool `tool`'s jaws pushes them apart, N: the lesser of
     /// the two jaws' outward forces in the last step's feedback (0 while closed).
     fn squeeze_n(&self, tool: usize) -> f64 {
