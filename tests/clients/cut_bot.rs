@@ -39,7 +39,7 @@ fn example_scripts_pass_and_a_tampered_one_fails_readably() {
     let examples = repo("clients/cut-bot/examples");
     let mut names: Vec<_> = std::fs::read_dir(&examples).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "json")).collect();
     names.sort();
-    assert_eq!(names.len(), 14, "a straight, a curved and a separating cut for each skin scene, a slit of the U-tube's base (branched grid), and a good and a bad cut of each bundled task");
+    assert_eq!(names.len(), 15, "a straight, a curved and a separating cut for each skin scene, a wound's lip retracted with forceps, a slit of the U-tube's base (branched grid), and a good and a bad cut of each bundled task");
     for script in &names {
         let junit = dir.0.join("junit.xml");
         let report = dir.0.join("report.json");
@@ -49,6 +49,12 @@ fn example_scripts_pass_and_a_tampered_one_fails_readably() {
         assert_valid_xml(&junit);
         let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
         assert_eq!(report["passed"], true);
+        if script.ends_with("skin-patch-retract.json") {
+            // Each tool's own largest force: printed, in the JUnit properties, and checked.
+            assert!(text(&out).contains("PASS tools.forceps.max_force_n"), "{}", text(&out));
+            assert!(text(&out).lines().any(|l| l.trim_start().starts_with("forceps ") && l.ends_with(" N")), "{}", text(&out));
+            assert!(std::fs::read_to_string(&junit).unwrap().contains("<property name=\"max_force_n.forceps\""));
+        }
     }
 
     // A tampered expectation: exit 1, a readable diff, a JUnit failure.

@@ -19,7 +19,7 @@ async fn create_list_get_close() {
     assert_eq!(a.info.scene, "skin-patch");
     assert_eq!(a.info.model, "msm");
     assert_eq!(a.info.rate_hz, 1000.0);
-    assert_eq!(a.info.tools.iter().map(|t| t.name.as_str()).collect::<Vec<_>>(), ["scalpel", "probe"]);
+    assert_eq!(a.info.tools.iter().map(|t| t.name.as_str()).collect::<Vec<_>>(), ["scalpel", "probe", "forceps"]);
     assert_eq!((a.info.tools[0].radius_m, a.info.tools[0].width_m), (0.0005, 0.0), "a cylinder has no plate");
     // A blade's plate is described to clients: width, thickness, the way its edge faces.
     let plate = create_inline(&server, inline("skin-patch", |s| s["tools"][0]["shape"] = serde_json::json!({ "blade": { "width_m": 0.003, "thickness_m": 0.0004, "length_m": 0.04 } })), pb::SessionMode::Lockstep).await.unwrap();

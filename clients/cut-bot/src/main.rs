@@ -258,6 +258,9 @@ fn print_report(name: &str, r: &pb::ScriptReport) {
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);
     println!("pieces           {}", r.pieces);
     println!("max tool force   {:.4} N", r.max_tool_force_n);
+    for t in &r.tools {
+        println!("  {:<14} {:.4} N", t.name, t.max_force_n);
+    }
     println!("state_hash       {}", r.state_hash);
     if let Some(a) = &r.assessment {
         print_assessment(a);

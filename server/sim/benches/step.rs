@@ -20,6 +20,9 @@ use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
 const SIZES: [(&str, u32, u32); 3] = [("1k", 40, 37), ("10k", 124, 115), ("40k", 248, 230)];
 
+/// The default scene's tools: a scalpel, a probe and forceps (away unless a case moves them).
+const TOOLS: usize = 3;
+
 fn scene_text(cells_x: u32, cells_y: u32, integrator: &str) -> String {
     let base = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/skin-patch.json")).unwrap();
     base.replace(r#""resolution": [40, 37]"#, &format!(r#""resolution": [{cells_x}, {cells_y}]"#))
@@ -41,14 +44,16 @@ fn build(cells_x: u32, cells_y: u32, explicit: bool) -> MassSpring {
     make(&format!(r#"{{ "symplectic-euler": {{ "substeps": {substeps} }} }}"#)).unwrap()
 }
 
-fn blade_at(x: f64) -> [ToolCommand; 2] {
-    let pose = Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity());
-    [ToolCommand { pose, active: true, cut: true }, ToolCommand::default()]
+fn blade_at(x: f64) -> [ToolCommand; TOOLS] {
+    let mut commands = [ToolCommand::default(); TOOLS];
+    commands[0] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity()), active: true, cut: true };
+    commands
 }
 
-fn probe_at(depth: f64) -> [ToolCommand; 2] {
-    let pose = Pose::new(Vec3::new(0.01, 0.01, -depth), Quat::identity());
-    [ToolCommand::default(), ToolCommand { pose, active: true, cut: false }]
+fn probe_at(depth: f64) -> [ToolCommand; TOOLS] {
+    let mut commands = [ToolCommand::default(); TOOLS];
+    commands[1] = ToolCommand { pose: Pose::new(Vec3::new(0.01, 0.01, -depth), Quat::identity()), active: true, cut: false };
+    commands
 }
 
 struct Row {
@@ -63,8 +68,8 @@ struct Row {
 
 /// Steps until `steps` are done, or (for `budget_s`) until the time budget is spent
 /// after at least 50 steps.
-fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f64>, command: impl Fn(usize) -> [ToolCommand; 2]) -> Row {
-    let mut feedback = [ToolFeedback::default(); 2];
+fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f64>, command: impl Fn(usize) -> [ToolCommand; TOOLS]) -> Row {
+    let mut feedback = [ToolFeedback::default(); TOOLS];
     let mut histogram = LatencyHistogram::new();
     model.set_profiling(true);
     let start = Instant::now();
@@ -109,7 +114,7 @@ fn main() {
             // 1.5 mm deep (held at its tip face every step).
             let mut m2 = m.clone();
             for k in 0..50 {
-                m2.step(&probe_at(-0.001 + 0.0025 * k as f64 / 50.0), &mut [ToolFeedback::default(); 2]);
+                m2.step(&probe_at(-0.001 + 0.0025 * k as f64 / 50.0), &mut [ToolFeedback::default(); TOOLS]);
             }
             let rows = [
                 measure(&format!("{label} {integrator} intact, probe in contact"), &mut m2, steps, budget, |_| probe_at(0.0015)),
@@ -141,14 +146,14 @@ fn main() {
     }
 }
 
-/// The 1k explicit cut again, each step's two tool samples pushed into a ring that an
+/// The 1k explicit cut again, each step's tool samples pushed into a ring that an
 /// assessor thread drains and folds into the metrics (the server's arrangement): what
 /// the push costs the physics thread, and what the assessor does per step on its own.
 fn assessment_cost() {
     let scene = Scene::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/skin-patch.json"))).unwrap();
-    let mut assessor = Assessor::new(scene.task(), 2, 0.001);
+    let mut assessor = Assessor::new(scene.task(), TOOLS, 0.001);
     let mut model = build(40, 37, true);
-    let (mut ring, mut drain) = rtrb::RingBuffer::<[ToolSample; 2]>::new(1 << 12);
+    let (mut ring, mut drain) = rtrb::RingBuffer::<[ToolSample; TOOLS]>::new(1 << 12);
     let assessing = std::thread::spawn(move || {
         let mut observe = LatencyHistogram::new();
         loop {
@@ -165,14 +170,14 @@ fn assessment_cost() {
         }
     });
     let (mut step_time, mut push_time) = (LatencyHistogram::new(), LatencyHistogram::new());
-    let mut feedback = [ToolFeedback::default(); 2];
+    let mut feedback = [ToolFeedback::default(); TOOLS];
     for step in 0..400 {
         let commands = blade_at(-0.02 + 0.04 * step as f64 / 400.0);
         let t = Instant::now();
         model.step(&commands, &mut feedback);
         step_time.record(t.elapsed());
         let t = Instant::now();
-        let _ = ring.push([ToolSample::new(&commands[0], &feedback[0]), ToolSample::new(&commands[1], &feedback[1])]);
+        let _ = ring.push(std::array::from_fn(|i| ToolSample::new(&commands[i], &feedback[i])));
         push_time.record(t.elapsed());
     }
     drop(ring);
@@ -197,6 +202,6 @@ fn intact_explicit_step(bencher: divan::Bencher, size: &str) {
     let (_, cx, cy) = SIZES.iter().copied().find(|s| s.0 == size).unwrap();
     let mut m = build(cx, cy, true);
     let c = probe_at(0.0);
-    let mut fb = [ToolFeedback::default(); 2];
+    let mut fb = [ToolFeedback::default(); TOOLS];
     bencher.bench_local(|| m.step(&c, &mut fb));
 }

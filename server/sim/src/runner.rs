@@ -32,6 +32,9 @@ pub struct RunReport {
     pub reconstruction_fallbacks: u64,
     /// Largest tool force over the run (after the tool's clamp), N.
     pub max_tool_force_n: f64,
+    /// Each of the scene's tools, in the scene's order: its own largest force.
+    #[serde(default)]
+    pub tools: Vec<ToolReport>,
     pub step_time_p50_us: f64,
     pub step_time_p99_us: f64,
     pub step_time_max_us: f64,
@@ -49,6 +52,15 @@ pub struct RunReport {
     pub expectations: Vec<ExpectationResult>,
     /// True when every expectation holds (and there are none that fail).
     pub passed: bool,
+}
+
+/// One tool's part in a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToolReport {
+    /// The tool's name in the scene.
+    pub name: String,
+    /// The largest force on this tool over the run (after its clamp), N.
+    pub max_force_n: f64,
 }
 
 /// Progress of a run, reported every few steps.
@@ -103,6 +115,7 @@ pub fn run_with_hook(
     let mut feedback = vec![ToolFeedback::default(); tools];
     let mut histogram = LatencyHistogram::new();
     let mut max_force: f64 = 0.0;
+    let mut tool_max_force = vec![0.0_f64; tools];
     let mut assessor = Assessor::new(task, tools, tissue.time_step_s());
     let mut samples = vec![ToolSample::default(); tools];
     let start = Instant::now();
@@ -116,8 +129,9 @@ pub fn run_with_hook(
         if after_step(tissue, &commands, &feedback).is_break() {
             return Err(Stopped { at_step: step + 1 });
         }
-        for fb in &feedback {
-            max_force = max_force.max(fb.force_n.norm());
+        for (most, fb) in tool_max_force.iter_mut().zip(&feedback) {
+            *most = most.max(fb.force_n.norm());
+            max_force = max_force.max(*most);
         }
         fill_samples(&mut samples, &commands, &feedback);
         assessor.observe(&samples);
@@ -142,6 +156,7 @@ pub fn run_with_hook(
         pieces: tissue.pieces() as u64,
         reconstruction_fallbacks: counters.reconstruction_fallbacks,
         max_tool_force_n: max_force,
+        tools: tissue.tools().iter().zip(tool_max_force).map(|(t, max_force_n)| ToolReport { name: t.name.clone(), max_force_n }).collect(),
         step_time_p50_us: us(histogram.quantile_ns(0.5)),
         step_time_p99_us: us(histogram.quantile_ns(0.99)),
         step_time_max_us: us(histogram.max_ns()),

@@ -6,6 +6,8 @@
 //! Before its first keyframe a tool is away. The format is documented in
 //! docs/cut-script.md and shared by `cutsim-server run`, the gRPC API and `cut-bot`.
 
+use std::collections::BTreeMap;
+
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -143,6 +145,19 @@ pub struct Expectations {
     /// Assessment: the task passed (true) or failed (false).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub task_passed: Option<bool>,
+    /// Per tool, by its name in the scene: expectations on that tool alone (say, that
+    /// forceps pulled on what they held while a scalpel's cut is checked by `max_force_n`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub tools: BTreeMap<String, ToolExpectations>,
+}
+
+/// Expectations on one tool's part in the run.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(deny_unknown_fields)]
+pub struct ToolExpectations {
+    /// The largest force on this tool over the run, N.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_force_n: Option<Bound>,
 }
 
 /// A numeric expectation: any of min, max, equals, or approx with tolerance.
@@ -216,13 +231,7 @@ impl CutScript {
         }
         let mut tracks: Vec<Vec<CompiledKey>> = vec![Vec::new(); tools.len()];
         for (ti, track) in self.tools.iter().enumerate() {
-            let Some(tool) = tools.iter().position(|t| t.name == track.tool) else {
-                let names: Vec<&str> = tools.iter().map(|t| t.name.as_str()).collect();
-                return Err(err(
-                    format!("tools[{ti}].tool"),
-                    format!("no tool named {:?} in the scene; its tools are: {}", track.tool, if names.is_empty() { "(none)".into() } else { names.join(", ") }),
-                ));
-            };
+            let tool = tool_named(tools, &track.tool).map_err(|message| err(format!("tools[{ti}].tool"), message))?;
             if !tracks[tool].is_empty() {
                 return Err(err(format!("tools[{ti}].tool"), format!("tool {:?} has two tracks; give one", track.tool)));
             }
@@ -269,6 +278,12 @@ impl CutScript {
                 return Err(err(format!("expect.{name}"), "give at least one of min, max, equals, approx".into()));
             }
         }
+        for (name, expect) in &self.expect.tools {
+            tool_named(tools, name).map_err(|message| err(format!("expect.tools.{name}"), message))?;
+            if expect.max_force_n.as_ref().is_some_and(Bound::is_empty) {
+                return Err(err(format!("expect.tools.{name}.max_force_n"), "give at least one of min, max, equals, approx".into()));
+            }
+        }
         if let Some(h) = &self.expect.state_hash
             && (h.len() != 16 || !h.chars().all(|c| c.is_ascii_hexdigit()))
         {
@@ -276,6 +291,14 @@ impl CutScript {
         }
         Ok(CompiledScript { tracks, steps, expect: self.expect.clone() })
     }
+}
+
+/// The index of the scene's tool called `name`, or a message listing the tools there are.
+fn tool_named(tools: &[ToolShape], name: &str) -> Result<usize, String> {
+    tools.iter().position(|t| t.name == name).ok_or_else(|| {
+        let names: Vec<&str> = tools.iter().map(|t| t.name.as_str()).collect();
+        format!("no tool named {name:?} in the scene; its tools are: {}", if names.is_empty() { "(none)".into() } else { names.join(", ") })
+    })
 }
 
 impl Expectations {
@@ -343,6 +366,14 @@ impl Expectations {
                     actual: "absent (the scene's task does not define it, or nothing was cut or completed)".into(),
                     passed: false,
                 },
+            });
+        }
+        for (tool, expect) in &self.tools {
+            let Some(bound) = &expect.max_force_n else { continue };
+            let name = format!("tools.{tool}.max_force_n");
+            out.push(match report.tools.iter().find(|t| &t.name == tool) {
+                Some(t) => ExpectationResult { name, expected: bound.describe(), actual: format!("{}", t.max_force_n), passed: bound.holds(t.max_force_n) },
+                None => ExpectationResult { name, expected: bound.describe(), actual: "absent (the scene has no such tool)".into(), passed: false },
             });
         }
         if let Some(expected) = self.task_passed {

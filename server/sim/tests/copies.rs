@@ -15,10 +15,11 @@ fn cut_step(model: &mut dyn Tissue, i: u32) {
         _ => (0.0215, -0.005 + 0.015 * f64::from(i - 505) / 95.0),
     };
     let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, z), Vec3::z()), active: i < 600, cut: true };
-    // The scene's second tool (a probe) stays away.
-    let away = cutsim_sim::tool::ToolCommand { active: false, ..command };
-    let mut feedback = [cutsim_sim::tool::ToolFeedback::default(); 2];
-    model.step(&[command, away], &mut feedback);
+    // The scene's other tools (a probe, forceps) stay away.
+    let mut commands = vec![cutsim_sim::tool::ToolCommand { active: false, ..command }; model.tools().len()];
+    commands[0] = command;
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); commands.len()];
+    model.step(&commands, &mut feedback);
 }
 
 /// Steps a skin built from `scene` through [`cut_step`] `steps` times, and copies made at

@@ -60,14 +60,14 @@ fn run(model: &mut MassSpring, commands: &[ToolCommand], feedback: &mut [ToolFee
     }
 }
 
-/// Tool 1 (the skin patch's probe) lowered onto the skin, tip first, 2 mm deep: the
-/// commands that hold it there and the last feedback.
-fn lower_tool_1(m: &mut MassSpring) -> (Vec<ToolCommand>, Vec<ToolFeedback>) {
-    let mut commands = vec![ToolCommand::default(); 2];
-    let mut fb = vec![ToolFeedback::default(); 2];
+/// Tool `tool` of the skin patch (1: the probe, 2: the forceps) lowered onto the skin,
+/// tip first, 2 mm deep: the commands that hold it there and the last feedback.
+fn lower_tool(m: &mut MassSpring, tool: usize) -> (Vec<ToolCommand>, Vec<ToolFeedback>) {
+    let mut commands = vec![ToolCommand::default(); m.tools().len()];
+    let mut fb = vec![ToolFeedback::default(); commands.len()];
     for k in 0..=100 {
         let z = 0.0005 - 0.0025 * f64::from(k) / 100.0;
-        commands[1] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false };
+        commands[tool] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false };
         run(m, &commands, &mut fb, 1);
     }
     (commands, fb)
@@ -90,7 +90,7 @@ fn steps_with_contact_allocate_nothing() {
             scene = cutsim_sim::scene::Scene::from_json_str(&text, "implicit", None).unwrap();
         }
         let mut m = build(&scene);
-        let (commands, mut fb) = lower_tool_1(&mut m);
+        let (commands, mut fb) = lower_tool(&mut m, 1);
         let count = allocations_during(|| run(&mut m, &commands, &mut fb, 200));
         assert_eq!(count, 0, "{integrator} steps with contact allocated {count} times");
         // The skin pushes the probe back up, mostly straight up: on its foundation the skin
@@ -105,45 +105,43 @@ fn steps_with_contact_allocate_nothing() {
     }
 }
 
-/// Forceps (the probe replaced) pressed into the skin, their jaws closed on it, lifted
-/// with it grasped, lowered and opened: splitting a forceps into its jaws, summing their
+/// The skin patch's forceps pressed into the skin, their jaws closed on it, lifted with
+/// it grasped, lowered and opened: splitting a forceps into its jaws, summing their
 /// feedback and grasping allocate nothing.
 #[test]
 fn forceps_pressing_closing_grasping_and_opening_allocate_nothing() {
-    let text = std::fs::read_to_string(scenes_dir().join("skin-patch.json"))
-        .unwrap()
-        .replace(r#"{ "cylinder": { "radius_m": 0.003, "length_m": 0.08, "tip": "round" } }"#, r#"{ "forceps": { "width_m": 0.002, "thickness_m": 0.001, "length_m": 0.08, "opening_m": 0.008 } }"#);
-    assert!(text.contains("forceps"), "the probe's shape in skin-patch.json changed");
-    let mut m = build(&cutsim_sim::scene::Scene::from_json_str(&text, "forceps", None).unwrap());
-    let (mut commands, mut fb) = lower_tool_1(&mut m);
+    let mut m = build(&load_scene(&scenes_dir().join("skin-patch.json")));
+    let forceps = m.tools().iter().position(|t| t.name == "forceps").expect("the skin patch has forceps");
+    let (mut commands, mut fb) = lower_tool(&mut m, forceps);
     let mut grasped = 0;
     let count = allocations_during(|| {
-        commands[1].cut = true;
+        commands[forceps].cut = true;
         run(&mut m, &commands, &mut fb, 100);
-        grasped = m.grasped_nodes(1);
+        grasped = m.grasped_nodes(forceps);
         for rise in [4e-5, -4e-5] {
             for _ in 0..100 {
-                commands[1].pose.position_m.z += rise;
+                commands[forceps].pose.position_m.z += rise;
                 run(&mut m, &commands, &mut fb, 1);
             }
         }
-        commands[1].cut = false;
+        commands[forceps].cut = false;
         run(&mut m, &commands, &mut fb, 100);
     });
     assert_eq!(count, 0, "forceps steps allocated {count} times");
     assert!(grasped > 0, "the closed jaws grasp the skin between them");
-    assert!(fb[1].contacts > 0 && fb[1].force_n.z > 0.0, "the jaws are pushed back: {:?}", fb[1]);
+    assert!(fb[forceps].contacts > 0 && fb[forceps].force_n.z > 0.0, "the jaws are pushed back: {:?}", fb[forceps]);
 }
 
 #[test]
 fn blade_in_the_skin_between_cut_updates_allocates_nothing() {
     let mut m = build(&load_scene(&scenes_dir().join("skin-patch.json")));
+    let tools = m.tools().len();
     let blade = |x: f64| {
-        let mut c = vec![ToolCommand::default(); 2];
+        let mut c = vec![ToolCommand::default(); tools];
         c[0] = ToolCommand { pose: pose(Vec3::new(x, 0.0, -0.005), Vec3::z()), active: true, cut: true };
         c
     };
-    let mut fb = vec![ToolFeedback::default(); 2];
+    let mut fb = vec![ToolFeedback::default(); tools];
     // Start a stroke and make a first update, then hold the blade still (it crosses the
     // skin every step, but does not advance).
     run(&mut m, &blade(-0.02), &mut fb, 2);

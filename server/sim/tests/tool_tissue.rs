@@ -792,10 +792,16 @@ fn a_grid_cut_resists_with_toughness_times_the_depth_engaged() {
     assert!(free.iter().all(|&(_, f)| f == 0.0));
 }
 
-/// The default scene with its probe replaced by forceps: jaws 2 mm wide (their edges
-/// along x), 1 mm thick, their inner flats 8 mm apart when open, 80 mm long; rated 10 N.
+/// The default scene with its forceps in the probe's place (tool 1, the scene's last
+/// tool): jaws 2 mm wide (their edges along x), 1 mm thick, their inner flats 8 mm
+/// apart when open, 80 mm long, gripping 3 N with their 10 mm tips; rated 10 N.
 fn with_forceps() -> Scene {
-    edit(&default_scene(), |s| s["tools"][1]["shape"] = serde_json::json!({ "forceps": { "width_m": 0.002, "thickness_m": 0.001, "length_m": 0.08, "opening_m": 0.008 } }))
+    edit(&default_scene(), |s| {
+        let tools = s["tools"].as_array_mut().unwrap();
+        let forceps = tools.pop().unwrap();
+        assert_eq!(forceps["shape"]["forceps"], serde_json::json!({ "width_m": 0.002, "thickness_m": 0.001, "length_m": 0.08, "opening_m": 0.008, "grip_force_n": 3.0, "grip_length_m": 0.01 }), "the default scene's forceps");
+        tools[1] = forceps;
+    })
 }
 
 /// Forceps pressed tip-first into the skin, open and closed (the button held): the jaws
@@ -1860,6 +1866,51 @@ fn forceps_grasp_the_lip_of_an_incision_and_retract_it() {
         assert!(skin.grasped_nodes(1) == 0 && back < 0.002, "{integrator}: released, the lip springs back towards the wound ({:.2} mm away)", back * 1e3);
     }
     assert!((holding[0] - holding[1]).abs() <= 0.1 * holding[0], "the integrators feel the held lip alike: {holding:?} N");
+}
+
+/// The default scene's forceps retracting the lip of its incision, as the cut-bot
+/// example `skin-patch-retract.json` scripts it (docs/cut-script.md): the example
+/// passes, the forceps alone feel the lip pull (its `tools.forceps.max_force_n`), and
+/// the same script with the forceps' jaws left open fails that expectation: the
+/// expectation tells a grasp from a miss. An expectation on a tool the scene lacks is
+/// refused, naming it and the tools there are.
+#[test]
+fn the_retract_example_grasps_the_lip_and_its_forceps_expectation_tells_a_grasp_from_a_miss() {
+    let scene = default_scene();
+    let path = root().join("clients/cut-bot/examples/skin-patch-retract.json");
+    let run = |script: &CutScript| {
+        let compiled = script.compile(&cutsim_sim::tool::tool_shapes(&scene), scene.time_step_s.get(), "retract").unwrap();
+        let mut tissue = cutsim_sim::build_tissue(&scene).unwrap();
+        cutsim_sim::runner::run(tissue.as_mut(), &scene.name, scene.task(), Some(&compiled), compiled.steps, 0, |_| {})
+    };
+    let forceps_result = |report: &cutsim_sim::runner::RunReport| report.expectations.iter().find(|e| e.name == "tools.forceps.max_force_n").cloned().unwrap();
+    let script = CutScript::load(&path).unwrap();
+    let grasped = run(&script);
+    let forceps = grasped.tools.iter().find(|t| t.name == "forceps").unwrap().max_force_n;
+    let scalpel = grasped.tools.iter().find(|t| t.name == "scalpel").unwrap().max_force_n;
+    println!("grasped: forceps {forceps:.2} N, scalpel {scalpel:.2} N, all {:.2} N", grasped.max_tool_force_n);
+    assert!(grasped.passed, "{:?}", grasped.expectations);
+    assert_eq!(grasped.tools.iter().map(|t| t.name.as_str()).collect::<Vec<_>>(), ["scalpel", "probe", "forceps"]);
+    assert_eq!(grasped.max_tool_force_n, forceps.max(scalpel), "the run's largest force is its tools' largest");
+    assert!(forceps > 0.5 && forceps < scalpel, "the forceps feel the lip ({forceps:.2} N), less than the scalpel's cut ({scalpel:.2} N)");
+
+    // The forceps' jaws never closed: they hold nothing, and only their expectation says so.
+    let mut open = script.clone();
+    for k in &mut open.tools.iter_mut().find(|t| t.tool == "forceps").unwrap().keyframes {
+        k.cut = false;
+    }
+    let missed = run(&open);
+    let result = forceps_result(&missed);
+    println!("jaws open: {} ({})", result.actual, result.expected);
+    assert!(!missed.passed && !result.passed, "{:?}", missed.expectations);
+    assert!(missed.expectations.iter().filter(|e| e.name != result.name).all(|e| e.passed), "the cut is the same: {:?}", missed.expectations);
+
+    let mut unknown = script.clone();
+    let expect = unknown.expect.tools.remove("forceps").unwrap();
+    unknown.expect.tools.insert("retractor".into(), expect);
+    let e = unknown.compile(&cutsim_sim::tool::tool_shapes(&scene), scene.time_step_s.get(), "retract").unwrap_err();
+    assert_eq!(e.path, "expect.tools.retractor");
+    assert!(e.message.contains("scalpel, probe, forceps"), "{}", e.message);
 }
 
 /// What a lift of a grasp on the grid gave: the jaws' half gap where they stopped (m),

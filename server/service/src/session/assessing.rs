@@ -16,7 +16,7 @@ use std::time::Duration;
 use arc_swap::{ArcSwap, ArcSwapOption};
 use cutsim_sim::assessment::{Assessment, Assessor, History, Task, Timeline, ToolSample};
 
-/// Ring capacity, in tool samples: several seconds of two tools at 1 kHz.
+/// Ring capacity, in tool samples: several seconds of three tools at 1 kHz.
 const RING_CAPACITY: usize = 1 << 14;
 /// The assessor thread looks for samples this often…
 const POLL: Duration = Duration::from_millis(2);
