@@ -38,6 +38,10 @@ pub enum Trajectory {
     Press,
     /// A scalpel cutting 4 cm along x over 4 s, 5 mm below the surface, button held.
     Cut,
+    /// Forceps at (1 cm, 1 cm), tip first: lowered from 5 mm above the skin to 6 mm into
+    /// it over the first second, jaws closed by the button from 1.2 s, lifted 10 mm at
+    /// 20 mm/s from 1.6 s, held, and let go at 3 s.
+    Grasp,
 }
 
 impl SimDevice {
@@ -59,6 +63,10 @@ impl Device for SimDevice {
                 (V3(0.01, 0.01, z), 0)
             }
             Trajectory::Cut => (V3(-0.02 + 0.01 * s.min(4.0), 0.0, -0.005), 1),
+            Trajectory::Grasp => {
+                let z = 0.005 - 0.011 * s.min(1.0) + 0.02 * (s - 1.6).clamp(0.0, 0.5);
+                (V3(0.01, 0.01, z), u32::from((1.2..3.0).contains(&s)))
+            }
         };
         DeviceState { present: true, position_m, orientation: Quat::default(), buttons }
     }

@@ -55,8 +55,9 @@ struct Args {
     /// Which tool of the scene the device drives (index in the scene's tools).
     #[arg(long, default_value_t = 0)]
     tool: u32,
-    /// `sim:press` (a probe pressing the skin), `sim:cut` (a scalpel cutting), or
-    /// `udp:ADDRESS:PORT` (a vendor driver sending poses, docs/haptic-bridge.md).
+    /// `sim:press` (a probe pressing the skin), `sim:cut` (a scalpel cutting),
+    /// `sim:grasp` (forceps grasping the skin and lifting it), or `udp:ADDRESS:PORT` (a
+    /// vendor driver sending poses, docs/haptic-bridge.md).
     #[arg(long, default_value = "sim:press")]
     device: String,
     /// Stop after this many seconds (default: run until interrupted).
@@ -181,13 +182,14 @@ fn open_device(spec: &str) -> anyhow::Result<Box<dyn Device>> {
     Ok(match spec {
         "sim" | "sim:press" => Box::new(SimDevice::new(Trajectory::Press)),
         "sim:cut" => Box::new(SimDevice::new(Trajectory::Cut)),
+        "sim:grasp" => Box::new(SimDevice::new(Trajectory::Grasp)),
         other => match other.strip_prefix("udp:") {
             Some(address) => {
                 let device = UdpDevice::bind(address).with_context(|| format!("cannot listen for the device on UDP {address}"))?;
                 eprintln!("waiting for device poses on UDP {}", device.local_addr()?);
                 Box::new(device)
             }
-            None => bail!("unknown device {other:?}: use sim:press, sim:cut or udp:ADDRESS:PORT"),
+            None => bail!("unknown device {other:?}: use sim:press, sim:cut, sim:grasp or udp:ADDRESS:PORT"),
         },
     })
 }
