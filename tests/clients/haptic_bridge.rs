@@ -62,15 +62,15 @@ fn run_bridge(server: &Server, session: &Created, dir: &TempDir, args: &[&str]) 
     serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap()
 }
 
-/// (t_s, |F| N, fresh, connected) per millisecond.
-fn trace(dir: &TempDir) -> Vec<(f64, f64, bool, bool)> {
+/// (t_s, |F| N, fresh, connected, F_z N) per millisecond.
+fn trace(dir: &TempDir) -> Vec<(f64, f64, bool, bool, f64)> {
     std::fs::read_to_string(dir.0.join("trace.csv"))
         .unwrap()
         .lines()
         .skip(1)
         .map(|l| {
             let c: Vec<&str> = l.split(',').collect();
-            (c[0].parse().unwrap(), c[4].parse().unwrap(), c[5] == "1", c[6] == "1")
+            (c[0].parse().unwrap(), c[4].parse().unwrap(), c[5] == "1", c[6] == "1", c[3].parse().unwrap())
         })
         .collect()
 }
@@ -263,8 +263,8 @@ async fn a_scalpel_drawn_through_skin_is_felt_through_the_bridge() {
     assert!((rate_limited as f64) < 0.1 * report["device_steps"].as_u64().unwrap() as f64, "the rate limit cut in on {rate_limited} steps: {report}");
 }
 
-/// The default scene's forceps through the bridge (`sim:grasp`, tool 2): pressed 6 mm
-/// into the skin, closed on it, lifted 10 mm and held, then let go, with a desktop
+/// The default scene's forceps through the bridge (`sim:grasp`, tool 2): the device
+/// lowered 6 mm into the skin (the forceps, behind the coupling, less), closed on it, lifted 10 mm and held, then let go, with a desktop
 /// device's limits. Lifted, the grasped fold pulls the hand down (the force points
 /// down, within friction's 2 μ_s × grip = 3 N and the device's 3.3 N); pressing it
 /// pushed up; let go, the pull is gone.
@@ -292,18 +292,9 @@ async fn forceps_lifting_a_fold_of_skin_are_felt_pulling_through_the_bridge() {
     let report = run_bridge(&server, &session, &dir, &["--tool", "2", "--device", "sim:grasp", "--duration-s", "3.5", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--stale-ms", "1000", "--config", &bridge_config]);
     let max_force = report["max_force_n"].as_f64().unwrap();
     assert!(max_force <= 3.3 + 1e-12, "the largest force sent to the device: {max_force} N\n{report}");
-    // (t_s, fz) per millisecond.
-    let rows: Vec<(f64, f64)> = std::fs::read_to_string(dir.0.join("trace.csv"))
-        .unwrap()
-        .lines()
-        .skip(1)
-        .map(|l| {
-            let c: Vec<&str> = l.split(',').collect();
-            (c[0].parse().unwrap(), c[3].parse().unwrap())
-        })
-        .collect();
+    let rows = trace(&dir);
     let mean_fz = |from: f64, to: f64| {
-        let phase: Vec<f64> = rows.iter().filter(|r| r.0 > from && r.0 < to).map(|r| r.1).collect();
+        let phase: Vec<f64> = rows.iter().filter(|r| r.0 > from && r.0 < to).map(|r| r.4).collect();
         phase.iter().sum::<f64>() / phase.len().max(1) as f64
     };
     let (pressed, lifted, let_go) = (mean_fz(0.9, 1.2), mean_fz(2.2, 3.0), mean_fz(3.3, 3.5));

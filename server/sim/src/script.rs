@@ -280,8 +280,10 @@ impl CutScript {
         }
         for (name, expect) in &self.expect.tools {
             tool_named(tools, name).map_err(|message| err(format!("expect.tools.{name}"), message))?;
-            if expect.max_force_n.as_ref().is_some_and(Bound::is_empty) {
-                return Err(err(format!("expect.tools.{name}.max_force_n"), "give at least one of min, max, equals, approx".into()));
+            match &expect.max_force_n {
+                None => return Err(err(format!("expect.tools.{name}"), "expects nothing: give max_force_n".into())),
+                Some(bound) if bound.is_empty() => return Err(err(format!("expect.tools.{name}.max_force_n"), "give at least one of min, max, equals, approx".into())),
+                Some(_) => {}
             }
         }
         if let Some(h) = &self.expect.state_hash
@@ -522,6 +524,12 @@ mod tests {
         let typo = r#"{"tool":[]}"#;
         let e = CutScript::from_json_str(typo, "s").unwrap_err();
         assert_eq!(e.path, "tool");
+        // One tool's expectations: a tool of the scene, and something to expect of it.
+        for (expect, path) in [(r#"{"knife":{"max_force_n":{"min":1}}}"#, "expect.tools.knife"), (r#"{"scalpel":{}}"#, "expect.tools.scalpel"), (r#"{"scalpel":{"max_force_n":{}}}"#, "expect.tools.scalpel.max_force_n")] {
+            let text = format!(r#"{{"tools":[],"expect":{{"tools":{expect}}}}}"#);
+            let e = CutScript::from_json_str(&text, "s").unwrap().compile(&blade(), 0.001, "s").unwrap_err();
+            assert_eq!(e.path, path, "{expect}: {}", e.message);
+        }
         let far = r#"{"tools":[{"tool":"scalpel","keyframes":[{"step":5,"position_m":[0,0,1e9]}]}]}"#;
         let e = CutScript::from_json_str(far, "s").unwrap_err();
         assert_eq!(e.path, "tools[0].keyframes[0].position_m[2]");

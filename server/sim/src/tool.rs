@@ -115,6 +115,20 @@ pub struct ToolCommand {
     pub cut: bool,
 }
 
+/// A step's contract: one command and one feedback slot per tool of the scene, in its
+/// order. Checked on every step (two comparisons) in every build: a caller that passed
+/// fewer had a tool left out without a word, or an index past the end deep inside a
+/// model (the skin's grasp, in release tests written when the default scene had two tools).
+pub fn assert_one_per_tool(commands: &[ToolCommand], feedback: &[ToolFeedback], tools: &[ToolShape]) {
+    assert!(
+        commands.len() == tools.len() && feedback.len() == tools.len(),
+        "a step takes one command and one feedback slot per tool of the scene ({} tools); got {} commands and {} feedback slots",
+        tools.len(),
+        commands.len(),
+        feedback.len()
+    );
+}
+
 /// What the tissue returns for one tool after a step.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ToolFeedback {

@@ -1883,7 +1883,6 @@ fn the_retract_example_grasps_the_lip_and_its_forceps_expectation_tells_a_grasp_
         let mut tissue = cutsim_sim::build_tissue(&scene).unwrap();
         cutsim_sim::runner::run(tissue.as_mut(), &scene.name, scene.task(), Some(&compiled), compiled.steps, 0, |_| {})
     };
-    let forceps_result = |report: &cutsim_sim::runner::RunReport| report.expectations.iter().find(|e| e.name == "tools.forceps.max_force_n").cloned().unwrap();
     let script = CutScript::load(&path).unwrap();
     let grasped = run(&script);
     let forceps = grasped.tools.iter().find(|t| t.name == "forceps").unwrap().max_force_n;
@@ -1900,7 +1899,7 @@ fn the_retract_example_grasps_the_lip_and_its_forceps_expectation_tells_a_grasp_
         k.cut = false;
     }
     let missed = run(&open);
-    let result = forceps_result(&missed);
+    let result = missed.expectations.iter().find(|e| e.name == "tools.forceps.max_force_n").unwrap();
     println!("jaws open: {} ({})", result.actual, result.expected);
     assert!(!missed.passed && !result.passed, "{:?}", missed.expectations);
     assert!(missed.expectations.iter().filter(|e| e.name != result.name).all(|e| e.passed), "the cut is the same: {:?}", missed.expectations);

@@ -302,8 +302,7 @@ impl BranchedGrid {
     /// A step with the scene's tools' `commands` and `feedback`, split into and gathered
     /// from the bodies the grid meets (forceps as their jaws).
     fn advance_tools(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback], multirate: Option<Deformation<'_>>) {
-        debug_assert_eq!(commands.len(), self.scene_tools.len());
-        debug_assert_eq!(feedback.len(), self.scene_tools.len());
+        crate::tool::assert_one_per_tool(commands, feedback, &self.scene_tools);
         // Taken out for the step and put back: no allocation.
         match self.bodies.take() {
             None => self.advance(commands, feedback, multirate),

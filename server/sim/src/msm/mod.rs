@@ -190,8 +190,7 @@ pub struct MassSpring {
 impl MassSpring {
     /// Advances one step of `time_step_s`; see the module documentation for the stages.
     pub fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
-        debug_assert_eq!(commands.len(), self.scene_tools.len());
-        debug_assert_eq!(feedback.len(), self.scene_tools.len());
+        crate::tool::assert_one_per_tool(commands, feedback, &self.scene_tools);
         // Taken out for the step and put back: no allocation.
         match self.bodies.take() {
             None => self.step_bodies(commands, feedback),

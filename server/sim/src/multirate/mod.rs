@@ -540,7 +540,7 @@ impl Tissue for Multirate {
     }
 
     fn step(&mut self, commands: &[ToolCommand], feedback: &mut [ToolFeedback]) {
-        debug_assert_eq!(commands.len(), self.scene_tools.len());
+        crate::tool::assert_one_per_tool(commands, feedback, &self.scene_tools);
         // Taken out for the step and put back: no allocation.
         match self.bodies.take() {
             None => self.step_bodies(commands, feedback),
