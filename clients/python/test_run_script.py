@@ -45,6 +45,9 @@ class RunScriptExample(unittest.TestCase):
         self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
         self.assertIn("PASS cuts: expected = 1, got 1", result.stdout)
         self.assertRegex(result.stdout, r"state_hash [0-9a-f]{16}")
+        # Each tool's largest force (the scalpel cuts; the forceps stay away).
+        self.assertRegex(result.stdout, r"tool scalpel: largest force [1-9][0-9.]* N")
+        self.assertIn("tool forceps: largest force 0.00 N", result.stdout)
 
     def test_failed_expectation_exits_1(self):
         text = (REPO / "clients" / "cut-bot" / "examples" / "skin-patch-straight.json").read_text()

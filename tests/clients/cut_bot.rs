@@ -116,8 +116,13 @@ async fn a_recorded_haptic_session_becomes_a_regression_script() {
             continue; // the trainee's device pauses: the server holds the last pose
         }
         let x = -0.02 + 0.03 * f64::from(i) / 800.0;
-        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.005 * (f64::from(i) / 100.0).sin(), -0.005)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1 };
+        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.005 * (f64::from(i) / 100.0).sin(), -0.005)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1, grip: None };
         tx.send(command).await.unwrap();
+        // Meanwhile the other hand's forceps (an analog gripper) press into the skin
+        // beside the incision, squeeze a fold at 40 % of their grip, and lift it.
+        let z = 0.002 - 0.008 * (f64::from(i) / 300.0).min(1.0) + 0.006 * (f64::from(i.max(500) - 500) / 300.0);
+        let forceps = pb::ToolCommand { tool: 2, pose: Some(pose(0.01, 0.015, z)), active: true, cut: i >= 350, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1, grip: Some(0.4) };
+        tx.send(forceps).await.unwrap();
     }
     drop(tx);
     let _ = reader.await;
@@ -133,6 +138,8 @@ async fn a_recorded_haptic_session_becomes_a_regression_script() {
     let parsed: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&script).unwrap()).unwrap();
     assert_eq!(parsed["expect"]["state_hash"], info.state_hash.as_str(), "the script checks the recorded state");
     assert_eq!(parsed["steps"], info.state_hash_step);
+    let forceps = parsed["tools"].as_array().unwrap().iter().find(|t| t["tool"] == "forceps").expect("a track for the forceps");
+    assert!(forceps["keyframes"].as_array().unwrap().iter().all(|k| k["grip"] == 0.4), "the forceps' keyframes keep the gripper's squeeze");
     // Run in lockstep on a fresh session: the same state, bit for bit.
     let out = cut_bot(&["run", script.to_str().unwrap(), "--server", &format!("http://{}", server.grpc)]);
     assert!(out.status.success(), "the trainee's session reproduces: {}", text(&out));

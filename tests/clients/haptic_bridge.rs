@@ -283,13 +283,15 @@ async fn forceps_lifting_a_fold_of_skin_are_felt_pulling_through_the_bridge() {
     assert_eq!(session.info.tools[2].name, "forceps");
     // A grasped fold is a stiff load on the coupling (the skin's pull changes by
     // newtons per millimetre of the jaws' motion) answered milliseconds late: with the
-    // default damping (2 N·s/m, ζ ≈ 0.6), on a machine busy with a build, the proxy
+    // free-motion damper (2 N·s/m, ζ ≈ 0.6), on a machine busy with a build, the proxy
     // swung along the jaws' edge as they closed (±4 mm in a recorded run), and in 6 of 11
-    // runs the jaws held less of the fold (0.30–0.45 N) or lost it (0 N, twice). A damper
-    // of 6 N·s/m (ζ ≈ 1.7) held it in every run (docs/haptic-bridge.md, "sim:grasp").
-    let bridge_config = dir.0.join("bridge.json").to_str().unwrap().to_owned();
-    std::fs::write(&bridge_config, r#"{"coupling": {"damping_n_s_per_m": 6.0}}"#).unwrap();
-    let report = run_bridge(&server, &session, &dir, &["--tool", "2", "--device", "sim:grasp", "--duration-s", "3.5", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--stale-ms", "1000", "--config", &bridge_config]);
+    // runs the jaws held less of the fold (0.30–0.45 N) or lost it (0 N, twice). The
+    // server says when the forceps hold something (`ForceFeedback.grasping`), and the
+    // bridge's coupling then damps with its grasp damper (6 N·s/m, ζ ≈ 1.7), which held
+    // the fold in every run (docs/haptic-bridge.md, "Grasping through the bridge").
+    let report = run_bridge(&server, &session, &dir, &["--tool", "2", "--device", "sim:grasp", "--duration-s", "3.5", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--stale-ms", "1000"]);
+    let grasping_ms = report["grasping_steps"].as_u64().unwrap();
+    assert!(grasping_ms > 1000, "the server said the forceps held the fold while lifted and held (1.6–3 s): {grasping_ms} ms\n{report}");
     let max_force = report["max_force_n"].as_f64().unwrap();
     assert!(max_force <= 3.3 + 1e-12, "the largest force sent to the device: {max_force} N\n{report}");
     let rows = trace(&dir);

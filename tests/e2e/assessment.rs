@@ -93,7 +93,7 @@ async fn a_live_cut_is_assessed_and_its_replay_recomputes_the_same_metrics() {
             50..505 => (-0.024 + 0.0455 * f64::from(i - 50) / 455.0, -0.005),
             _ => (0.0215, -0.005 + 0.015 * f64::from(i - 505) / 95.0),
         };
-        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.0, z)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1 };
+        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.0, z)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1, grip: None };
         tx.send(command).await.unwrap();
     }
     drop(tx);

@@ -16,18 +16,23 @@ async fn step_of(server: &Server, s: &Created) -> u64 {
 
 /// Sends one command on a fresh haptic stream and returns how the stream ended.
 async fn send_one(server: &Server, s: &Created, token: &str, command: pb::ToolCommand) -> Code {
+    send_one_status(server, s, token, command).await.0
+}
+
+/// [`send_one`] with the status's message.
+async fn send_one_status(server: &Server, s: &Created, token: &str, command: pb::ToolCommand) -> (Code, String) {
     let (tx, response) = open(server, &s.id, token).await;
     let mut stream = match response {
         Ok(stream) => stream,
-        Err(status) => return status.code(),
+        Err(status) => return (status.code(), status.message().into()),
     };
     tx.send(command).await.unwrap();
     loop {
         match tokio::time::timeout(Duration::from_secs(5), stream.message()).await {
             Ok(Ok(Some(_))) => continue,
-            Ok(Ok(None)) => return Code::Ok,
-            Ok(Err(status)) => return status.code(),
-            Err(_) => return Code::DeadlineExceeded,
+            Ok(Ok(None)) => return (Code::Ok, String::new()),
+            Ok(Err(status)) => return (status.code(), status.message().into()),
+            Err(_) => return (Code::DeadlineExceeded, String::new()),
         }
     }
 }
@@ -51,7 +56,7 @@ async fn bad_requests_get_the_right_status_and_the_session_survives() {
     assert_eq!(response.unwrap_err().code(), Code::NotFound);
 
     // Observers cannot move a tool or run a script.
-    let probe = |z: f64| pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, z)), active: true, cut: false, client_time_ns: 1, feedback_every_steps: 1 };
+    let probe = |z: f64| pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, z)), active: true, cut: false, client_time_ns: 1, feedback_every_steps: 1, grip: None };
     assert_eq!(send_one(&server, &s, &s.observe, probe(0.01)).await, Code::PermissionDenied);
     let script = example_script("skin-patch-straight.json");
     assert_eq!(run_script(&server, &Created { control: s.observe.clone(), ..clone_created(&s) }, &script).await.unwrap_err().code(), Code::PermissionDenied);
@@ -63,6 +68,12 @@ async fn bad_requests_get_the_right_status_and_the_session_survives() {
     let tilted = pb::ToolCommand { pose: Some(pb::Pose { orientation: Some(pb::Quaternion { w: 2.0, x: 0.0, y: 0.0, z: 0.0 }), ..pose(0.0, 0.0, 0.0) }), ..probe(0.0) };
     assert_eq!(send_one(&server, &s, &s.control, tilted).await, Code::InvalidArgument, "not a unit quaternion");
     assert_eq!(send_one(&server, &s, &s.control, pb::ToolCommand { tool: 7, ..probe(0.01) }).await, Code::InvalidArgument);
+    // A gripper's squeeze is a fraction of the forceps' grip (tool 2).
+    for grip in [1.5, -0.2, f64::NAN] {
+        let (code, message) = send_one_status(&server, &s, &s.control, pb::ToolCommand { tool: 2, grip: Some(grip), ..probe(0.01) }).await;
+        assert_eq!(code, Code::InvalidArgument, "grip {grip}: {message}");
+        assert!(message.contains("grip of tool 2 (forceps)") && message.contains("from 0 to 1"), "{message}");
+    }
 
     // Oversized messages: a scene above the scene limit, and a message above the gRPC limit.
     let big_scene = format!("{{\"name\": \"x\", \"description\": \"{}\"}}", "a".repeat(2 << 20));
@@ -226,7 +237,7 @@ async fn a_client_over_its_rate_is_refused_and_others_are_not() {
     let id = created.session.as_ref().unwrap().id.clone();
     let (tx, feedback) = crate::haptics::open_on(channel_from(&server, calm).await, &id, &created.control_token).await;
     let mut feedback = feedback.expect("the stream opens");
-    let probe = pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, 0.05)), active: true, cut: false, client_time_ns: 1, feedback_every_steps: 1 };
+    let probe = pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, 0.05)), active: true, cut: false, client_time_ns: 1, feedback_every_steps: 1, grip: None };
     tokio::spawn(async move {
         for _ in 0..300 {
             if tx.send(probe).await.is_err() {

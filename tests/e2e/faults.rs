@@ -46,7 +46,7 @@ async fn a_physics_panic_fails_that_session_only() {
     let mut feedback = feedback.unwrap();
     tokio::spawn(async move {
         for i in 0..5000u64 {
-            let probe = pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, 0.02)), active: true, cut: false, client_time_ns: i + 1, feedback_every_steps: 1 };
+            let probe = pb::ToolCommand { tool: 1, pose: Some(pose(0.0, 0.0, 0.02)), active: true, cut: false, client_time_ns: i + 1, feedback_every_steps: 1, grip: None };
             if tx.send(probe).await.is_err() {
                 break;
             }
@@ -230,7 +230,7 @@ async fn viewers_that_stop_reading_freeze_nobody() {
     tokio::spawn(async move {
         for i in 0..20_000u64 {
             let x = 0.02 * ((i as f64) * 0.003).sin();
-            let command = pb::ToolCommand { tool: 1, pose: Some(pose(x, 0.0, -0.002)), active: true, cut: false, client_time_ns: i + 1, feedback_every_steps: 50 };
+            let command = pb::ToolCommand { tool: 1, pose: Some(pose(x, 0.0, -0.002)), active: true, cut: false, client_time_ns: i + 1, feedback_every_steps: 50, grip: None };
             if tx.send(command).await.is_err() {
                 break;
             }

@@ -55,7 +55,7 @@ async fn stream_of_2000_poses_gets_force_in_contact_and_none_outside() {
             let mut tick = tokio::time::interval(Duration::from_millis(1));
             for (i, &(z, _)) in phases.iter().enumerate() {
                 tick.tick().await;
-                let command = pb::ToolCommand { tool: 1, pose: Some(pose(0.01, 0.01, z)), active: true, cut: false, client_time_ns: i as u64 + 1, feedback_every_steps: 1 };
+                let command = pb::ToolCommand { tool: 1, pose: Some(pose(0.01, 0.01, z)), active: true, cut: false, client_time_ns: i as u64 + 1, feedback_every_steps: 1, grip: None };
                 if tx.send(command).await.is_err() {
                     break;
                 }

@@ -19,7 +19,7 @@ async fn recording_replays_to_the_same_hash_after_sigkill() {
     for i in 0..1000u32 {
         tick.tick().await;
         let x = -0.02 + 0.04 * (f64::from(i) / 1000.0);
-        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.0, -0.005)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1 };
+        let command = pb::ToolCommand { tool: 0, pose: Some(pose(x, 0.0, -0.005)), active: true, cut: true, client_time_ns: u64::from(i) + 1, feedback_every_steps: 1, grip: None };
         tx.send(command).await.unwrap();
     }
     drop(tx);

@@ -93,7 +93,14 @@ pub fn run(args: &RecordArgs) -> anyhow::Result<()> {
     for (tool, commands) in per_tool {
         let keys = tracks.entry(tool).or_default();
         for (i, (step, _, c)) in commands.iter().enumerate() {
-            let keyframe = |at: u64| json!({ "step": at, "position_m": c["p"], "orientation_wxyz": c["q"], "cut": c["cut"], "active": c["active"] });
+            let keyframe = |at: u64| {
+                let mut key = json!({ "step": at, "position_m": c["p"], "orientation_wxyz": c["q"], "cut": c["cut"], "active": c["active"] });
+                // An analog gripper's squeeze, where the device sent one.
+                if let Some(grip) = c.get("grip") {
+                    key["grip"] = grip.clone();
+                }
+                key
+            };
             keys.push(keyframe(*step));
             // A command holds until the next one: pin it on the step before, so the
             // script does not interpolate where the session did not move.

@@ -16,7 +16,9 @@ import struct
 import sys
 import time
 
-POSE = struct.Struct("<4sIQ3d4dII")  # 80 bytes: CSD1, sequence, device ns, position m, quaternion wxyz, buttons, reserved
+# 80 bytes: CSD1, sequence, device ns, position m, quaternion wxyz, buttons (bit 0: cut or
+# close the forceps; bit 1: the squeeze that follows is an analog gripper's), squeeze 0–1.
+POSE = struct.Struct("<4sIQ3d4dIf")
 FORCE = struct.Struct("<4sI3d3dII")  # 64 bytes: CSF1, sequence, force N, torque N·m, flags, reserved
 
 
@@ -31,7 +33,7 @@ def main():
         t = time.monotonic() - start
         z = 0.005 - 0.008 * min(t / 2.0, 1.0) if t < 4.0 else 0.005
         sequence += 1
-        sock.sendto(POSE.pack(b"CSD1", sequence, time.monotonic_ns(), 0.01, 0.01, z, 1.0, 0.0, 0.0, 0.0, 0, 0), bridge)
+        sock.sendto(POSE.pack(b"CSD1", sequence, time.monotonic_ns(), 0.01, 0.01, z, 1.0, 0.0, 0.0, 0.0, 0, 0.0), bridge)
         try:
             while True:
                 data, _ = sock.recvfrom(128)

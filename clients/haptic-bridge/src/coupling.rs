@@ -16,14 +16,18 @@ pub struct CouplingParams {
     pub stiffness_n_per_m: f64,
     /// Damper between device and proxy, N·s/m.
     pub damping_n_s_per_m: f64,
+    /// The damper while the server says the tool grasps tissue (forceps stopped on what
+    /// they hold), N·s/m: see [`Coupling::set_grasping`].
+    pub grasp_damping_n_s_per_m: f64,
     /// Mass of the proxy, kg.
     pub proxy_mass_kg: f64,
 }
 
 impl Default for CouplingParams {
     fn default() -> Self {
-        // ω = √(k/m) ≈ 173 rad/s (stable at 1 kHz: ω·dt = 0.17), ζ ≈ 0.6.
-        Self { stiffness_n_per_m: 300.0, damping_n_s_per_m: 2.0, proxy_mass_kg: 0.01 }
+        // ω = √(k/m) ≈ 173 rad/s (stable at 1 kHz: ω·dt = 0.17), ζ ≈ 0.6; grasping,
+        // ζ ≈ 1.7 (6 N·s/m: b·dt/m = 0.6, well inside the explicit damper's limit of 2).
+        Self { stiffness_n_per_m: 300.0, damping_n_s_per_m: 2.0, grasp_damping_n_s_per_m: 6.0, proxy_mass_kg: 0.01 }
     }
 }
 
@@ -33,11 +37,24 @@ pub struct Coupling {
     pub proxy: V3,
     proxy_velocity: V3,
     started: bool,
+    grasping: bool,
 }
 
 impl Coupling {
     pub fn new(params: CouplingParams) -> Self {
-        Self { params, proxy: V3::default(), proxy_velocity: V3::default(), started: false }
+        Self { params, proxy: V3::default(), proxy_velocity: V3::default(), started: false, grasping: false }
+    }
+
+    /// Whether the tool grasps tissue now (the server's newest fresh answer says so):
+    /// the coupling then damps with `grasp_damping_n_s_per_m`. A grasped fold is a stiff
+    /// load answered milliseconds late — its pull changes by newtons per millimetre of
+    /// the jaws' motion — and with the free-motion damper the proxy swings against it
+    /// and the grasp is lost (docs/haptic-bridge.md, "Grasping through the bridge").
+    /// A damper stores no energy, so switching it keeps the coupling passive; a firmer
+    /// one everywhere would carry the stepwise answers of a multirate session to the
+    /// hand (the force-rate limit was reached there at 4–6 N·s/m).
+    pub fn set_grasping(&mut self, grasping: bool) {
+        self.grasping = grasping;
     }
 
     /// One step of `dt_s`: the device at `device` moving at `device_velocity` (scene
@@ -50,7 +67,8 @@ impl Coupling {
             self.started = true;
         }
         let p = &self.params;
-        let coupling = (device - self.proxy) * p.stiffness_n_per_m + (device_velocity - self.proxy_velocity) * p.damping_n_s_per_m;
+        let damping = if self.grasping { p.grasp_damping_n_s_per_m } else { p.damping_n_s_per_m };
+        let coupling = (device - self.proxy) * p.stiffness_n_per_m + (device_velocity - self.proxy_velocity) * damping;
         let dt_per_kg = dt_s / p.proxy_mass_kg;
         let elastic = tissue_force - resistance;
         self.proxy_velocity = proxy_velocity_after(self.proxy_velocity + (coupling + elastic) * dt_per_kg, resistance, dt_per_kg);
@@ -176,6 +194,39 @@ mod tests {
             f = c.step(0.001, V3(0.0, 0.0, -0.002), V3::default(), tissue, V3::default());
         }
         assert!((f - tissue).norm() < 1e-6, "{f:?}");
+    }
+
+    /// The proxy held still by the device against a grasped fold: a stiff pull towards
+    /// 2 mm below it (`stiffness` N/m, capped at 2.4 N) answered `delay` ms late. The
+    /// peak-to-peak force on the device over the last second, and its mean.
+    fn held_against_a_grasp(grasping: bool, stiffness: f64, delay: usize) -> (f64, f64) {
+        let mut c = Coupling::new(CouplingParams::default());
+        c.set_grasping(grasping);
+        let mut sent = std::collections::VecDeque::from(vec![0.0; delay]);
+        let mut forces = Vec::new();
+        for _ in 0..3000 {
+            let late = sent.pop_front().expect("a pose sent `delay` ms ago");
+            let tissue = V3(0.0, 0.0, (-stiffness * (late + 0.002)).clamp(-2.4, 2.4));
+            forces.push(c.step(0.001, V3::default(), V3::default(), tissue, V3::default()).2);
+            sent.push_back(c.proxy.2);
+        }
+        let tail = &forces[2000..];
+        (tail.iter().copied().fold(f64::MIN, f64::max) - tail.iter().copied().fold(f64::MAX, f64::min), tail.iter().sum::<f64>() / tail.len() as f64)
+    }
+
+    #[test]
+    fn grasping_the_coupling_holds_a_stiff_late_pull_steadily() {
+        // 1,000–2,000 N/m (a grasped fold of the default skin pulls by newtons per
+        // millimetre) answered 2–8 ms late (the server's step and the round trip): the
+        // free-motion damper swings by newtons, the grasp damper settles where the
+        // coupling spring meets the pull.
+        for (stiffness, delay) in [(1000.0, 4), (1000.0, 8), (2000.0, 2)] {
+            let (free_swing, _) = held_against_a_grasp(false, stiffness, delay);
+            let (swing, mean) = held_against_a_grasp(true, stiffness, delay);
+            let rest = -stiffness * 0.002 * 300.0 / (300.0 + stiffness);
+            assert!(free_swing > 1.0, "{stiffness} N/m, {delay} ms: the free-motion damper swings ({free_swing} N)");
+            assert!(swing < 0.3 && (mean - rest).abs() < 0.01, "{stiffness} N/m, {delay} ms: grasping, {swing} N peak to peak about {mean} N (rest {rest} N)");
+        }
     }
 
     #[test]

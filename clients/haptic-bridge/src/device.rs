@@ -14,9 +14,16 @@ pub struct DeviceState {
     pub present: bool,
     pub position_m: V3,
     pub orientation: Quat,
-    /// Bit 0: the cut button (or pedal).
+    /// Bit 0: the cut button (or pedal); on forceps, it closes the jaws.
     pub buttons: u32,
+    /// An analog gripper's squeeze, 0 (open) to 1 (the forceps' whole grip); None for a
+    /// device whose jaw is a button (the whole grip while it is held).
+    pub grip: Option<f64>,
 }
+
+/// Pose datagram flag (in `buttons`): the device has an analog gripper, whose squeeze
+/// is the f32 at offset 76.
+pub const HAS_GRIPPER: u32 = 1 << 1;
 
 pub trait Device: Send {
     fn name(&self) -> String;
@@ -68,7 +75,7 @@ impl Device for SimDevice {
                 (V3(0.01, 0.01, z), u32::from((1.2..3.0).contains(&s)))
             }
         };
-        DeviceState { present: true, position_m, orientation: Quat::default(), buttons }
+        DeviceState { present: true, position_m, orientation: Quat::default(), buttons, grip: None }
     }
 
     fn write_force(&mut self, _force: V3, _fresh: bool) {}
@@ -113,8 +120,11 @@ pub fn decode_pose(b: &[u8]) -> Option<(u32, DeviceState)> {
     let position_m = V3(f64_at(b, 16), f64_at(b, 24), f64_at(b, 32));
     let q = Quat(f64_at(b, 40), f64_at(b, 48), f64_at(b, 56), f64_at(b, 64));
     let buttons = u32::from_le_bytes(b[72..76].try_into().ok()?);
-    let finite = position_m.is_finite() && [q.0, q.1, q.2, q.3].iter().all(|c| c.is_finite());
-    finite.then_some((sequence, DeviceState { present: true, position_m, orientation: q.normalized(), buttons }))
+    // A gripper's sensor a little past its calibrated ends is clamped; a broken one
+    // (not a number) spoils the datagram.
+    let grip = (buttons & HAS_GRIPPER != 0).then(|| f64::from(f32::from_le_bytes(b[76..80].try_into().expect("4 bytes"))));
+    let finite = position_m.is_finite() && [q.0, q.1, q.2, q.3].iter().all(|c| c.is_finite()) && grip.is_none_or(f64::is_finite);
+    finite.then_some((sequence, DeviceState { present: true, position_m, orientation: q.normalized(), buttons, grip: grip.map(|g| g.clamp(0.0, 1.0)) }))
 }
 
 pub fn encode_force(sequence: u32, force: V3, fresh: bool) -> [u8; FORCE_DATAGRAM] {
@@ -174,6 +184,14 @@ mod tests {
         b[16..24].copy_from_slice(&f64::NAN.to_le_bytes());
         assert!(decode_pose(&b).is_none());
         assert!(decode_pose(&b[..10]).is_none());
+        assert_eq!(state.grip, None, "no gripper flagged: a button");
+        // A gripper: its squeeze at offset 76, clamped to 0–1; not a number spoils it.
+        b[16..24].copy_from_slice(&0.01f64.to_le_bytes());
+        b[72..76].copy_from_slice(&(1 | HAS_GRIPPER).to_le_bytes());
+        for (squeeze, read) in [(0.25f32, Some(0.25)), (1.02, Some(1.0)), (-0.01, Some(0.0)), (f32::NAN, None)] {
+            b[76..80].copy_from_slice(&squeeze.to_le_bytes());
+            assert_eq!(decode_pose(&b).map(|(_, s)| s.grip.expect("a gripper")), read, "squeeze {squeeze}");
+        }
         let f = encode_force(7, V3(1.0, 2.0, 3.0), true);
         assert_eq!(&f[..4], b"CSF1");
         assert_eq!(f64::from_le_bytes(f[24..32].try_into().unwrap()), 3.0);

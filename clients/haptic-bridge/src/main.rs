@@ -126,6 +126,8 @@ struct Report {
     max_force_rate_n_per_s: f64,
     /// Ticks with no fresh answer (stale or disconnected).
     stale_steps: u64,
+    /// Ticks whose fresh answer said the tool grasps tissue (the coupling's grasp damper).
+    grasping_steps: u64,
     rtt_samples: usize,
     rtt_p50_us: u32,
     rtt_p99_us: u32,
@@ -254,7 +256,9 @@ fn run(args: &Args) -> anyhow::Result<()> {
         let fresh = ramping_out_until.is_none()
             && connected
             && answer.as_ref().is_some_and(|a| now.duration_since(a.received).as_secs_f64() * 1e3 <= config.limits.stale_ms);
-        let (tissue, resistance) = if fresh { answer.map_or_else(Default::default, |a| (a.force, a.resistance)) } else { Default::default() };
+        let (tissue, resistance, grasping) = if fresh { answer.map_or_else(Default::default, |a| (a.force, a.resistance, a.grasping)) } else { Default::default() };
+        coupling.set_grasping(grasping);
+        report.grasping_steps += u64::from(grasping);
         let mut wanted = if state.present { coupling.advance(elapsed_s, dt_s, from, position, tissue, resistance) } else { V3::default() };
         if let Some(w) = watcher.as_ref().filter(|_| state.present && ramping_out_until.is_none()) {
             wanted = wanted + pulse.step(elapsed_s, w.warnings.load(Ordering::Acquire), tissue);
@@ -272,6 +276,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
                 cut: state.buttons & 1 == 1,
                 client_time_ns: (Instant::now() - origin).as_nanos() as u64 + 1,
                 feedback_every_steps: 1,
+                grip: state.grip,
             });
         }
 

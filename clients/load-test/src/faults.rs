@@ -138,6 +138,7 @@ pub async fn garbage_clients(server: &ServerProcess, session: &Created) -> Vec<F
             cut: true,
             client_time_ns: 1,
             feedback_every_steps: 1,
+            grip: None,
         }]));
         request.metadata_mut().insert("cutsim-session", session.id.parse()?);
         request.metadata_mut().insert("cutsim-token", session.control.parse()?);

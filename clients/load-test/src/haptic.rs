@@ -90,6 +90,7 @@ fn command(position: [f64; 3], active: bool, cut: bool, client_time_ns: u64) -> 
         cut,
         client_time_ns,
         feedback_every_steps: 1,
+        grip: None,
     }
 }
 

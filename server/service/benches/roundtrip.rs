@@ -138,7 +138,7 @@ async fn round_trips(grpc: &str, http: &str, target: &Target, viewers: usize, se
             if let Some(p) = previous.replace(sent) {
                 pacing.record_ns((sent - p).as_nanos() as u64);
             }
-            if tx.blocking_send(pb::ToolCommand { tool: 1, pose: Some(pose), active: true, cut: false, client_time_ns: sent_ns, feedback_every_steps: 1 }).is_err() {
+            if tx.blocking_send(pb::ToolCommand { tool: 1, pose: Some(pose), active: true, cut: false, client_time_ns: sent_ns, feedback_every_steps: 1, grip: None }).is_err() {
                 break;
             }
             i += 1;

@@ -323,6 +323,9 @@ pub fn tool_command(c: &pb::ToolCommand, session: &Session, received_ns: u64, ma
             p.x, p.y, p.z, session.bounds.0.x, session.bounds.0.y, session.bounds.0.z, session.bounds.1.x, session.bounds.1.y, session.bounds.1.z
         )));
     }
-    let command = ToolCommand { pose: Pose::new(position, quat_from_wxyz(q.w, q.x, q.y, q.z)), active: c.active, cut: c.cut };
+    if let Some(message) = c.grip.and_then(cutsim_sim::tool::grip_error) {
+        return Err(ApiError::InvalidArgument(format!("grip of tool {} ({}): {message}", c.tool, session.tools[tool].name)));
+    }
+    let command = ToolCommand { pose: Pose::new(position, quat_from_wxyz(q.w, q.x, q.y, q.z)), active: c.active, cut: c.cut, grip: c.grip };
     Ok((tool, StampedCommand { command, client_time_ns: c.client_time_ns, received_ns, feedback_every: c.feedback_every_steps.max(1) }))
 }

@@ -203,6 +203,7 @@ impl Stream for FeedbackStream {
                     step_time_us: r.step_time_ns as f64 / 1e3,
                     tool: tool as u32,
                     resistance_n: Some(convert::vec3(&r.feedback.resistance_n)),
+                    grasping: r.feedback.grasping,
                 });
             }
         }

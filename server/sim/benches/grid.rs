@@ -44,7 +44,7 @@ fn build(scene_file: &str, level: u32, preconditioner: Option<&str>) -> Result<(
 
 fn command(tool: usize, position: Vec3, cut: bool) -> [ToolCommand; 2] {
     let mut c = [ToolCommand::default(); 2];
-    c[tool] = ToolCommand { pose: Pose::new(position, Quat::identity()), active: true, cut };
+    c[tool] = ToolCommand { pose: Pose::new(position, Quat::identity()), active: true, cut, grip: None };
     c
 }
 

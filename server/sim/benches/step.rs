@@ -46,13 +46,13 @@ fn build(cells_x: u32, cells_y: u32, explicit: bool) -> MassSpring {
 
 fn blade_at(x: f64) -> [ToolCommand; TOOLS] {
     let mut commands = [ToolCommand::default(); TOOLS];
-    commands[0] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity()), active: true, cut: true };
+    commands[0] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity()), active: true, cut: true, grip: None };
     commands
 }
 
 fn probe_at(depth: f64) -> [ToolCommand; TOOLS] {
     let mut commands = [ToolCommand::default(); TOOLS];
-    commands[1] = ToolCommand { pose: Pose::new(Vec3::new(0.01, 0.01, -depth), Quat::identity()), active: true, cut: false };
+    commands[1] = ToolCommand { pose: Pose::new(Vec3::new(0.01, 0.01, -depth), Quat::identity()), active: true, cut: false, grip: None };
     commands
 }
 

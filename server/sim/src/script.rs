@@ -2,7 +2,8 @@
 //!
 //! A script lists, per tool, keyframes at a step index (or a time, converted with the
 //! scene's step). Between keyframes the position is interpolated linearly and the
-//! orientation by slerp; the cut button and presence hold the earlier keyframe's value.
+//! orientation by slerp; the cut button, the forceps' grip and presence hold the earlier
+//! keyframe's value.
 //! Before its first keyframe a tool is away. The format is documented in
 //! docs/cut-script.md and shared by `cutsim-server run`, the gRPC API and `cut-bot`.
 
@@ -66,6 +67,11 @@ pub struct Keyframe {
     /// Tool present (from this keyframe to the next).
     #[serde(default = "yes")]
     pub active: bool,
+    /// Forceps only: how hard the hand squeezes the handles while `cut` closes the jaws,
+    /// as a fraction (0–1) of the tool's `grip_force_n` (from this keyframe to the next).
+    /// Default: the whole grip, as a device whose jaw is a button gives.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grip: Option<f64>,
 }
 
 fn identity_wxyz() -> [f64; 4] {
@@ -261,7 +267,10 @@ impl CutScript {
                 // made from a recording replays it exactly.
                 let orientation = if (norm - 1.0).abs() <= 1e-12 { quat_from_wxyz_exact(w, x, y, z) } else { quat_from_wxyz(w, x, y, z) };
                 let position = Vec3::new(k.position_m[0].get(), k.position_m[1].get(), k.position_m[2].get());
-                keys.push(CompiledKey { step, pose: Pose::new(position, orientation), cut: k.cut, active: k.active });
+                if let Some(message) = k.grip.and_then(crate::tool::grip_error) {
+                    return Err(err(path(".grip"), message));
+                }
+                keys.push(CompiledKey { step, pose: Pose::new(position, orientation), cut: k.cut, active: k.active, grip: k.grip });
             }
             tracks[tool] = keys;
         }
@@ -418,6 +427,7 @@ struct CompiledKey {
     pose: Pose,
     cut: bool,
     active: bool,
+    grip: Option<f64>,
 }
 
 /// A script checked against a scene, ready to give tool commands per step.
@@ -460,7 +470,7 @@ fn command_at(keys: &[CompiledKey], step: u64) -> ToolCommand {
         }
         None => k0.pose,
     };
-    ToolCommand { pose, active: k0.active, cut: k0.cut }
+    ToolCommand { pose, active: k0.active, cut: k0.cut, grip: k0.grip }
 }
 
 #[cfg(test)]
@@ -486,6 +496,28 @@ mod tests {
         assert!((c[0].pose.position_m.x - 0.005).abs() < 1e-15);
         script.commands_at(30, &mut c);
         assert!(!c[0].cut && (c[0].pose.position_m.x - 0.01).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_keyframes_grip_holds_until_the_next_and_must_be_a_fraction() {
+        let text = r#"{"tools":[{"tool":"scalpel","keyframes":[
+            {"step":0,"position_m":[0,0,0],"cut":true},
+            {"step":10,"position_m":[0,0,0],"cut":true,"grip":0.25},
+            {"step":20,"position_m":[0,0,0],"cut":true,"grip":0}]}]}"#;
+        let script = CutScript::from_json_str(text, "t").unwrap().compile(&blade(), 0.001, "t").unwrap();
+        let mut c = [ToolCommand::default()];
+        let mut at = |step| {
+            script.commands_at(step, &mut c);
+            (c[0].grip, c[0].closes_jaws(), c[0].grip_n(3.0))
+        };
+        assert_eq!(at(5), (None, true, 3.0), "no grip given: the whole grip");
+        assert_eq!(at(15), (Some(0.25), true, 0.75));
+        assert_eq!(at(20), (Some(0.0), false, 0.0), "no squeeze closes nothing");
+        for bad in ["1.5", "-0.1"] {
+            let text = format!(r#"{{"tools":[{{"tool":"scalpel","keyframes":[{{"step":0,"position_m":[0,0,0],"grip":{bad}}}]}}]}}"#);
+            let e = CutScript::from_json_str(&text, "t").unwrap().compile(&blade(), 0.001, "t").unwrap_err().to_string();
+            assert!(e.contains("tools[0].keyframes[0].grip") && e.contains("from 0 to 1") && e.contains(bad), "{e}");
+        }
     }
 
     #[test]

@@ -112,7 +112,32 @@ pub struct ToolCommand {
     /// False when the tool is away (not in the scene this step).
     pub active: bool,
     /// Cutting enabled (a pedal or button on the device); ignored for tools that cannot cut.
+    /// On forceps, the jaws close while it is held.
     pub cut: bool,
+    /// How hard the hand squeezes forceps' handles, as a fraction (0–1) of the tool's
+    /// `grip_force_n` — a device with an analog gripper; None: the whole grip while the
+    /// button is held (a device whose jaw is a button). A squeeze of 0 closes nothing.
+    /// Ignored by tools without jaws.
+    pub grip: Option<f64>,
+}
+
+impl ToolCommand {
+    /// Whether forceps commanded so close their jaws: the button held with some squeeze.
+    pub fn closes_jaws(&self) -> bool {
+        self.cut && self.grip.is_none_or(|g| g > 0.0)
+    }
+
+    /// The force the hand pinches forceps rated `grip_force_n` with, N (0 while their
+    /// jaws do not close).
+    pub fn grip_n(&self, grip_force_n: f64) -> f64 {
+        if self.closes_jaws() { grip_force_n * self.grip.unwrap_or(1.0).clamp(0.0, 1.0) } else { 0.0 }
+    }
+}
+
+/// Why a command's `grip` cannot be used (None: it can): a fraction of the tool's grip,
+/// finite, 0–1.
+pub fn grip_error(grip: f64) -> Option<String> {
+    (!(grip.is_finite() && (0.0..=1.0).contains(&grip))).then(|| format!("grip must be a fraction of the tool's grip force from 0 to 1, got {grip}"))
 }
 
 /// A step's contract: one command and one feedback slot per tool of the scene, in its
@@ -146,6 +171,11 @@ pub struct ToolFeedback {
     /// blade's motion and may stop it but never drives it. A haptic coupling integrates
     /// it like friction (docs/haptic-bridge.md); the rest of the force is elastic.
     pub resistance_n: Vec3,
+    /// True while forceps close on tissue between their jaws or hold it, stopped on it
+    /// (until the button is released): a stiff load whose pull changes by newtons per
+    /// millimetre, which a haptic coupling damps more firmly (docs/haptic-bridge.md,
+    /// "Grasping through the bridge").
+    pub grasping: bool,
 }
 
 /// A tool placed in space for one step: the segment from `tip` to `top`.

@@ -126,7 +126,7 @@ fn press(tool: usize, stop_force: f64) -> (f64, bool) {
     let mut force: f64 = 0.0;
     for _ in 0..4000 {
         z -= 5e-6;
-        commands[tool] = ToolCommand { pose: Pose::new(Vec3::new(0.0011, 0.0013, z), Quat::identity()), active: true, cut: true };
+        commands[tool] = ToolCommand { pose: Pose::new(Vec3::new(0.0011, 0.0013, z), Quat::identity()), active: true, cut: true, grip: None };
         g.step(&commands, &mut feedback);
         force = force.max(feedback[tool].force_n.norm());
         if g.counters().removed_elements > 0 {
@@ -180,7 +180,7 @@ fn u_tube_cut_run() -> (u64, u64) {
     for step in 0..1500u32 {
         let s = f64::from(step) / 1500.0;
         let pose = Pose::new(Vec3::new(-0.007 + 0.004 * s, 0.0, 0.034 - 0.014 * s), down);
-        commands[0] = ToolCommand { pose, active: true, cut: true };
+        commands[0] = ToolCommand { pose, active: true, cut: true, grip: None };
         g.step(&commands, &mut feedback);
         assert!(feedback.iter().all(|f| f.force_n.iter().all(|c| c.is_finite())));
     }
@@ -248,7 +248,7 @@ fn a_single_voxel_element_stays_with_the_body() {
     for step in 0..1500 {
         let depth = 0.003 * (f64::from(step) / 300.0).min(1.0);
         let pose = Pose::new(Vec3::new(0.013, 0.008, 0.016 + 0.0045 - depth), Quat::identity());
-        g.step(&[ToolCommand { pose, active: true, cut: false }], &mut feedback);
+        g.step(&[ToolCommand { pose, active: true, cut: false, grip: None }], &mut feedback);
     }
     let n = &g.topology().nodes;
     let largest = (0..n.len()).filter(|&i| n.alive[i]).map(|i| (n.x[i] - n.rest[i]).norm()).fold(0.0, f64::max);
@@ -304,7 +304,7 @@ fn the_grid_feeds_back_the_contact_force_of_the_solved_state() {
     // The capsule's rounded end first touches the top (z = 8 mm) from 14 mm.
     for step in 0..80 {
         let tip = Vec3::new(0.0011, 0.0013, 0.0145 - speed * dt * f64::from(step));
-        commands[1] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
+        commands[1] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
         let before = g.penalty_now(1, &commands[1]);
         g.step(&commands, &mut feedback);
         let after = g.penalty_now(1, &commands[1]);
@@ -399,7 +399,7 @@ fn press_and_draw_on_block(friction: Option<(f64, f64)>) -> (f64, f64, f64) {
     let mut g = build_grid(&json.to_string());
     let (mut commands, mut feedback) = (vec![ToolCommand::default(); 2], vec![ToolFeedback::default(); 2]);
     let mut at = |x: f64, z: f64, g: &mut BranchedGrid| {
-        commands[1] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false };
+        commands[1] = ToolCommand { pose: Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false, grip: None };
         g.step(&commands, &mut feedback);
         feedback[1]
     };

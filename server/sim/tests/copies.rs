@@ -14,7 +14,7 @@ fn cut_step(model: &mut dyn Tissue, i: u32) {
         50..505 => (-0.024 + 0.0455 * f64::from(i - 50) / 455.0, -0.005),
         _ => (0.0215, -0.005 + 0.015 * f64::from(i - 505) / 95.0),
     };
-    let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, z), Vec3::z()), active: i < 600, cut: true };
+    let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, z), Vec3::z()), active: i < 600, cut: true, grip: None };
     // The scene's other tools (a probe, forceps) stay away.
     let mut commands = vec![cutsim_sim::tool::ToolCommand { active: false, ..command }; model.tools().len()];
     commands[0] = command;
@@ -93,7 +93,7 @@ fn copy_steps_as_the_original(text: &str) {
     let mut original = cutsim_sim::build_tissue(&scene).unwrap_or_else(|e| panic!("{e}"));
     let blade = |i: u32| {
         let x = -0.015 + 0.03 * f64::from(i.min(240)) / 240.0;
-        let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, 0.001), Vec3::z()), active: true, cut: i > 20 };
+        let command = cutsim_sim::tool::ToolCommand { pose: pose(Vec3::new(x, 0.0, 0.001), Vec3::z()), active: true, cut: i > 20, grip: None };
         [command]
     };
     let mut feedback = [cutsim_sim::tool::ToolFeedback::default()];

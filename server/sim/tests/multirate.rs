@@ -45,7 +45,7 @@ fn multirate(every: u32, inline: bool) -> Multirate {
 
 fn probe_at(tip: Vec3) -> Vec<ToolCommand> {
     let mut commands = vec![ToolCommand::default(); 2];
-    commands[1] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
+    commands[1] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
     commands
 }
 
@@ -120,7 +120,7 @@ fn the_same_session_gives_the_same_state_on_the_deformation_thread_and_inline() 
             let t = step as f64 * 1e-3;
             let mut commands = probe_at(probe_depth(0.001 + 0.002 * (t * 5.0).sin().abs()));
             commands[1].pose.position_m.x = -0.008;
-            commands[0] = ToolCommand { pose: Pose::new(Vec3::new(0.004, -0.012 + 0.04 * t, 0.004), Quat::identity()), active: true, cut: true };
+            commands[0] = ToolCommand { pose: Pose::new(Vec3::new(0.004, -0.012 + 0.04 * t, 0.004), Quat::identity()), active: true, cut: true, grip: None };
             model.step(&commands, &mut feedback);
             if step % 50 == 49 {
                 hashes.push(model.state_hash());
@@ -156,7 +156,7 @@ fn forceps_give_the_same_state_on_the_deformation_thread_and_inline() {
             for step in 0..900 {
                 // Pressed 3 mm in at 10 mm/s, closed from 350 ms to 650 ms.
                 let tip = probe_depth(0.001 * (f64::from(step) * 0.01).min(3.0)) - Vec3::new(0.0, 0.0, 0.006);
-                let command = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: (350..650).contains(&step) };
+                let command = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: (350..650).contains(&step), grip: None };
                 model.step(&[command], &mut feedback);
                 pressed = pressed.max(feedback[0].force_n.z);
                 if step == 649 {
@@ -186,7 +186,7 @@ fn a_blade_drawn_fast_cuts_between_deformation_steps_as_a_single_rate_model_does
         for step in 0..300 {
             let y = -0.012 + 0.1 * 1e-3 * step.min(240) as f64;
             let mut commands = vec![ToolCommand::default(); 2];
-            commands[0] = ToolCommand { pose: Pose::new(Vec3::new(0.001, y, 0.004), Quat::identity()), active: true, cut: true };
+            commands[0] = ToolCommand { pose: Pose::new(Vec3::new(0.001, y, 0.004), Quat::identity()), active: true, cut: true, grip: None };
             tissue.step(&commands, &mut feedback);
         }
         tissue.counters().removed_elements

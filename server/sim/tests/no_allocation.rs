@@ -67,7 +67,7 @@ fn lower_tool(m: &mut MassSpring, tool: usize) -> (Vec<ToolCommand>, Vec<ToolFee
     let mut fb = vec![ToolFeedback::default(); commands.len()];
     for k in 0..=100 {
         let z = 0.0005 - 0.0025 * f64::from(k) / 100.0;
-        commands[tool] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false };
+        commands[tool] = ToolCommand { pose: pose(Vec3::new(0.0, 0.0, z), Vec3::z()), active: true, cut: false, grip: None };
         run(m, &commands, &mut fb, 1);
     }
     (commands, fb)
@@ -138,7 +138,7 @@ fn blade_in_the_skin_between_cut_updates_allocates_nothing() {
     let tools = m.tools().len();
     let blade = |x: f64| {
         let mut c = vec![ToolCommand::default(); tools];
-        c[0] = ToolCommand { pose: pose(Vec3::new(x, 0.0, -0.005), Vec3::z()), active: true, cut: true };
+        c[0] = ToolCommand { pose: pose(Vec3::new(x, 0.0, -0.005), Vec3::z()), active: true, cut: true, grip: None };
         c
     };
     let mut fb = vec![ToolFeedback::default(); tools];
@@ -195,7 +195,7 @@ fn grid_allocations_pressing(material: &str, extra: &str, tool: &str, end_m: f64
         "tools": [ {tool} ] }}"#
     );
     let mut model = cutsim_sim::build_tissue(&scene(&text)).unwrap_or_else(|e| panic!("{e}"));
-    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 + end_m - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: close_from.is_some_and(|from| i >= from) }];
+    let press = |i: usize| [ToolCommand { pose: pose(Vec3::new(0.0, 0.0, 0.005 + end_m - 0.002 * (i as f64 / 100.0).min(1.0)), Vec3::z()), active: true, cut: close_from.is_some_and(|from| i >= from), grip: None }];
     let mut feedback = [ToolFeedback::default()];
     for i in 0..100 {
         model.step(&press(i), &mut feedback);

@@ -145,7 +145,7 @@ fn press(scene: &Scene, tool: usize, xy: (f64, f64), cut: bool, speed: f64, unti
     let mut samples = Vec::new();
     for step in 0.. {
         let tip = Vec3::new(xy.0, xy.1, 0.002 - speed * dt * f64::from(step));
-        commands[tool] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut };
+        commands[tool] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut, grip: None };
         skin.step(&commands, &mut feedback);
         let skin_z = skin_height(&skin, xy);
         let force_n = feedback[tool].force_n.z;
@@ -215,7 +215,7 @@ fn press_laid_flat(scene: &Scene, tool: usize, roll: f64, half_m: f64) -> LaidFl
     for step in 0..1000 {
         let axis_z = half_m + 0.002 - 0.05e-3 * f64::from(step);
         let pose = cutsim_sim::math::Pose::new(Vec3::new(-0.04, 0.0003, axis_z), orientation);
-        commands[tool] = cutsim_sim::tool::ToolCommand { pose, active: true, cut: false };
+        commands[tool] = cutsim_sim::tool::ToolCommand { pose, active: true, cut: false, grip: None };
         skin.step(&commands, &mut feedback);
         out.held_n = out.held_n.max(feedback[tool].force_n.z);
         // The skin above the tool's top (0.5 mm of slack) anywhere along it: through.
@@ -420,7 +420,7 @@ fn press_and_draw(scene: &Scene, travel_m: f64) -> Drag {
     let press_steps = ((0.002 + depth) / (press_speed * dt)).ceil() as usize;
     let draw_steps = (travel_m / (draw_speed * dt)).ceil() as usize;
     let mut at = |x: f64, z: f64, skin: &mut cutsim_sim::msm::MassSpring| {
-        commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false };
+        commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, z), Quat::identity()), active: true, cut: false, grip: None };
         skin.step(&commands, &mut feedback);
         feedback[1]
     };
@@ -528,7 +528,7 @@ fn press_probe_to(scene: &Scene, depths_m: &[f64]) -> Vec<(f64, Vec<Vec3>)> {
         let settle = (0.3 / dt) as usize;
         for step in 0.. {
             tip_z = (tip_z - 0.02 * dt).max(target);
-            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, tip_z), Quat::identity()), active: true, cut: false };
+            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, tip_z), Quat::identity()), active: true, cut: false, grip: None };
             skin.step(&commands, &mut feedback);
             if tip_z == target && step >= settle {
                 break;
@@ -689,7 +689,7 @@ fn draw_block(scene: &Scene, depth_m: f64, orientation: Quat, travel_m: f64) -> 
     for step in 0..steps {
         let x = -0.036 + speed * dt * step as f64;
         let pose = cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, 0.01 - depth_m), orientation);
-        cutsim_sim::tissue::Tissue::step(&mut grid, &[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true }], &mut feedback);
+        cutsim_sim::tissue::Tissue::step(&mut grid, &[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true, grip: None }], &mut feedback);
         trace.push((x, -feedback[0].resistance_n.x));
         pushes.push(-(feedback[0].force_n - feedback[0].resistance_n).x);
     }
@@ -738,7 +738,7 @@ fn draw_block_multirate(block: &Scene, orientation: Quat) -> (u64, f64) {
     for step in 0..300 {
         let x = -0.036 + 0.05e-3 * f64::from(step);
         let pose = cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, 0.004), orientation);
-        model.step(&[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true }], &mut feedback);
+        model.step(&[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true, grip: None }], &mut feedback);
         pushes.push(-(feedback[0].force_n - feedback[0].resistance_n).x);
     }
     let last = &pushes[pushes.len() - 40..];
@@ -765,7 +765,7 @@ fn a_blade_pressed_point_first_into_the_grid_cuts_tough_tissue() {
     for step in 0..220 {
         let z = 0.012 - 0.05e-3 * step as f64;
         let pose = cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, z), Quat::identity());
-        cutsim_sim::tissue::Tissue::step(&mut grid, &[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true }], &mut feedback);
+        cutsim_sim::tissue::Tissue::step(&mut grid, &[cutsim_sim::tool::ToolCommand { pose, active: true, cut: true, grip: None }], &mut feedback);
     }
     assert!(grid.counters().removed_elements > 20, "the point leading cuts: {} voxels", grid.counters().removed_elements);
 }
@@ -825,7 +825,7 @@ fn forceps_press_with_both_jaws_and_the_skin_rises_between_them_unless_they_are_
         let (mut through_jaws, mut between, mut force, mut depth) = (f64::NEG_INFINITY, f64::NEG_INFINITY, 0.0, 0.0);
         for step in 0.. {
             let tip = Vec3::new(0.0, 0.0, 0.002 - 0.05 * dt * f64::from(step));
-            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed };
+            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed, grip: None };
             skin.step(&commands, &mut feedback);
             for y in [-jaw_y, jaw_y] {
                 if let Some(z) = skin_height(&skin, (0.0, y)) {
@@ -903,7 +903,7 @@ fn forceps_closed_and_reopened_while_pressed_keep_holding_the_skin() {
             let mut weakest = f64::INFINITY;
             for at in 0..steps {
                 let tip = Vec3::new(0.0, 0.0, 0.002 - 0.05 * dt * f64::from(step.min(160)));
-                commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed };
+                commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed, grip: None };
                 skin.step(&commands, &mut feedback);
                 step += 1;
                 // The jaws' centre lines once they have moved (4 mm at 0.1 m/s: 40 steps);
@@ -946,12 +946,17 @@ struct GraspRun {
     slipped_at_m: Option<f64>,
     /// After the lift (and the release, if any): nodes held, the force, the skin on the axis.
     end: (usize, f64, f64),
+    /// Steps whose feedback said the forceps grasp (`ToolFeedback::grasping`), and of
+    /// those, steps with no node held.
+    grasping_steps: u32,
+    grasping_holding_nothing: u32,
 }
 
-/// The default scene with forceps pinching with `grip_n`: pressed 6 mm in open (from
-/// 2 mm above at 50 mm/s), closed there, lifted `lift_m` at 20 mm/s with the button
-/// held, then, with `release`, let go of and held still for 0.3 s.
-fn grasp_and_lift(implicit: bool, grip_n: f64, lift_m: f64, release: bool) -> GraspRun {
+/// The default scene with forceps rated `grip_n`, squeezed with `squeeze` of it (the
+/// command's `grip`; None: the whole grip): pressed 6 mm in open (from 2 mm above at
+/// 50 mm/s), closed there, lifted `lift_m` at 20 mm/s with the button held, then, with
+/// `release`, let go of and held still for 0.3 s.
+fn grasp_and_lift(implicit: bool, grip_n: f64, squeeze: Option<f64>, lift_m: f64, release: bool) -> GraspRun {
     let scene = edit(&with_forceps(), |s| {
         s["tools"][1]["shape"]["forceps"]["grip_force_n"] = serde_json::json!(grip_n);
         if implicit {
@@ -966,12 +971,16 @@ fn grasp_and_lift(implicit: bool, grip_n: f64, lift_m: f64, release: bool) -> Gr
     let lift_steps = (lift_m / (0.02 * dt)).round() as u32;
     let phases = [(160, -0.05, false), (200, 0.0, true), (lift_steps, 0.02, true), (if release { 300 } else { 0 }, 0.0, false)];
     let mut tip_z = 0.002;
-    let mut run = GraspRun { grasped: 0, highest_m: f64::NEG_INFINITY, strongest_pull_n: 0.0, slipped_at_m: None, end: (0, 0.0, 0.0) };
+    let mut run = GraspRun { grasped: 0, highest_m: f64::NEG_INFINITY, strongest_pull_n: 0.0, slipped_at_m: None, end: (0, 0.0, 0.0), grasping_steps: 0, grasping_holding_nothing: 0 };
     for (phase, &(steps, speed, closed)) in phases.iter().enumerate() {
         for at in 0..steps {
             tip_z += speed * dt;
-            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, tip_z), Quat::identity()), active: true, cut: closed };
+            commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.0, 0.0, tip_z), Quat::identity()), active: true, cut: closed, grip: squeeze };
             skin.step(&commands, &mut feedback);
+            if feedback[1].grasping {
+                run.grasping_steps += 1;
+                run.grasping_holding_nothing += u32::from(skin.grasped_nodes(1) == 0);
+            }
             if phase == 2 {
                 let held = skin.grasped_nodes(1);
                 if held > 0 {
@@ -1000,7 +1009,7 @@ fn forceps_closed_on_the_skin_grasp_it_and_lift_it_until_it_slips_or_is_released
     let mu_static = 0.5;
     for implicit in [false, true] {
         let integrator = if implicit { "implicit" } else { "explicit" };
-        let [firm, light] = [6.8, 3.0].map(|grip| grasp_and_lift(implicit, grip, 0.03, false));
+        let [firm, light] = [6.8, 3.0].map(|grip| grasp_and_lift(implicit, grip, None, 0.03, false));
         for (grip, run) in [(3.0, &light), (6.8, &firm)] {
             println!("{integrator}, grip {grip} N: {} nodes grasped; lifted, the skin rose to {:.2} mm, pulling the forceps back with up to {:.2} N (friction's limit {:.1} N); slipped out {}; after the lift {:.3} N",
                 run.grasped, run.highest_m * 1e3, run.strongest_pull_n, 2.0 * mu_static * grip, run.slipped_at_m.map_or("never".to_owned(), |m| format!("{:.1} mm up", m * 1e3)), run.end.1);
@@ -1014,10 +1023,37 @@ fn forceps_closed_on_the_skin_grasp_it_and_lift_it_until_it_slips_or_is_released
         assert!(firm.slipped_at_m.is_none_or(|m| m > slipped) && firm.highest_m > light.highest_m && firm.strongest_pull_n > light.strongest_pull_n, "{integrator}: a firmer grip holds on longer: {firm:?} against {light:?}");
         // Lifted 10 mm (the tip 4 mm above the skin's rest, the skin still held) and let
         // go of: the skin falls back to rest.
-        let released = grasp_and_lift(implicit, 3.0, 0.01, true);
+        let released = grasp_and_lift(implicit, 3.0, None, 0.01, true);
         println!("{integrator}, lifted 10 mm and released: the skin rose to {:.2} mm and is back at {:.3} mm, {} nodes held, {:.3} N", released.highest_m * 1e3, released.end.2 * 1e3, released.end.0, released.end.1);
         assert!(released.slipped_at_m.is_none() && released.highest_m > 2e-3, "{integrator}: held while lifted 10 mm: {released:?}");
         assert!(released.end.0 == 0 && released.end.2.abs() < 5e-4 && released.end.1 < 0.05, "{integrator}: released, the skin falls back: {released:?}");
+    }
+}
+
+/// A device with an analog gripper squeezes the forceps with a share of their grip
+/// (the command's `grip`, docs/tool-tissue.md "Grasping"): forceps rated 6.8 N squeezed
+/// at 3/6.8 hold the skin as forceps rated 3 N squeezed fully do, and slip out where
+/// they do; not squeezed at all (the button held, the gripper open), the jaws do not
+/// close and hold nothing. Both integrators.
+#[test]
+fn the_hands_squeeze_sets_the_grip_the_forceps_hold_the_skin_with() {
+    for implicit in [false, true] {
+        let integrator = if implicit { "implicit" } else { "explicit" };
+        let rated = grasp_and_lift(implicit, 3.0, None, 0.03, false);
+        let squeezed = grasp_and_lift(implicit, 6.8, Some(3.0 / 6.8), 0.03, false);
+        let open = grasp_and_lift(implicit, 6.8, Some(0.0), 0.01, false);
+        let slip_mm = |run: &GraspRun| run.slipped_at_m.map_or(f64::INFINITY, |m| m * 1e3);
+        println!(
+            "{integrator}: rated 3 N, whole grip: {} nodes, pulled {:.3} N, slipped {:.1} mm up; rated 6.8 N squeezed at 3/6.8: {} nodes, {:.3} N, {:.1} mm; not squeezed: {} nodes, {:.3} N at the end",
+            rated.grasped, rated.strongest_pull_n, slip_mm(&rated), squeezed.grasped, squeezed.strongest_pull_n, slip_mm(&squeezed), open.grasped, open.end.1
+        );
+        assert_eq!(squeezed.grasped, rated.grasped, "{integrator}: the same skin between the jaws");
+        assert!((squeezed.strongest_pull_n - rated.strongest_pull_n).abs() <= 0.01 * rated.strongest_pull_n, "{integrator}: {squeezed:?} against {rated:?}");
+        assert!((slip_mm(&squeezed) - slip_mm(&rated)).abs() <= 0.5, "{integrator}: slipped {:.1} against {:.1} mm up", slip_mm(&squeezed), slip_mm(&rated));
+        assert!(open.grasped == 0 && open.strongest_pull_n == 0.0 && open.end.0 == 0 && open.end.1 < 0.05, "{integrator}, not squeezed: {open:?}");
+        // The feedback says when the forceps grasp (for a haptic coupling's damper), and
+        // only then.
+        assert!(rated.grasping_steps > 500 && rated.grasping_holding_nothing == 0 && open.grasping_steps == 0, "{integrator}: {rated:?}, {open:?}");
     }
 }
 
@@ -1057,7 +1093,7 @@ fn press_grid(scene: &Scene, tool: usize, until_n: f64, max_depth_m: f64) -> (f6
     let mut worst = f64::NEG_INFINITY;
     for step in 0.. {
         let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - speed * dt * f64::from(step));
-        commands[tool] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+        commands[tool] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
         grid.step(&commands, &mut feedback);
         if let Some(h) = grid_surface_height(&grid, xy) {
             worst = worst.max(h - tip.z);
@@ -1157,7 +1193,7 @@ fn a_probe_thinner_than_the_grids_vertex_spacing_is_held_by_the_face_under_it() 
     // Down at 50 mm/s from 2 mm above to 30 mm in.
     for step in 0..640 {
         let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - 0.05 * 1e-3 * f64::from(step));
-        commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+        commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
         grid.step(&commands, &mut feedback);
         force = feedback[0].force_n.z;
         let crossings = grid_surface_crossings(&grid, xy);
@@ -1216,7 +1252,7 @@ fn a_thin_probe_pressed_in_on_its_side_is_held_along_its_shaft() {
         // Down at 50 mm/s from 2 mm above, at most 10 mm in, until it pushes with 10 N.
         for step in 0..240 {
             let tip = Vec3::new(top.x - 0.01, top.y, top.z + 0.002 - 0.05 * 1e-3 * f64::from(step));
-            commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, lying), active: true, cut: false };
+            commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, lying), active: true, cut: false, grip: None };
             grid.step(&commands, &mut feedback);
             let force = feedback[0].force_n.z;
             most = most.max(force);
@@ -1272,7 +1308,7 @@ fn a_probe_pressed_into_the_grid_under_multirate_feels_the_tissue_hold() {
     // Down at 50 mm/s from 2 mm above to 30 mm in.
     for step in 0..640 {
         let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - 0.05 * 1e-3 * f64::from(step));
-        commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+        commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
         model.step(&commands, &mut feedback);
         force = feedback[0].force_n.z;
         // At the end of each deformation period (a new patch's force fades in from the
@@ -1312,7 +1348,7 @@ fn a_round_probe_resting_on_the_implicit_skin_pushes_back_steadily() {
     let mut trace = Vec::new();
     for step in 0..110 {
         let z = (0.001 - 0.0025 * step as f64 / 50.0).max(-0.0015);
-        commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.01, 0.01, z), Quat::identity()), active: true, cut: false };
+        commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(0.01, 0.01, z), Quat::identity()), active: true, cut: false, grip: None };
         skin.step(&commands, &mut feedback);
         trace.push((feedback[1].force_n.z, feedback[1].contacts));
     }
@@ -1338,7 +1374,7 @@ fn drawn_along_itself(scene: &Scene) -> f64 {
     let orientation = Quat::from_axis_angle(&nalgebra::Vector3::y_axis(), std::f64::consts::FRAC_PI_2);
     let step = |x: f64, z: f64| {
         let pose = cutsim_sim::math::Pose::new(Vec3::new(x, 0.0003, z), orientation);
-        commands[1] = cutsim_sim::tool::ToolCommand { pose, active: true, cut: false };
+        commands[1] = cutsim_sim::tool::ToolCommand { pose, active: true, cut: false, grip: None };
         skin.step(&commands, &mut feedback);
         feedback[1].force_n
     };
@@ -1436,7 +1472,7 @@ fn forceps_press_the_grid_with_both_jaws_and_the_tissue_rises_between_them() {
             // At 50 mm/s from 2 mm above.
             for step in 0.. {
                 let tip = Vec3::new(x, y, top.z + 0.002 - 0.05 * dt * f64::from(step));
-                let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed };
+                let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: closed, grip: None };
                 grid.step(&[command], &mut feedback);
                 (force, depth) = (feedback[0].force_n.z, top.z - tip.z);
                 // Past a tip: the surface more than the penalty's give above it on the
@@ -1540,7 +1576,7 @@ fn press_close_reopen(top: Vec3, timeline: &CloseAndReopen, mut step: impl FnMut
     let (mut open, mut closed, mut reopened) = (0.0, f64::INFINITY, f64::INFINITY);
     for ms in 0..timeline.end {
         let tip = Vec3::new(x, y, top.z + 0.002 - 0.05e-3 * f64::from(ms.min(160)));
-        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: timeline.closed.contains(&ms) };
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: timeline.closed.contains(&ms), grip: None };
         let force = step(command);
         if ms + 1 == timeline.closed.start {
             open = force;
@@ -1631,7 +1667,7 @@ fn a_blade_plate_pressed_into_the_grid_keeps_pushing_the_tissue() {
         // At 50 mm/s from 2 mm above to 30 mm in.
         for step in 0..=640 {
             let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - 0.05e-3 * f64::from(step));
-            let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+            let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
             grid.step(&[command], &mut feedback);
             let depth = top.z - tip.z;
             if depth >= 0.01 {
@@ -1707,7 +1743,7 @@ fn under_multirate_a_blade_plate_pressed_point_first_is_held_by_the_deformation(
         let (mut held_from, mut rendered) = (None, Vec::new());
         for step in 0..=640 {
             let tip = Vec3::new(xy.0, xy.1, top.z + 0.002 - 0.05e-3 * f64::from(step));
-            let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false };
+            let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
             model.step(&[command], &mut feedback);
             let depth = top.z - tip.z;
             let applied = -model.patch(0).applied.z;
@@ -1748,7 +1784,7 @@ fn shaft_drawn_along_the_grid(radius_m: f64, stiffness: f64, friction: Option<(f
     let lying = Quat::from_axis_angle(&Vec3::y_axis(), std::f64::consts::FRAC_PI_2);
     let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default(); 1];
     let step = |x: f64, z: f64| {
-        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, top.y, z), lying), active: true, cut: false };
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, top.y, z), lying), active: true, cut: false, grip: None };
         grid.step(&[command], &mut feedback);
         feedback[0].force_n
     };
@@ -1823,7 +1859,7 @@ fn forceps_grasp_the_lip_of_an_incision_and_retract_it() {
         // A 40 mm incision along x at 0.1 m/s, 5 mm deep; then 0.5 s for the wound to open.
         for k in 0..=400 {
             let x = -0.02 + 0.04 * f64::from(k) / 400.0;
-            commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity()), active: true, cut: true };
+            commands[0] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(x, 0.0, -0.005), Quat::identity()), active: true, cut: true, grip: None };
             skin.step(&commands, &mut feedback);
         }
         commands[0] = cutsim_sim::tool::ToolCommand::default();
@@ -1845,7 +1881,7 @@ fn forceps_grasp_the_lip_of_an_incision_and_retract_it() {
         for (phase, (steps, speed, closed)) in [(200, 0.0, true), (400, 0.02, true), (200, 0.0, true), (300, 0.0, false)].into_iter().enumerate() {
             for _ in 0..steps {
                 y += speed * 1e-3;
-                commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(-0.005, y, 0.0), turn), active: true, cut: closed };
+                commands[1] = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(Vec3::new(-0.005, y, 0.0), turn), active: true, cut: closed, grip: None };
                 skin.step(&commands, &mut feedback);
                 strongest = strongest.max(-feedback[1].force_n.y);
             }
@@ -1938,7 +1974,7 @@ fn grasp_and_lift_grid(top: Vec3, close_ms: u32, mut step: impl FnMut(cutsim_sim
         let down = 0.05e-3 * f64::from(ms.min(160));
         let up = 0.02e-3 * f64::from(ms.clamp(lift_from, lift_from + 500) - lift_from);
         let tip = Vec3::new(top.x + 0.0003, top.y + 0.0002, top.z + 0.002 - down + up);
-        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: (460..release_at).contains(&ms) };
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: (460..release_at).contains(&ms), grip: None };
         let (force, half_gap, surface) = step(command);
         if ms == 0 {
             rest = surface;
@@ -2032,4 +2068,43 @@ fn forceps_closed_on_the_grid_grasp_it_by_friction_and_lift_it() {
     });
     println!("  multirate (deformation every 33 ms): stopped {:.2} mm apart; the tissue rose {:.2} mm, pulling back with up to {:.2} N, {:.2} N at the end; released, {:.3} N", 2e3 * multi.stopped_half_gap_m, multi.rise_m * 1e3, multi.pull_n, multi.held_n, multi.released_n);
     assert!((multi.stopped_half_gap_m - 5e-4).abs() < 1e-5 && multi.held_n > 0.5 && multi.pull_n <= 1.05 * limit(3.0) && multi.released_n.abs() < 0.05, "{multi:?}");
+}
+
+/// On the branched grid too, the hand's squeeze (the command's `grip`) is the grip:
+/// thin forceps rated 6.8 N squeezed at 3/6.8 stop and hold as forceps rated 3 N do,
+/// and squeezed at 1 hold more; not squeezed, the jaws stay open, exactly as with the
+/// button up. (Open jaws lifted out of this frictional block still drag the tissue wedged
+/// between them, about 1 N: that is friction on their flats, not a grip.)
+#[test]
+fn the_hands_squeeze_sets_the_grip_the_forceps_hold_the_grid_with() {
+    let friction = Some((0.5, 0.4));
+    let grasping_steps = std::cell::Cell::new(0u32);
+    let lift = |grip_n: f64, squeeze: Option<f64>, button: bool| {
+        let scene = grid_forceps_scene(false, grip_n, friction);
+        let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+        let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
+        let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
+        grasping_steps.set(0);
+        grasp_and_lift_grid(grid.broad_top().unwrap(), 240, |command| {
+            grid.step(&[cutsim_sim::tool::ToolCommand { grip: squeeze, cut: command.cut && button, ..command }], &mut feedback);
+            grasping_steps.set(grasping_steps.get() + u32::from(feedback[0].grasping));
+            (feedback[0].force_n.z, grid.jaws_half_gap_m(0).unwrap(), None)
+        })
+    };
+    // The feedback says when the jaws have stopped on what they pinch (from their stop
+    // to the release: at least the 800 ms lifted and held).
+    let rated = lift(3.0, None, true);
+    assert!(grasping_steps.get() >= 800, "grasping for {} ms", grasping_steps.get());
+    let (squeezed, firm) = (lift(6.8, Some(3.0 / 6.8), true), lift(6.8, Some(1.0), true));
+    let open = lift(6.8, Some(0.0), true);
+    assert_eq!(grasping_steps.get(), 0, "open jaws grasp nothing");
+    let button_up = lift(6.8, None, false);
+    for (name, run) in [("rated 3 N", &rated), ("rated 6.8 N squeezed at 3/6.8", &squeezed), ("squeezed at 1", &firm), ("not squeezed", &open), ("button up", &button_up)] {
+        println!("grid, thin jaws, {name}: jaws {:.2} mm apart when lifted, {:.3} N at the end of the hold", 2e3 * run.stopped_half_gap_m, run.held_n);
+    }
+    assert_eq!(squeezed.stopped_half_gap_m, rated.stopped_half_gap_m);
+    assert!((squeezed.held_n - rated.held_n).abs() <= 0.02 * rated.held_n, "{squeezed:?} against {rated:?}");
+    assert!(firm.held_n > squeezed.held_n + 0.05, "{firm:?} against {squeezed:?}");
+    assert!(open.stopped_half_gap_m > 3e-3, "not squeezed, the jaws stay open: {open:?}");
+    assert_eq!((open.held_n, open.pull_n, open.released_n), (button_up.held_n, button_up.pull_n, button_up.released_n), "not squeezed is the button up");
 }

@@ -14,6 +14,7 @@
 //! {"format":"cutsim-recording","version":1,"session":"…","build":"cutsim-server 0.1.0 (git 1a2b3c4d5e6f)",
 //!  "scene_sha256":"…","checkpoint_every_steps":10000,"scene_origin":"…","base_dir":"…","scene":{…}}
 //! {"t":"cmd","step":12,"tool":0,"p":[x,y,z],"q":[w,x,y,z],"active":true,"cut":false}
+//!                                           (+ "grip":0.4 where an analog gripper sent one)
 //! {"t":"reset","step":500}                 tissue rebuilt from the scene (script start)
 //! {"t":"check","step":900,"hash":"…"}      state hash after `step` steps
 //! {"t":"lost","count":3}                    events that could not be recorded
@@ -124,7 +125,17 @@ struct Header {
 #[derive(Serialize, Deserialize, Debug, PartialEq)]
 #[serde(tag = "t", rename_all = "lowercase")]
 enum Line {
-    Cmd { step: u64, tool: u32, p: [f64; 3], q: [f64; 4], active: bool, cut: bool },
+    Cmd {
+        step: u64,
+        tool: u32,
+        p: [f64; 3],
+        q: [f64; 4],
+        active: bool,
+        cut: bool,
+        /// Forceps' squeeze (a fraction of their grip), where the device sent one.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        grip: Option<f64>,
+    },
     Reset { step: u64 },
     Check { step: u64, hash: String },
     Lost { count: u64 },
@@ -190,7 +201,7 @@ impl Recorder {
                             RecordEvent::Command { step, tool, command } => {
                                 let p = command.pose.position_m;
                                 let q = command.pose.orientation.quaternion();
-                                Line::Cmd { step, tool, p: [p.x, p.y, p.z], q: [q.w, q.i, q.j, q.k], active: command.active, cut: command.cut }
+                                Line::Cmd { step, tool, p: [p.x, p.y, p.z], q: [q.w, q.i, q.j, q.k], active: command.active, cut: command.cut, grip: command.grip }
                             }
                             RecordEvent::Reset { step } => Line::Reset { step },
                             RecordEvent::Checkpoint { step, hash } => Line::Check { step, hash: hash_hex(hash) },
@@ -366,12 +377,15 @@ impl Recording {
             };
             let epoch = recording.epochs.last_mut().expect("there is always an epoch");
             match line {
-                Line::Cmd { step, tool, p, q, active, cut } => {
+                Line::Cmd { step, tool, p, q, active, cut, grip } => {
                     if tool as usize >= tools {
                         return Err(format!("{}: line {number}: tool {tool} does not exist in the scene", path.display()));
                     }
+                    if let Some(message) = grip.and_then(cutsim_sim::tool::grip_error) {
+                        return Err(format!("{}: line {number}: {message}", path.display()));
+                    }
                     let pose = Pose::new(Vec3::new(p[0], p[1], p[2]), quat_from_wxyz_exact(q[0], q[1], q[2], q[3]));
-                    epoch.events.push((step, EpochEvent::Command { tool: tool as usize, command: ToolCommand { pose, active, cut } }));
+                    epoch.events.push((step, EpochEvent::Command { tool: tool as usize, command: ToolCommand { pose, active, cut, grip } }));
                     epoch.steps = epoch.steps.max(step);
                 }
                 Line::Check { step, hash } => {

@@ -22,7 +22,7 @@ impl StampedCommand {
     pub fn to_words(&self) -> [u64; COMMAND_WORDS] {
         let p = self.command.pose.position_m;
         let q = self.command.pose.orientation.quaternion();
-        let flags = u64::from(self.command.active) | (u64::from(self.command.cut) << 1) | (u64::from(self.feedback_every) << 32);
+        let flags = u64::from(self.command.active) | (u64::from(self.command.cut) << 1) | (u64::from(self.command.grip.is_some()) << 2) | (u64::from(self.feedback_every) << 32);
         [
             p.x.to_bits(),
             p.y.to_bits(),
@@ -34,7 +34,7 @@ impl StampedCommand {
             flags,
             self.client_time_ns,
             self.received_ns,
-            0,
+            self.command.grip.unwrap_or(0.0).to_bits(),
         ]
     }
 
@@ -43,7 +43,7 @@ impl StampedCommand {
         let position = Vec3::new(f(0), f(1), f(2));
         let orientation = quat_from_wxyz_exact(f(3), f(4), f(5), f(6));
         Self {
-            command: ToolCommand { pose: Pose::new(position, orientation), active: w[7] & 1 == 1, cut: w[7] & 2 == 2 },
+            command: ToolCommand { pose: Pose::new(position, orientation), active: w[7] & 1 == 1, cut: w[7] & 2 == 2, grip: (w[7] & 4 == 4).then(|| f(10)) },
             client_time_ns: w[8],
             received_ns: w[9],
             feedback_every: ((w[7] >> 32) as u32).max(1),
@@ -71,7 +71,8 @@ impl FeedbackRecord {
         let r = self.feedback.resistance_n;
         let flags = u64::from(self.feedback.contacts)
             | (u64::from(self.feedback.cutting) << 32)
-            | (u64::from(self.feedback.force_clamped) << 33);
+            | (u64::from(self.feedback.force_clamped) << 33)
+            | (u64::from(self.feedback.grasping) << 34);
         [
             self.step,
             f.x.to_bits(),
@@ -101,6 +102,7 @@ impl FeedbackRecord {
                 contacts: w[7] as u32,
                 cutting: (w[7] >> 32) & 1 == 1,
                 force_clamped: (w[7] >> 33) & 1 == 1,
+                grasping: (w[7] >> 34) & 1 == 1,
                 resistance_n: Vec3::new(f(11), f(12), f(13)),
             },
             echo_client_time_ns: w[8],
@@ -121,12 +123,18 @@ mod tests {
                 pose: Pose::new(Vec3::new(0.1, -0.2, 0.3), cutsim_sim::math::Quat::from_euler_angles(0.1, 0.2, 0.3)),
                 active: true,
                 cut: true,
+                grip: None,
             },
             client_time_ns: 123,
             received_ns: 456,
             feedback_every: 3,
         };
         assert_eq!(StampedCommand::from_words(&c.to_words()), c);
+        // A squeeze of 0 is not the absent one (the whole grip).
+        for grip in [Some(0.0), Some(0.35), Some(1.0)] {
+            let squeezed = StampedCommand { command: ToolCommand { grip, ..c.command }, ..c };
+            assert_eq!(StampedCommand::from_words(&squeezed.to_words()), squeezed);
+        }
     }
 
     #[test]
@@ -140,6 +148,7 @@ mod tests {
                 cutting: true,
                 force_clamped: false,
                 resistance_n: Vec3::new(-0.5, 0.25, 0.0),
+                grasping: true,
             },
             echo_client_time_ns: 11,
             server_latency_ns: 12,

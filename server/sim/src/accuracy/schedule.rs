@@ -58,11 +58,11 @@ impl Script {
             if let Some(p) = tools.iter().position(|t| !t.can_cut) {
                 let depth = 0.004 * (step as f64 / 100.0).min(1.0);
                 let below_tip = crate::grid::hold::reach_below_tip(&tools[p]);
-                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + below_tip - depth), Quat::identity()), active: true, cut: false };
+                commands[p] = ToolCommand { pose: Pose::new(Vec3::new(top.x, top.y, top.z + below_tip - depth), Quat::identity()), active: true, cut: false, grip: None };
             }
         } else if let Some(b) = tools.iter().position(|t| t.can_cut) {
             let x = -0.02 + 0.04 * (step - self.hold_steps) as f64 / self.cut_steps as f64;
-            commands[b] = ToolCommand { pose: Pose::new(Vec3::new(top.x + x, top.y, top.z - 0.008), Quat::identity()), active: true, cut: true };
+            commands[b] = ToolCommand { pose: Pose::new(Vec3::new(top.x + x, top.y, top.z - 0.008), Quat::identity()), active: true, cut: true, grip: None };
         }
     }
 }

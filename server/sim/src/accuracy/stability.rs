@@ -185,7 +185,7 @@ fn mass_ratio_volume() -> Result<std::path::PathBuf, String> {
 
 /// The tools' commands at time t.
 fn commands(scenario: Scenario, t: f64) -> [ToolCommand; 2] {
-    let at = |p: Vec3, active: bool, cut: bool| ToolCommand { pose: Pose::new(p, Quat::identity()), active, cut };
+    let at = |p: Vec3, active: bool, cut: bool| ToolCommand { pose: Pose::new(p, Quat::identity()), active, cut, grip: None };
     // The blade is vertical (+z from its tip): a tip 2 mm under the bar puts it through.
     match scenario {
         Scenario::ProbeAndBlade | Scenario::MassRatio => {

@@ -250,7 +250,7 @@ fn check_solver_converges(scene: &Scene, grid: &BranchedGrid) -> Result<(), Scen
         if let (Some(p), Some(top)) = (pressing, top) {
             let depth = 0.002 * ((step + 1) as f64 / CHECK_STEPS as f64).min(1.0);
             let tip = Vec3::new(top.x, top.y, top.z + super::hold::reach_below_tip(&tools[p]) - depth);
-            commands[p] = crate::tool::ToolCommand { pose: crate::math::Pose::new(tip, crate::math::Quat::identity()), active: true, cut: false };
+            commands[p] = crate::tool::ToolCommand { pose: crate::math::Pose::new(tip, crate::math::Quat::identity()), active: true, cut: false, grip: None };
         }
         probe.step(&commands, &mut feedback);
         let done = probe.last_convergence();

@@ -129,7 +129,7 @@ pub fn time_probe_with(grid: &mut BranchedGrid, warmup: usize, steps: usize, sto
         if let (Some(p), Some(top)) = (probe, top) {
             let depth = 0.004 * (index as f64 / 100.0).min(1.0);
             let tip = Vec3::new(top.x, top.y, top.z + below_tip - depth);
-            commands[p] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false };
+            commands[p] = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: false, grip: None };
         }
         let started = Instant::now();
         step(grid, &commands, &mut feedback);

@@ -14,7 +14,8 @@
 //!   ([`Bodies::stop_closing_at`]). The skin between them is held across the flats by
 //!   the jaws' own contact, as it was while open.
 //! - **Grip.** The hand pinches the jaws with the forceps' grip force
-//!   (`grip_force_n`, a scene parameter: the device's jaw is a button), each jaw's
+//!   (`grip_force_n`, a scene parameter, where the device's jaw is a button; the share
+//!   of it the command squeezes with, where the device has an analog gripper), each jaw's
 //!   flat pressing the fold with it, so the grasped nodes share a normal force of twice
 //!   the grip, and each sticks within the skin's static cone, μ_s times its share;
 //!   beyond it, it slides at the dynamic force, its anchor following it. A node pulled
@@ -53,7 +54,9 @@ struct Forceps {
     tips: Tips,
     /// The half gap the jaws stop at on a fold of skin, m.
     grip_half_gap_m: f64,
+    /// The forceps' rated grip, and the hand's on them this step ([`ToolCommand::grip_n`]), N.
     grip_force_n: f64,
+    grip_n: f64,
     /// The grasp springs' stiffness, N/m.
     stiffness_n_per_m: f64,
     held: Vec<Held>,
@@ -82,7 +85,7 @@ impl Forceps {
     /// The normal force each grasped node takes: both jaws' flats press the fold with
     /// the grip, shared by its nodes, N.
     fn normal_share_n(&self) -> f64 {
-        2.0 * self.grip_force_n / self.held.len() as f64
+        2.0 * self.grip_n / self.held.len() as f64
     }
 
     /// The forceps `s` of their way from last step's pose to this step's (the tip moved
@@ -117,6 +120,7 @@ impl Grasps {
                     tips: Tips { half_width_m, length_m: grip_length_m },
                     grip_half_gap_m: (0.5 * thickness_m).min(half_gap_m),
                     grip_force_n,
+                    grip_n: 0.0,
                     stiffness_n_per_m: stiffness_over_contact * shape.contact_stiffness_n_per_m,
                     held: Vec::new(),
                     now: None,
@@ -149,7 +153,8 @@ impl Grasps {
             let command = &commands[f.tool];
             f.before = f.now;
             f.now = (command.active && command.pose.is_finite()).then(|| PlacedTool::new(&tools[f.tool], &command.pose));
-            let Some(now) = f.now.filter(|_| command.cut) else {
+            f.grip_n = command.grip_n(f.grip_force_n);
+            let Some(now) = f.now.filter(|_| command.closes_jaws()) else {
                 f.held.clear();
                 bodies.stop_closing_at(f.tool, 0.0);
                 continue;

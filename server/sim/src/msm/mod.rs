@@ -728,7 +728,7 @@ impl MassSpring {
         let mut commands = vec![ToolCommand::default(); tools];
         let mut feedback = vec![ToolFeedback::default(); tools];
         if let Some(p) = pose {
-            commands[0] = ToolCommand { pose: p, active: true, cut };
+            commands[0] = ToolCommand { pose: p, active: true, cut, grip: None };
         }
         for _ in 0..steps {
             self.step(&commands, &mut feedback);

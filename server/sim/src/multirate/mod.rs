@@ -512,6 +512,10 @@ fn hash_command(h: &mut StateHasher, c: &ToolCommand) {
     for x in c.pose.orientation.coords.iter() {
         h.write_f64(*x);
     }
+    // Only where given, so that commands without a squeeze hash as before it existed.
+    if let Some(grip) = c.grip {
+        h.write_f64(grip);
+    }
 }
 
 impl Tissue for Multirate {

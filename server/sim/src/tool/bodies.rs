@@ -84,6 +84,9 @@ pub(crate) struct Bodies {
     /// between them since it was pressed ([`Bodies::pinch`]).
     closing: Vec<bool>,
     met: Vec<bool>,
+    /// Per tool: the force the hand pinches its jaws with this step, N (its command's
+    /// share of the forceps' `grip_force_n`: [`ToolCommand::grip_n`]).
+    grip_n: Vec<f64>,
     /// Where [`Bodies::pinch`] stops jaws that have met something at the latest, m;
     /// None: it does not stop them ([`Bodies::pinch_no_closer_than`]).
     least_pinch_half_gap_m: Option<f64>,
@@ -121,8 +124,8 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
     let n = of.len();
     let jaw_speed_m_per_s = vec![JAW_SPEED_M_PER_S; tools.len()];
     let closed_half_gap_m = vec![0.0; tools.len()];
-    let (closing, met) = (vec![false; tools.len()], vec![false; tools.len()]);
-    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, closing, met, least_pinch_half_gap_m: None, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
+    let (closing, met, grip_n) = (vec![false; tools.len()], vec![false; tools.len()], vec![0.0; tools.len()]);
+    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, closing, met, grip_n, least_pinch_half_gap_m: None, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
 }
 
 impl Bodies {
@@ -158,7 +161,8 @@ impl Bodies {
     }
 
     /// Jaws closed by force, not to a place (the branched grid's grasp): the hand pinches
-    /// them with the forceps' `grip_force_n`, so closing jaws stop where what lies
+    /// them with its grip (the forceps' `grip_force_n`, or the share of it the command
+    /// squeezes with: [`ToolCommand::grip_n`]), so closing jaws stop where what lies
     /// between them pushes each jaw back as hard (its outward force in the last step's
     /// feedback, `self.feedback`), and no closer than [`Bodies::pinch_no_closer_than`]
     /// once they have met something between them (a model's contact cannot hold a layer
@@ -168,17 +172,34 @@ impl Bodies {
     pub fn pinch(&mut self, tools: &[ToolShape]) {
         let Some(least_half_gap_m) = self.least_pinch_half_gap_m else { return };
         for (tool, shape) in tools.iter().enumerate() {
-            let Section::Jaws { grip_force_n, .. } = shape.section else { continue };
+            if !matches!(shape.section, Section::Jaws { .. }) {
+                continue;
+            }
             let now = self.half_gap_m[tool].0;
             if !self.closing[tool] || self.closed_half_gap_m[tool] > 0.0 || now <= 0.0 {
                 continue;
             }
             let squeeze = self.squeeze_n(tool);
             self.met[tool] |= squeeze > 0.0;
-            if squeeze >= grip_force_n || self.met[tool] && now <= least_half_gap_m + 1e-9 {
+            if squeeze >= self.grip_n[tool] || self.met[tool] && now <= least_half_gap_m + 1e-9 {
                 self.closed_half_gap_m[tool] = now;
             }
         }
+    }
+
+    /// Whether tool `tool`'s jaws are closing and have stopped on what lies between them
+    /// (the skin's fold, crate::msm::grasp, or the grid's pinch, [`Bodies::pinch`]).
+    fn holding(&self, tool: usize) -> bool {
+        self.closing[tool] && self.closed_half_gap_m[tool] > 0.0 && self.half_gap_m[tool].0 <= self.closed_half_gap_m[tool]
+    }
+
+    /// Whether tool `tool`'s jaws are closing on something: from the step they meet what
+    /// lies between them (the skin's fold taken, crate::msm::grasp, which sets where they
+    /// stop; the grid's tissue pushing them back, [`Bodies::pinch`]) until the button is
+    /// released. The closing counts: the coupling of a haptic device swung the proxy
+    /// along the jaws' edge as they closed, and tore the fold out (docs/haptic-bridge.md).
+    fn grasping(&self, tool: usize) -> bool {
+        self.closing[tool] && (self.met[tool] || self.closed_half_gap_m[tool] > 0.0)
     }
 
     /// Body `body`'s pinch, if it is a jaw of forceps stopped on what they pinch
@@ -188,12 +209,14 @@ impl Bodies {
     pub fn pinched(&self, body: usize, tools: &[ToolShape]) -> Option<Pinch> {
         let Body { tool, jaw } = self.of[body];
         let jaw = jaw?;
-        let Section::Jaws { grip_force_n, .. } = tools[tool].section else { return None };
-        if !(self.closing[tool] && self.closed_half_gap_m[tool] > 0.0 && self.half_gap_m[tool].0 <= self.closed_half_gap_m[tool]) {
+        if !matches!(tools[tool].section, Section::Jaws { .. }) {
+            return None;
+        }
+        if !self.holding(tool) {
             return None;
         }
         let inward = Vec3::z().cross(&tools[tool].edge_local) * if jaw.side == 0 { 1.0 } else { -1.0 };
-        Some(Pinch { inward_local: inward, grip_n: grip_force_n })
+        Some(Pinch { inward_local: inward, grip_n: self.grip_n[tool] })
     }
 
     /// Every body's pinch ([`Bodies::pinched`]) into `out`, one per body.
@@ -230,17 +253,23 @@ impl Bodies {
     /// The bodies' commands from the tools' (`tools`: the scene's shapes) for a step of
     /// `dt_s`, and the jaws' sections in `shapes` (the bodies' shapes): a forceps' jaws
     /// move towards closed (or the half gap they stop at: [`Bodies::stop_closing_at`])
-    /// while its button is held, else towards open, at their speed
+    /// while its button is held with some squeeze ([`ToolCommand::closes_jaws`]), else
+    /// towards open, at their speed
     /// ([`JAW_SPEED_M_PER_S`] unless paced: [`Bodies::pace_jaws_for`]).
     pub fn split(&mut self, commands: &[ToolCommand], tools: &[ToolShape], shapes: &mut [ToolShape], dt_s: f64) {
         for (tool, (((command, (now, open)), speed), closed)) in commands.iter().zip(self.half_gap_m.iter_mut()).zip(&self.jaw_speed_m_per_s).zip(self.closed_half_gap_m.iter_mut()).enumerate() {
             // Released, the jaws forget where they stopped ([`Bodies::pinch`]).
-            self.closing[tool] = command.cut && *open > 0.0;
-            if !command.cut {
+            let close = command.closes_jaws();
+            self.closing[tool] = close && *open > 0.0;
+            self.grip_n[tool] = match tools[tool].section {
+                Section::Jaws { grip_force_n, .. } => command.grip_n(grip_force_n),
+                _ => 0.0,
+            };
+            if !close {
                 self.met[tool] = false;
                 *closed = 0.0;
             }
-            let target = match command.cut {
+            let target = match close {
                 true if *now <= *closed => *now,
                 true => closed.min(*open),
                 false => *open,
@@ -291,6 +320,9 @@ impl Bodies {
             fb.cutting |= part.cutting;
             fb.force_clamped |= part.force_clamped;
         }
+        for (tool, fb) in feedback.iter_mut().enumerate() {
+            fb.grasping = self.grasping(tool);
+        }
         let mut clamped = 0;
         for (fb, tool) in feedback.iter_mut().zip(tools) {
             let before = fb.force_clamped;
@@ -339,7 +371,7 @@ mod tests {
         let mut bodies = bodies.expect("forceps make bodies");
         bodies.pace_jaws_for(0.033, 2e-4);
         assert_eq!(bodies.jaw_speed_m_per_s[0], JAW_SPEED_M_PER_S, "a probe has no jaws");
-        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true };
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true, grip: None };
         for _ in 0..33 {
             bodies.split(&[close, close], &tools, &mut shapes, 1e-3);
         }
@@ -357,7 +389,7 @@ mod tests {
         let tools = [forceps()];
         let (mut shapes, bodies) = expand(&tools);
         let mut bodies = bodies.unwrap();
-        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true };
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true, grip: None };
         bodies.stop_closing_at(0, 1e-3);
         for _ in 0..100 {
             bodies.split(&[close], &tools, &mut shapes, 1e-3);
@@ -384,7 +416,7 @@ mod tests {
     #[test]
     fn pinching_jaws_stop_on_the_grip_or_at_the_floor_once_they_met_something() {
         let tools = [forceps()];
-        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true };
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true, grip: None };
         let open = ToolCommand { cut: false, ..close };
         // Each jaw pushed outward (its arm's way: −y for the first, +y for the second) with `n`.
         let push = |b: &mut Bodies, n: f64| {
@@ -432,7 +464,7 @@ mod tests {
         assert_eq!(shapes[1].section, Section::Plate { half_width_m: 1e-3, half_thickness_m: 5e-4 });
         // Turned a quarter about its axis, the edge faces +y and the flats' normal −x.
         let pose = Pose::new(Vec3::new(0.01, 0.0, 0.0), Quat::from_axis_angle(&Vec3::z_axis(), std::f64::consts::FRAC_PI_2));
-        let mut commands = [ToolCommand::default(), ToolCommand { pose, active: true, cut: false }];
+        let mut commands = [ToolCommand::default(), ToolCommand { pose, active: true, cut: false, grip: None }];
         let jaw_x = |b: &Bodies, k: usize| b.commands[k].pose.position_m.x;
         bodies.split(&commands, &tools, &mut shapes, 1e-3);
         assert!((jaw_x(&bodies, 1) - 0.0145).abs() < 1e-12 && (jaw_x(&bodies, 2) - 0.0055).abs() < 1e-12, "open: 4.5 mm either side");
@@ -461,7 +493,7 @@ mod tests {
         let tools = [forceps()];
         let (mut shapes, bodies) = expand(&tools);
         let mut bodies = bodies.unwrap();
-        let commands = [ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: false }];
+        let commands = [ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: false, grip: None }];
         bodies.split(&commands, &tools, &mut shapes, 1e-3);
         // The jaws at y = −4.5 and +4.5 mm pushed up by 1 N and 0.5 N.
         bodies.feedback[0] = ToolFeedback { force_n: Vec3::new(0.0, 0.0, 1.0), contacts: 2, ..Default::default() };
