@@ -136,7 +136,9 @@ async fn killing_the_server_ramps_the_force_to_zero() {
 }
 
 /// A vendor driver's side of the UDP device protocol, played by the test: poses in,
-/// forces back, as docs/haptic-bridge.md describes.
+/// forces back, as docs/haptic-bridge.md describes. The driver's device has an analog
+/// gripper (buttons bit 1, its squeeze at offset 76): the bridge sends the squeeze with
+/// each command, and the server's recording has it (the probe itself ignores it).
 #[tokio::test(flavor = "multi_thread")]
 async fn a_udp_device_driver_gets_forces_back() {
     let _machine = shared().await;
@@ -168,8 +170,8 @@ async fn a_udp_device_driver_gets_forces_back() {
         for v in [0.01f64, 0.01, z, 1.0, 0.0, 0.0, 0.0] {
             pose.extend_from_slice(&v.to_le_bytes());
         }
-        pose.extend_from_slice(&0u32.to_le_bytes());
-        pose.extend_from_slice(&0u32.to_le_bytes());
+        pose.extend_from_slice(&(1u32 << 1).to_le_bytes());
+        pose.extend_from_slice(&0.375f32.to_le_bytes());
         assert_eq!(pose.len(), 80);
         driver.send_to(&pose, ("127.0.0.1", port)).unwrap();
         let mut buf = [0u8; 128];
@@ -187,6 +189,10 @@ async fn a_udp_device_driver_gets_forces_back() {
     assert!(forces > 2000, "a force datagram about every millisecond: {forces}");
     assert!(fresh > 1000, "with the link healthy: {fresh}");
     assert!(strongest > 0.05, "the driver felt the skin push back: {strongest} N");
+    server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: session.id.clone() }, &session.control)).await.unwrap();
+    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", session.id))).unwrap();
+    let squeezes: Vec<serde_json::Value> = recording.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|l| l["t"] == "cmd" && l["tool"] == 1).map(|c| c["grip"].clone()).collect();
+    assert!(squeezes.len() > 100 && squeezes.iter().all(|g| g == 0.375), "every command carries the gripper's squeeze: {:?}", &squeezes[..squeezes.len().min(5)]);
 }
 
 /// A haptic client whose packets stop without the connection closing (its process
