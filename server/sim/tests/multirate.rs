@@ -152,13 +152,16 @@ fn forceps_give_the_same_state_on_the_deformation_thread_and_inline() {
         let run = |inline: bool| {
             let mut model = Multirate::new(build_grid(&scene.to_string()), 1e-3, 10, inline);
             let mut feedback = vec![ToolFeedback::default(); 1];
-            let (mut hashes, mut pressed, mut closed_half_gap) = (Vec::new(), 0.0f64, 0.0);
+            let (mut hashes, mut pressed, mut closed_half_gap, mut grasping) = (Vec::new(), 0.0f64, 0.0, 0);
             for step in 0..900 {
-                // Pressed 3 mm in at 10 mm/s, closed from 350 ms to 650 ms.
+                // Pressed 3 mm in at 10 mm/s, closed from 350 ms to 650 ms; on frictional
+                // tissue by an analog gripper squeezing from 20 % of the grip to all of it.
                 let tip = probe_depth(0.001 * (f64::from(step) * 0.01).min(3.0)) - Vec3::new(0.0, 0.0, 0.006);
-                let command = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: (350..650).contains(&step), grip: None };
+                let grip = friction.then(|| 0.2 + 0.8 * (f64::from(step.max(350) - 350) / 300.0).min(1.0));
+                let command = ToolCommand { pose: Pose::new(tip, Quat::identity()), active: true, cut: (350..650).contains(&step), grip };
                 model.step(&[command], &mut feedback);
                 pressed = pressed.max(feedback[0].force_n.z);
+                grasping += u32::from(feedback[0].grasping);
                 if step == 649 {
                     closed_half_gap = model.jaws_half_gap_m(0).unwrap();
                 }
@@ -166,12 +169,13 @@ fn forceps_give_the_same_state_on_the_deformation_thread_and_inline() {
                     hashes.push(model.state_hash());
                 }
             }
-            (hashes, pressed, closed_half_gap)
+            (hashes, pressed, closed_half_gap, grasping)
         };
-        let (threaded, pressed, closed_half_gap) = run(false);
-        println!("forceps (friction {friction}) pressed with up to {pressed:.2} N, closed to {:.2} mm apart", 2e3 * closed_half_gap);
+        let (threaded, pressed, closed_half_gap, grasping) = run(false);
+        println!("forceps (friction {friction}) pressed with up to {pressed:.2} N, closed to {:.2} mm apart, grasping for {grasping} ms", 2e3 * closed_half_gap);
         assert!(pressed > 0.1, "the forceps pressed the block: {pressed:.2} N");
         assert_eq!(closed_half_gap > 0.0, friction, "the jaws stop on what they pinch where the tissue has friction, else close fully");
+        assert_eq!(grasping > 0, friction, "the haptic loop's feedback says when the jaws grasp");
         assert_eq!(run(true).0, threaded, "the same state at every checkpoint (friction {friction})");
     }
 }
