@@ -71,6 +71,56 @@ async fn viewers_follow_a_scripted_cut(scene: &str, script_file: &str) {
     assert!(before.positions_frames > 0);
 }
 
+/// A viewer sees the forceps' jaws where they are: open (8 mm) before they close, and
+/// stopped on the lip they grasp in the retract example, one skin thickness apart
+/// (2 mm), with the grasp flagged; the other tools have no jaws.
+#[tokio::test]
+async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
+    let server = Server::start();
+    let session = create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    assert_eq!(session.info.tools[2].name, "forceps");
+    let mut viewer = Viewer::connect(&server.http, &session.id, &session.observe).await.unwrap();
+    assert!(viewer.pump_until(Duration::from_secs(10), |v| v.replica.is_some()).await);
+    let script = example_script("skin-patch-retract.json");
+    let run = {
+        let (id, control, server_grpc) = (session.id.clone(), session.control.clone(), server.grpc.clone());
+        tokio::spawn(async move {
+            let channel = tonic::transport::Channel::from_shared(format!("http://{server_grpc}")).unwrap().connect().await.unwrap();
+            let mut client = cutsim_proto::v1::scripts_client::ScriptsClient::new(channel);
+            let request = authed(pb::RunScriptRequest { session_id: id, script_json: script, progress_every_steps: 0 }, &control);
+            let mut events = client.run_script(request).await.unwrap().into_inner();
+            while events.message().await.unwrap().is_some() {}
+        })
+    };
+    // (step, grasping, jaws' gap) of the forceps in every tool frame; the scalpel's gap.
+    let seen = std::cell::RefCell::new(Vec::new());
+    let scalpel_gap = std::cell::Cell::new(None);
+    let watch = |v: &Viewer| {
+        if let Some(states) = &v.last_tools {
+            if let Some(forceps) = states.tools.get(2).filter(|t| t.active) {
+                seen.borrow_mut().push((states.step, forceps.grasping, forceps.jaws_gap_m));
+            }
+            scalpel_gap.set(scalpel_gap.get().or(states.tools.first().map(|t| t.jaws_gap_m)));
+        }
+        false
+    };
+    while !run.is_finished() {
+        viewer.pump_until(Duration::from_millis(50), watch).await;
+    }
+    run.await.unwrap();
+    let seen = seen.into_inner();
+    let mut gaps: Vec<(u64, bool, f64)> = seen.iter().map(|&(step, grasping, gap)| (step, grasping, gap.map_or(f64::NAN, |g| g * 1e3))).collect();
+    gaps.dedup_by_key(|g| g.0);
+    println!("forceps in {} tool frames (step, grasping, jaws' gap mm), the first: {:?}", gaps.len(), &gaps[..gaps.len().min(12)]);
+    assert_eq!(scalpel_gap.get(), Some(None), "a scalpel has no jaws");
+    // The forceps come at step 900 open and closing, grasp the lip, draw it away (to step
+    // 1500), hold it, and let go at 1700.
+    assert!(gaps.iter().all(|g| (2.0 - 1e-9..=8.0 + 1e-9).contains(&g.2)), "the jaws never close past the lip they grasp: {gaps:?}");
+    let held: Vec<&(u64, bool, f64)> = gaps.iter().filter(|g| (1200..1700).contains(&g.0)).collect();
+    assert!(!held.is_empty() && held.iter().all(|g| g.1 && (g.2 - 2.0).abs() < 1e-9), "while they hold the lip, the jaws are stopped one skin thickness apart, grasping: {held:?}");
+    assert!(viewer.errors.is_empty(), "{:?}", viewer.errors);
+}
+
 #[tokio::test]
 async fn a_real_time_session_streams_to_a_control_token_viewer() {
     let server = Server::start();

@@ -22,9 +22,13 @@ const PLAN_COLOUR = 0x30e070;
 // Warnings listed under the metrics.
 const WARNINGS_SHOWN = 4;
 
-/** Puts forceps' two jaw meshes either side of the axis, open or closed. */
-function placeJaws(jaws, closed) {
-  const offset = closed ? jaws.closed : jaws.open;
+/**
+ * Puts forceps' two jaw meshes either side of the axis: `gap` (m) between their inner
+ * flats where the server says (stopped on a grasped fold, or open where a gripper does
+ * not squeeze), else open or closed by the button.
+ */
+function placeJaws(jaws, closed, gap) {
+  const offset = typeof gap === 'number' ? gap / 2 + jaws.halfThickness : closed ? jaws.closed : jaws.open;
   jaws.meshes.forEach((mesh, k) => {
     const sign = k === 0 ? -1 : 1;
     mesh.position.set(jaws.alongX ? 0 : -sign * offset, jaws.alongX ? sign * offset : 0, 0);
@@ -376,7 +380,7 @@ export class SessionPanel {
         // (the tool frame's y for an edge along x); placed open or closed in updateTools.
         const alongX = Math.abs(t.edge?.x ?? 1) > 0.5;
         geometry = new THREE.BoxGeometry(alongX ? t.width_m : t.thickness_m, alongX ? t.thickness_m : t.width_m, t.length_m);
-        jaws = { alongX, open: t.jaw_opening_m / 2 + t.thickness_m / 2, closed: t.thickness_m / 2 };
+        jaws = { alongX, open: t.jaw_opening_m / 2 + t.thickness_m / 2, closed: t.thickness_m / 2, halfThickness: t.thickness_m / 2 };
       } else if (t.width_m > 0) {
         // A blade's plate: its width along its edge's direction (the tool frame's x or y).
         const alongX = Math.abs(t.edge?.x ?? 1) > 0.5;
@@ -506,8 +510,8 @@ export class SessionPanel {
       tool.mesh.position.set(p.x, p.y, p.z);
       tool.mesh.quaternion.set(q.x, q.y, q.z, q.w);
       if (tool.jaws) {
-        // The button closes forceps' jaws; it cuts nothing.
-        placeJaws(tool.jaws, !!state.cut);
+        // The button closes forceps' jaws (it cuts nothing), as far as what they grasp lets them.
+        placeJaws(tool.jaws, !!state.cut, state.jaws_gap_m);
       } else {
         tool.mesh.material.emissive.setHex(state.cutting || state.cut ? 0x600000 : 0x000000);
       }

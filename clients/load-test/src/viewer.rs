@@ -20,6 +20,8 @@ pub struct Viewer {
     pub deltas: u32,
     pub positions_frames: u32,
     pub hello: Option<pb::Hello>,
+    /// The newest tools' states.
+    pub last_tools: Option<pb::ToolStates>,
     pub closed: Option<String>,
     /// Frames received.
     pub frames: u64,
@@ -80,7 +82,7 @@ impl Viewer {
     }
 
     fn over(socket: Socket) -> Viewer {
-        Viewer { socket, replica: None, snapshots: 0, deltas: 0, positions_frames: 0, hello: None, closed: None, frames: 0, errors: Vec::new() }
+        Viewer { socket, replica: None, snapshots: 0, deltas: 0, positions_frames: 0, hello: None, last_tools: None, closed: None, frames: 0, errors: Vec::new() }
     }
 
     /// Reads and applies frames until `done` holds (true) or `timeout` passes (false).
@@ -133,7 +135,8 @@ impl Viewer {
                 }
                 self.positions_frames += 1;
             }
-            pb::viewer_frame::Frame::Tools(_) | pb::viewer_frame::Frame::Stats(_) => {}
+            pb::viewer_frame::Frame::Tools(t) => self.last_tools = Some(t),
+            pb::viewer_frame::Frame::Stats(_) => {}
         }
     }
 

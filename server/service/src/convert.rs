@@ -246,6 +246,8 @@ pub fn tool_states(frame: &Frame) -> pb::ToolStates {
                 force_n: Some(vec3(&t.feedback.force_n)),
                 contacts: t.feedback.contacts,
                 cutting: t.feedback.cutting,
+                jaws_gap_m: t.jaws_half_gap_m.map(|h| 2.0 * h),
+                grasping: t.feedback.grasping,
             })
             .collect(),
     }

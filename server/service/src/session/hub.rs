@@ -35,6 +35,8 @@ pub struct StepStats {
 pub struct ToolFrame {
     pub command: ToolCommand,
     pub feedback: ToolFeedback,
+    /// Forceps' jaws' half gap, m (None for a tool without jaws).
+    pub jaws_half_gap_m: Option<f64>,
 }
 
 /// The newest state of a session for viewers and the API.

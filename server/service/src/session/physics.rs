@@ -578,7 +578,7 @@ impl Outputs {
             tissue.write_positions(&mut f.positions);
             f.tools.resize(commands.len(), ToolFrame::default());
             for (t, tool) in f.tools.iter_mut().enumerate() {
-                *tool = ToolFrame { command: commands[t], feedback: feedback[t] };
+                *tool = ToolFrame { command: commands[t], feedback: feedback[t], jaws_half_gap_m: tissue.jaws_half_gap_m(t) };
             }
             f.stats = stats;
             f.counters = tissue.counters();

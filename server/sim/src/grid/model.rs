@@ -1041,6 +1041,10 @@ impl BranchedGrid {
 }
 
 impl Tissue for BranchedGrid {
+    fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
+        BranchedGrid::jaws_half_gap_m(self, tool)
+    }
+
     fn model_name(&self) -> &'static str {
         "branched-grid"
     }

@@ -819,6 +819,10 @@ impl MassSpring {
 }
 
 impl Tissue for MassSpring {
+    fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
+        self.bodies.as_ref()?.jaws_half_gap_m(tool)
+    }
+
     fn model_name(&self) -> &'static str {
         "msm"
     }

@@ -519,6 +519,10 @@ fn hash_command(h: &mut StateHasher, c: &ToolCommand) {
 }
 
 impl Tissue for Multirate {
+    fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
+        Multirate::jaws_half_gap_m(self, tool)
+    }
+
     fn model_name(&self) -> &'static str {
         "branched-grid"
     }
