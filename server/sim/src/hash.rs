@@ -51,6 +51,102 @@ impl StateHasher {
     }
 }
 
+/// What a step carries over to the next besides the nodes and the topology — the tools'
+/// contact memory: friction anchors, grasps, jaws, where each tool was — written into a
+/// model's state hash (crate::tissue::Tissue::state_hash), so that two states that step
+/// on differently never hash the same. Lengths and `None` are written too.
+pub trait HashState {
+    fn hash_state(&self, h: &mut StateHasher);
+}
+
+impl HashState for f64 {
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_f64(*self);
+    }
+}
+
+impl HashState for bool {
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_u8(u8::from(*self));
+    }
+}
+
+impl HashState for u32 {
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_u32(*self);
+    }
+}
+
+impl HashState for u64 {
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_u64(*self);
+    }
+}
+
+impl HashState for usize {
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_u64(*self as u64);
+    }
+}
+
+impl HashState for crate::math::Vec3 {
+    fn hash_state(&self, h: &mut StateHasher) {
+        self.iter().for_each(|c| h.write_f64(*c));
+    }
+}
+
+impl<T: HashState + ?Sized> HashState for &T {
+    fn hash_state(&self, h: &mut StateHasher) {
+        (**self).hash_state(h);
+    }
+}
+
+impl<T: HashState> HashState for Option<T> {
+    fn hash_state(&self, h: &mut StateHasher) {
+        match self {
+            None => h.write_u8(0),
+            Some(v) => {
+                h.write_u8(1);
+                v.hash_state(h);
+            }
+        }
+    }
+}
+
+impl<T: HashState> HashState for [T] {
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_u64(self.len() as u64);
+        self.iter().for_each(|v| v.hash_state(h));
+    }
+}
+
+impl<T: HashState> HashState for Vec<T> {
+    fn hash_state(&self, h: &mut StateHasher) {
+        self.as_slice().hash_state(h);
+    }
+}
+
+impl<T: HashState, const N: usize> HashState for [T; N] {
+    fn hash_state(&self, h: &mut StateHasher) {
+        self.iter().for_each(|v| v.hash_state(h));
+    }
+}
+
+impl<A: HashState, B: HashState> HashState for (A, B) {
+    fn hash_state(&self, h: &mut StateHasher) {
+        self.0.hash_state(h);
+        self.1.hash_state(h);
+    }
+}
+
+impl<A: HashState, B: HashState, C: HashState> HashState for (A, B, C) {
+    fn hash_state(&self, h: &mut StateHasher) {
+        self.0.hash_state(h);
+        self.1.hash_state(h);
+        self.2.hash_state(h);
+    }
+}
+
 /// The hash as the 16 hexadecimal digits reports and scripts use.
 pub fn hash_hex(hash: u64) -> String {
     format!("{hash:016x}")

@@ -178,6 +178,16 @@ pub struct ToolFeedback {
     pub grasping: bool,
 }
 
+impl crate::hash::HashState for ToolFeedback {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        let Self { force_n, torque_nm, contacts, cutting, force_clamped, resistance_n, grasping } = self;
+        (force_n, torque_nm).hash_state(h);
+        (contacts, cutting).hash_state(h);
+        (force_clamped, grasping).hash_state(h);
+        resistance_n.hash_state(h);
+    }
+}
+
 /// A tool placed in space for one step: the segment from `tip` to `top`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PlacedTool {
@@ -191,6 +201,13 @@ pub struct PlacedTool {
     pub edge: Vec3,
     pub section: Section,
     pub tip_shape: TipShape,
+}
+
+impl crate::hash::HashState for PlacedTool {
+    /// Where it is (its shape is the scene's).
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        [self.tip, self.top, self.axis, self.edge].hash_state(h);
+    }
 }
 
 impl PlacedTool {

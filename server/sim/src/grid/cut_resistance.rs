@@ -84,6 +84,15 @@ pub struct Removed {
     pub toughness_j_per_m2: f64,
 }
 
+impl crate::hash::HashState for CutResistance {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        (self.level_n, self.idle_s, self.next).hash_state(h);
+        for removed in &self.recent {
+            removed.map(|r| (r.lo_m, r.hi_m, r.toughness_j_per_m2)).hash_state(h);
+        }
+    }
+}
+
 impl CutResistance {
     /// After a step of `dt_s` in which the blade moved by `motion` (m) and removed
     /// `removed` (voxels `voxel_m` across), the tissue's force on it (N, in `motion`'s

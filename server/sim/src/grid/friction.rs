@@ -49,6 +49,19 @@ pub struct Anchors {
     held: IndexSet,
 }
 
+impl crate::hash::HashState for Anchor {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        (self.tool, self.from_tip, self.step).hash_state(h);
+    }
+}
+
+impl crate::hash::HashState for Anchors {
+    /// Every vertex's anchor (the `held` index is how they are found again).
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        self.slots.hash_state(h);
+    }
+}
+
 impl Anchors {
     /// `vertices` empty slots, with room for `room` without reallocating.
     pub fn with_room(vertices: usize, room: usize) -> Anchors {

@@ -33,6 +33,12 @@ pub struct Touch {
     pub step: u64,
 }
 
+impl crate::hash::HashState for Touch {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        (self.tool, self.normal_in_tool, self.step).hash_state(h);
+    }
+}
+
 /// A tool's solid against the grid's vertices: the segment `a` (its tip) – `b` swept
 /// by a ball of radius `radius` (a capsule), or, for a scalpel blade's plate, by its
 /// rectangular section (a box from `a` to `b`, `radius` then its half-diagonal: what

@@ -63,6 +63,13 @@ struct Stroke {
     resistance: super::cut_resistance::CutResistance,
 }
 
+impl crate::hash::HashState for Stroke {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        (self.removed_any, self.pushes, self.last_tip).hash_state(h);
+        self.resistance.hash_state(h);
+    }
+}
+
 /// A tool placed in the grid's frame for a step: its tip, orientation and velocity,
 /// its outer capsule, the deepest one contact may be held, and the box its contacts
 /// are searched in.
@@ -1040,6 +1047,19 @@ impl BranchedGrid {
     }
 }
 
+impl BranchedGrid {
+    /// What the tools leave for the next step (crate::hash::HashState): the jaws, where
+    /// each tool's tip was, the vertices' friction anchors and the way each came in, the
+    /// triangles held on their insides, the cut strokes with their averaged resistance,
+    /// and under a multirate schedule the patch compliances kept.
+    fn hash_contact_memory(&self, h: &mut StateHasher) {
+        use crate::hash::HashState;
+        (&self.bodies, &self.previous_tips, &self.anchors).hash_state(h);
+        (&self.touches, &self.held_faces, &self.strokes).hash_state(h);
+        self.compliance_cache.hash_state(h);
+    }
+}
+
 impl Tissue for BranchedGrid {
     fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
         BranchedGrid::jaws_half_gap_m(self, tool)
@@ -1122,6 +1142,7 @@ impl Tissue for BranchedGrid {
         for &m in &self.topo.material {
             h.write_u32(u32::from(m));
         }
+        self.hash_contact_memory(&mut h);
         h.finish()
     }
 
@@ -1223,6 +1244,33 @@ impl VoxelSearch<'_> {
 mod tests {
     use super::*;
     use crate::scene::{ModelSpec, Scene};
+
+    /// The state hash covers what the tools leave for the next step, not only the nodes:
+    /// two grids alike but for one piece of contact memory hash differently.
+    #[test]
+    fn the_state_hash_covers_the_tools_contact_memory() {
+        let text = r#"{ "name": "block with a probe",
+            "model": { "branched-grid": {
+                "volume": { "box": { "size_m": [0.024, 0.012, 0.012], "voxel_size_m": 0.001 } },
+                "materials": [ { "label": 1, "young_pa": 30000, "density_kg_per_m3": 1000 } ],
+                "level": 2 } },
+            "tools": [ { "name": "probe", "shape": { "cylinder": { "radius_m": 0.002, "length_m": 0.05 } }, "contact_stiffness_n_per_m": 300, "max_force_n": 10 } ] }"#;
+        let scene = Scene::from_json_str(text, "block", None).unwrap();
+        let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+        let grid = super::super::build::build_from_scene(&scene, spec).unwrap();
+        let hash = grid.state_hash();
+        assert_eq!(grid.clone().state_hash(), hash, "a copy hashes the same");
+        let edits: [(&str, fn(&mut BranchedGrid)); 3] = [
+            ("where a tool's tip was", |g| g.previous_tips[0] = Some(Vec3::x())),
+            ("a cut stroke's blade pushing", |g| g.strokes[0].pushes = true),
+            ("a vertex's way in", |g| g.touches[0] = Some(super::super::hold::Touch { tool: 0, normal_in_tool: Vec3::z(), step: 1 })),
+        ];
+        for (what, edit) in edits {
+            let mut other = grid.clone();
+            edit(&mut other);
+            assert_ne!(other.state_hash(), hash, "{what}");
+        }
+    }
 
     /// A 24 × 12 × 12 mm block of 1 mm voxels at level 2 (6 × 3 × 3 cells), free.
     fn block() -> BranchedGrid {

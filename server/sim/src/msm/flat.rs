@@ -20,6 +20,7 @@
 use super::contact::Contact;
 use super::cut::Crossing;
 use super::state::{Nodes, Topology};
+use crate::hash::{HashState, StateHasher};
 use crate::math::{Vec3, barycentric_closest};
 use crate::tool::{PlacedTool, ToolFeedback};
 
@@ -28,6 +29,12 @@ use crate::tool::{PlacedTool, ToolFeedback};
 pub(crate) struct Hole {
     triangle: u32,
     w: [f64; 3],
+}
+
+impl HashState for Hole {
+    fn hash_state(&self, h: &mut StateHasher) {
+        (self.triangle, self.w).hash_state(h);
+    }
 }
 
 impl Hole {

@@ -32,6 +32,7 @@
 use super::contact::Contact;
 use super::state::Nodes;
 use crate::broad_phase::PointGrid;
+use crate::hash::{HashState, StateHasher};
 use crate::grid::friction::{Friction, slid_anchor, stick_force, tangent_projection};
 use crate::math::Vec3;
 use crate::tool::bodies::Bodies;
@@ -101,6 +102,20 @@ pub(crate) struct Grasps {
     forceps: Vec<Forceps>,
     /// How far beyond the jaws' sides skin counts as between them: half an edge, m.
     reach_m: f64,
+}
+
+impl HashState for Grasps {
+    /// What each pair of forceps holds (the nodes and their anchors), its grip, and
+    /// where it was and is.
+    fn hash_state(&self, h: &mut StateHasher) {
+        for f in &self.forceps {
+            h.write_u64(f.held.len() as u64);
+            for held in &f.held {
+                (held.node, held.anchor).hash_state(h);
+            }
+            (f.grip_n, f.now, f.before).hash_state(h);
+        }
+    }
 }
 
 impl Grasps {

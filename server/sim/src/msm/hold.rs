@@ -40,6 +40,7 @@ use super::foundation::Foundation;
 use super::cut::{Crossing, nearest_crossing, triangles_near};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
+use crate::hash::{HashState, StateHasher};
 use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle};
 use crate::tool::{PlacedTool, TipShape, ToolFeedback};
 
@@ -190,6 +191,15 @@ impl Reaction {
         self.rub(tool, at, on_tool);
         self.normal_n += normal_n;
         self.points += 1;
+    }
+}
+
+impl HashState for Holder {
+    /// The triangle each tool held and the push it was held with (the implicit
+    /// integrator's held points are the step's own).
+    fn hash_state(&self, h: &mut StateHasher) {
+        self.held_triangle.hash_state(h);
+        self.tools.iter().for_each(|t| t.force_n.hash_state(h));
     }
 }
 

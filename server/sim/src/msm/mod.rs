@@ -818,6 +818,21 @@ impl MassSpring {
     }
 }
 
+impl MassSpring {
+    /// What the tools leave for the next step (crate::hash::HashState): the jaws and the
+    /// grasps, where each tool was, which are through the skin and where, the tip faces'
+    /// and the sides' holds with their friction anchors, the blades' smoothed velocity
+    /// and the skin's share of their resistance still to apply, and the cuts in progress.
+    fn hash_contact_memory(&self, h: &mut StateHasher) {
+        use crate::hash::HashState;
+        (&self.bodies, &self.grasps, &self.previous_placed).hash_state(h);
+        (&self.pierced, &self.holding, &self.side_holds).hash_state(h);
+        (&self.blade_through, &self.holes, &self.holder).hash_state(h);
+        (&self.side_memory, &self.blade_velocity, &self.cut_reactions).hash_state(h);
+        self.cutter.hash_state(h);
+    }
+}
+
 impl Tissue for MassSpring {
     fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
         self.bodies.as_ref()?.jaws_half_gap_m(tool)
@@ -901,6 +916,7 @@ impl Tissue for MassSpring {
             h.write_f64(s.k);
             h.write_f64(s.l0);
         }
+        self.hash_contact_memory(&mut h);
         h.finish()
     }
 
@@ -923,5 +939,33 @@ impl Tissue for MassSpring {
         // A clone keeps the lengths, not the room reserved for the 1 kHz path.
         copy.reserve_step_room();
         Box::new(copy)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{ModelSpec, Scene};
+
+    /// The state hash covers what the tools leave for the next step, not only the nodes:
+    /// two skins alike but for one piece of contact memory hash differently.
+    #[test]
+    fn the_state_hash_covers_the_tools_contact_memory() {
+        let scene = Scene::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenes/skin-patch.json"))).unwrap();
+        let ModelSpec::Msm(spec) = &scene.model else { unreachable!() };
+        let skin = build_from_scene(&scene, spec).unwrap();
+        let hash = skin.state_hash();
+        assert_eq!(skin.clone().state_hash(), hash, "a copy hashes the same");
+        let edits: [(&str, fn(&mut MassSpring)); 4] = [
+            ("a tool through the skin", |m| m.pierced[0] = true),
+            ("where a tool was", |m| m.previous_placed[1] = Some(PlacedTool::new(&m.tools[1], &crate::math::Pose::default()))),
+            ("a blade's smoothed velocity", |m| m.blade_velocity[0] = Vec3::x()),
+            ("the skin's share of a cutting resistance still to apply", |m| m.cut_reactions.push((3, Vec3::z()))),
+        ];
+        for (what, edit) in edits {
+            let mut other = skin.clone();
+            edit(&mut other);
+            assert_ne!(other.state_hash(), hash, "{what}");
+        }
     }
 }

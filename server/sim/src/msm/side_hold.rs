@@ -25,6 +25,7 @@
 //! ([`super::face_hold`]), whose points this memory keeps too ([`Slot::FacePoint`]).
 
 use crate::math::Vec3;
+use crate::hash::{HashState, StateHasher};
 use crate::tool::{PlacedTool, Section, TipShape};
 
 /// How deep inside the section, as a fraction of its smallest half-size, a node is
@@ -65,6 +66,22 @@ pub struct SideMemory {
     nodes: Vec<Option<SideTouch>>,
     face_points: Vec<Option<SideTouch>>,
     pass: u64,
+}
+
+impl HashState for SideTouch {
+    fn hash_state(&self, h: &mut StateHasher) {
+        let Self { body, along_edge, along_flat, pass, weights, anchor } = self;
+        (body, along_edge, along_flat).hash_state(h);
+        (pass, weights, anchor).hash_state(h);
+    }
+}
+
+impl HashState for SideMemory {
+    /// Which side of a tool each node and triangle's point came in from, and where
+    /// friction holds it.
+    fn hash_state(&self, h: &mut StateHasher) {
+        (&self.nodes, &self.face_points, self.pass).hash_state(h);
+    }
 }
 
 impl SideMemory {

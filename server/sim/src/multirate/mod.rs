@@ -613,6 +613,8 @@ impl Tissue for Multirate {
             force.iter().chain(torque.iter()).for_each(|c| h.write_f64(*c));
         }
         h.write_u64(self.fade_left);
+        // The haptic loop's jaws (the deformation's memory is in its grid's hash).
+        crate::hash::HashState::hash_state(&self.bodies, &mut h);
         h.finish()
     }
 

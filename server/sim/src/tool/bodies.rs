@@ -128,6 +128,18 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
     (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, closing, met, grip_n, least_pinch_half_gap_m: None, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
 }
 
+impl crate::hash::HashState for Bodies {
+    /// The jaws' state and what the next step's pinch reads: each body's last feedback
+    /// and where it was.
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        let Self { of: _, half_gap_m, jaw_speed_m_per_s: _, closed_half_gap_m, closing, met, grip_n, least_pinch_half_gap_m: _, arm, commands: _, feedback } = self;
+        (half_gap_m, closed_half_gap_m).hash_state(h);
+        (closing, met).hash_state(h);
+        (grip_n, arm).hash_state(h);
+        feedback.hash_state(h);
+    }
+}
+
 impl Bodies {
     /// Slows every forceps' jaws so that they move at most `travel_m` in a deformation
     /// step of `period_s` (a multirate schedule's, crate::multirate): the deformation

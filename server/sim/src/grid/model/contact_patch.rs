@@ -20,6 +20,14 @@ pub(super) struct CachedCompliance {
     next_axis: usize,
 }
 
+impl crate::hash::HashState for CachedCompliance {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        (self.tip, self.topology_version, self.next_axis).hash_state(h);
+        self.columns.iter().for_each(|c| h.write_f64(*c));
+        self.residuals.hash_state(h);
+    }
+}
+
 impl BranchedGrid {
     /// Surface vertices within `margin_m` of tool `i`'s outer capsule (its axis within
     /// its radius plus the margin), nearest first, at most [`MAX_PATCH_VERTICES`]:

@@ -51,6 +51,14 @@ pub(super) struct HeldFace {
     pub anchor_from_tip: Option<Vec3>,
 }
 
+impl crate::hash::HashState for HeldFace {
+    fn hash_state(&self, h: &mut crate::hash::StateHasher) {
+        let Self { triangle, barycentric, normal_in_tool, step, anchor_from_tip } = self;
+        (triangle, barycentric, normal_in_tool).hash_state(h);
+        (step, anchor_from_tip).hash_state(h);
+    }
+}
+
 /// A tool's contact on a triangle's inside this step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(super) struct FaceContact {

@@ -18,6 +18,7 @@ use node_matching::{MatchError, MatchInput, match_nodes};
 use swept_volume::SweptVolume;
 
 use crate::broad_phase::PointGrid;
+use crate::hash::{HashState, StateHasher};
 use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle, segment_triangle_intersection, triangle_normal};
 use crate::msm::state::Topology;
 use crate::tool::PlacedTool;
@@ -119,6 +120,31 @@ pub(crate) struct Cutter {
     candidates: Vec<u32>,
     /// Why the last stitching failed, for reports.
     pub last_fallback_reason: Option<String>,
+}
+
+impl HashState for Cutter {
+    /// The strokes in progress and the incisions made (their curves and lips).
+    fn hash_state(&self, h: &mut StateHasher) {
+        h.write_u64(self.strokes.len() as u64);
+        for stroke in &self.strokes {
+            let Some(s) = stroke else {
+                h.write_u8(0);
+                continue;
+            };
+            h.write_u8(1);
+            match s.anchor {
+                Anchor::Start(p) => (0u32, p).hash_state(h),
+                Anchor::Tip(v) => (1u32, v).hash_state(h),
+            }
+            (s.last_blade, s.incision, s.last_crossing).hash_state(h);
+        }
+        h.write_u64(self.incisions.len() as u64);
+        for incision in &self.incisions {
+            incision.tool.hash_state(h);
+            incision.curve.segments.iter().for_each(|b| b.control.hash_state(h));
+            incision.lips.hash_state(h);
+        }
+    }
 }
 
 impl Cutter {
