@@ -62,6 +62,14 @@ fn run_bridge(server: &Server, session: &Created, dir: &TempDir, args: &[&str]) 
     serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap()
 }
 
+/// Closes the session (its recording ends) and returns the recording's command lines for
+/// tool `tool`.
+async fn recorded_commands(server: &Server, session: &Created, tool: u32) -> Vec<serde_json::Value> {
+    server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: session.id.clone() }, &session.control)).await.unwrap();
+    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", session.id))).unwrap();
+    recording.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|l| l["t"] == "cmd" && l["tool"] == tool).collect()
+}
+
 /// (t_s, |F| N, fresh, connected, F_z N) per millisecond.
 fn trace(dir: &TempDir) -> Vec<(f64, f64, bool, bool, f64)> {
     std::fs::read_to_string(dir.0.join("trace.csv"))
@@ -189,9 +197,7 @@ async fn a_udp_device_driver_gets_forces_back() {
     assert!(forces > 2000, "a force datagram about every millisecond: {forces}");
     assert!(fresh > 1000, "with the link healthy: {fresh}");
     assert!(strongest > 0.05, "the driver felt the skin push back: {strongest} N");
-    server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: session.id.clone() }, &session.control)).await.unwrap();
-    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", session.id))).unwrap();
-    let squeezes: Vec<serde_json::Value> = recording.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|l| l["t"] == "cmd" && l["tool"] == 1).map(|c| c["grip"].clone()).collect();
+    let squeezes: Vec<serde_json::Value> = recorded_commands(&server, &session, 1).await.iter().map(|c| c["grip"].clone()).collect();
     assert!(squeezes.len() > 100 && squeezes.iter().all(|g| g == 0.375), "every command carries the gripper's squeeze: {:?}", &squeezes[..squeezes.len().min(5)]);
 }
 
@@ -228,9 +234,7 @@ async fn a_paused_client_has_its_tool_lifted_within_the_stale_time() {
     }
     let _ = tokio::task::spawn_blocking(move || child.wait_with_output()).await;
     assert!(lifted, "the server lifts the paused client's tool");
-    server.sessions().await.close_session(authed(pb::CloseSessionRequest { session_id: session.id.clone() }, &session.control)).await.unwrap();
-    let recording = std::fs::read_to_string(server.recordings.0.join(format!("{}.jsonl", session.id))).unwrap();
-    let commands: Vec<serde_json::Value> = recording.lines().map(|l| serde_json::from_str(l).unwrap()).filter(|l: &serde_json::Value| l["t"] == "cmd" && l["tool"] == 1).collect();
+    let commands = recorded_commands(&server, &session, 1).await;
     let lift = commands.iter().position(|c| c["active"] == false).expect("a lift in the recording");
     assert!(lift > 0, "the client commanded the tool first");
     let gap = commands[lift]["step"].as_u64().unwrap() - commands[lift - 1]["step"].as_u64().unwrap();

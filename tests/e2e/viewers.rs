@@ -24,6 +24,19 @@ async fn viewers_follow_a_voxel_removal_cut_of_the_branched_grid() {
     viewers_follow_a_scripted_cut("u-tube", "u-tube-slit-base.json").await;
 }
 
+/// Runs `script` on the session ([`run_script`]) while `viewer` takes in its frames,
+/// `watch` seeing the viewer after each; returns the script's report.
+async fn run_script_watched(server: &Server, session: &Created, script: &str, viewer: &mut Viewer, watch: impl Fn(&Viewer) -> bool) -> pb::ScriptReport {
+    let run = run_script(server, session, script);
+    tokio::pin!(run);
+    loop {
+        tokio::select! {
+            report = &mut run => return report.expect("the script runs"),
+            _ = viewer.pump_until(Duration::from_millis(50), &watch) => {}
+        }
+    }
+}
+
 async fn viewers_follow_a_scripted_cut(scene: &str, script_file: &str) {
     let server = Server::start();
     let session = create(&server, scene, pb::SessionMode::Lockstep).await;
@@ -34,30 +47,8 @@ async fn viewers_follow_a_scripted_cut(scene: &str, script_file: &str) {
     let triangles_before = before.triangles();
 
     // The cut runs while the first viewer watches.
-    let script = example_script(script_file);
-    let run = {
-        let (id, control, observe, info) = (session.id.clone(), session.control.clone(), session.observe.clone(), session.info.clone());
-        let server_grpc = server.grpc.clone();
-        tokio::spawn(async move {
-            let channel = tonic::transport::Channel::from_shared(format!("http://{server_grpc}")).unwrap().connect().await.unwrap();
-            let mut client = cutsim_proto::v1::scripts_client::ScriptsClient::new(channel);
-            let request = authed(pb::RunScriptRequest { session_id: id.clone(), script_json: script, progress_every_steps: 0 }, &control);
-            let mut events = client.run_script(request).await.unwrap().into_inner();
-            let mut report = None;
-            while let Some(event) = events.message().await.unwrap() {
-                if let Some(pb::script_event::Event::Report(r)) = event.event {
-                    report = Some(r);
-                }
-            }
-            let report = report.expect("a report");
-            assert!(report.passed, "the script's expectations hold: {report:?}");
-            let _ = (observe, info);
-        })
-    };
-    while !run.is_finished() {
-        before.pump_until(Duration::from_millis(50), |_| false).await;
-    }
-    run.await.unwrap();
+    let report = run_script_watched(&server, &session, &example_script(script_file), &mut before, |_| false).await;
+    assert!(report.passed, "the script's expectations hold: {report:?}");
     let (server_hash, server_triangles) = server_surface_hash(&server, &session).await;
     assert_ne!(server_triangles, triangles_before, "the cut changed the surface");
 
@@ -81,17 +72,6 @@ async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
     assert_eq!(session.info.tools[2].name, "forceps");
     let mut viewer = Viewer::connect(&server.http, &session.id, &session.observe).await.unwrap();
     assert!(viewer.pump_until(Duration::from_secs(10), |v| v.replica.is_some()).await);
-    let script = example_script("skin-patch-retract.json");
-    let run = {
-        let (id, control, server_grpc) = (session.id.clone(), session.control.clone(), server.grpc.clone());
-        tokio::spawn(async move {
-            let channel = tonic::transport::Channel::from_shared(format!("http://{server_grpc}")).unwrap().connect().await.unwrap();
-            let mut client = cutsim_proto::v1::scripts_client::ScriptsClient::new(channel);
-            let request = authed(pb::RunScriptRequest { session_id: id, script_json: script, progress_every_steps: 0 }, &control);
-            let mut events = client.run_script(request).await.unwrap().into_inner();
-            while events.message().await.unwrap().is_some() {}
-        })
-    };
     // (step, grasping, jaws' gap) of the forceps in every tool frame; the scalpel's gap.
     let seen = std::cell::RefCell::new(Vec::new());
     let scalpel_gap = std::cell::Cell::new(None);
@@ -104,10 +84,7 @@ async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
         }
         false
     };
-    while !run.is_finished() {
-        viewer.pump_until(Duration::from_millis(50), watch).await;
-    }
-    run.await.unwrap();
+    run_script_watched(&server, &session, &example_script("skin-patch-retract.json"), &mut viewer, watch).await;
     let seen = seen.into_inner();
     let mut gaps: Vec<(u64, bool, f64)> = seen.iter().map(|&(step, grasping, gap)| (step, grasping, gap.map_or(f64::NAN, |g| g * 1e3))).collect();
     gaps.dedup_by_key(|g| g.0);

@@ -142,8 +142,7 @@ pub trait Tissue: Send {
     /// Scene tool `tool`'s jaws' half gap now, m: half the distance between their inner
     /// flats (0 closed; None for a tool without jaws). Viewers draw the jaws where they
     /// are: stopped on what they grasp, or open where a gripper does not squeeze.
-    fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
-        let _ = tool;
+    fn jaws_half_gap_m(&self, _tool: usize) -> Option<f64> {
         None
     }
 }
