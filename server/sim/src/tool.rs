@@ -172,7 +172,8 @@ pub struct ToolFeedback {
     /// it like friction (docs/haptic-bridge.md); the rest of the force is elastic.
     pub resistance_n: Vec3,
     /// True while forceps close on tissue between their jaws or hold it, stopped on it
-    /// (until the button is released): a stiff load whose pull changes by newtons per
+    /// (until the button is released, or on the branched grid until what they held
+    /// slips out: tool::bodies::Bodies::pinch): a stiff load whose pull changes by newtons per
     /// millimetre, which a haptic coupling damps more firmly (docs/haptic-bridge.md,
     /// "Grasping through the bridge").
     pub grasping: bool,

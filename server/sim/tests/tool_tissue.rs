@@ -2108,3 +2108,51 @@ fn the_hands_squeeze_sets_the_grip_the_forceps_hold_the_grid_with() {
     assert!(open.stopped_half_gap_m > 3e-3, "not squeezed, the jaws stay open: {open:?}");
     assert_eq!((open.held_n, open.pull_n, open.released_n), (button_up.held_n, button_up.pull_n, button_up.released_n), "not squeezed is the button up");
 }
+
+/// Forceps closed on the grid block's tissue and lifted farther than their grasp holds
+/// it: the tissue slips out from between the jaws (the pull on the forceps falls), and
+/// then the jaws let go of their stop and close fully, no longer grasping, as when they
+/// met nothing (tool::bodies::Bodies::pinch); they do not stay half a voxel apart
+/// holding nothing until the button is released.
+#[test]
+fn jaws_the_grid_slipped_out_of_close_and_no_longer_grasp() {
+    let scene = grid_forceps_scene(false, 3.0, Some((0.5, 0.4)));
+    let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+    let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
+    let top = grid.broad_top().unwrap();
+    let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
+    let lift_from = 700u32;
+    let (mut held_n, mut slipped_at, mut closed_at) = (0.0f64, None, None);
+    let (mut grasping_before_slip, mut grasping_after_close) = (0u32, 0u32);
+    for ms in 0..lift_from + 1500 {
+        let down = 0.05e-3 * f64::from(ms.min(160));
+        let up = 0.02e-3 * f64::from(ms.saturating_sub(lift_from));
+        let tip = Vec3::new(top.x + 0.0003, top.y + 0.0002, top.z + 0.002 - down + up);
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: ms >= 460, grip: None };
+        grid.step(&[command], &mut feedback);
+        let (pull, gap, grasping) = (-feedback[0].force_n.z, 2.0 * grid.jaws_half_gap_m(0).unwrap(), feedback[0].grasping);
+        if ms % 100 == 0 {
+            println!("{ms} ms: lifted {:.1} mm, pull {pull:.3} N, jaws {:.2} mm apart, grasping {grasping}", up * 1e3, gap * 1e3);
+        }
+        if ms >= lift_from {
+            held_n = held_n.max(pull);
+            if slipped_at.is_none() && held_n > 0.5 && pull < 0.05 {
+                slipped_at = Some(ms);
+            }
+            if closed_at.is_none() && gap == 0.0 {
+                closed_at = Some(ms);
+            }
+            grasping_before_slip += u32::from(grasping && slipped_at.is_none());
+            grasping_after_close += u32::from(grasping && closed_at.is_some());
+        }
+    }
+    println!("held up to {held_n:.2} N; slipped out at {slipped_at:?} ms, the jaws closed at {closed_at:?} ms");
+    let slipped_at = slipped_at.expect("lifted 30 mm, the tissue slips out");
+    assert!(held_n > 1.0 && held_n <= 1.05 * 2.0 * 0.5 * 3.0, "held up to {held_n:.2} N, within friction's limit");
+    assert_eq!(grasping_before_slip, slipped_at - lift_from, "grasping all through the lift until the slip");
+    let closed_at = closed_at.expect("slipped out, the jaws close");
+    // Nothing under either inner flat for SLIPPED_OUT_AFTER_S, then the last 1 mm at
+    // the jaws' speed (5 ms).
+    assert!(closed_at > slipped_at && closed_at - slipped_at <= 30, "closed {} ms after the slip", closed_at - slipped_at);
+    assert_eq!(grasping_after_close, 0, "closed on nothing, the forceps grasp nothing");
+}

@@ -558,7 +558,9 @@ impl Tissue for Multirate {
                 self.step_bodies(&bodies.commands, &mut bodies.feedback);
                 // Closing jaws stop on what pushes them back with the grip, as in the
                 // grid's own step (crate::grid::model): the rendered force is the squeeze.
-                bodies.pinch(&self.scene_tools);
+                // (The haptic loop does not know which contacts lie under the jaws' inner
+                // flats: jaws it stopped stay stopped until the button is released.)
+                bodies.pinch(&self.scene_tools, None, self.dt_s);
                 self.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }

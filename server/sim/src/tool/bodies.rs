@@ -26,6 +26,12 @@ use crate::tool::{Section, ToolCommand, ToolFeedback, ToolShape};
 /// instead of pushing it aside.
 pub const JAW_SPEED_M_PER_S: f64 = 0.1;
 
+/// How long jaws stopped on what they pinch may press nothing under either inner flat
+/// before it counts as slipped out, s ([`Bodies::pinch`]): long enough for a contact
+/// that passes from one vertex to the next (a step or two with none under one jaw while
+/// a grasp holds), short against the 40 ms the jaws take to close.
+pub const SLIPPED_OUT_AFTER_S: f64 = 0.01;
+
 /// A jaw pinching what lies between the jaws ([`Bodies::pinched`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pinch {
@@ -84,6 +90,10 @@ pub(crate) struct Bodies {
     /// between them since it was pressed ([`Bodies::pinch`]).
     closing: Vec<bool>,
     met: Vec<bool>,
+    /// Per tool: how long its jaws, stopped on what they pinch, have pressed nothing
+    /// under either inner flat, s ([`Bodies::pinch`]: past [`SLIPPED_OUT_AFTER_S`] what
+    /// they held has slipped out).
+    empty_s: Vec<f64>,
     /// Per tool: the force the hand pinches its jaws with this step, N (its command's
     /// share of the forceps' `grip_force_n`: [`ToolCommand::grip_n`]).
     grip_n: Vec<f64>,
@@ -125,16 +135,22 @@ pub(crate) fn expand(tools: &[ToolShape]) -> (Vec<ToolShape>, Option<Bodies>) {
     let jaw_speed_m_per_s = vec![JAW_SPEED_M_PER_S; tools.len()];
     let closed_half_gap_m = vec![0.0; tools.len()];
     let (closing, met, grip_n) = (vec![false; tools.len()], vec![false; tools.len()], vec![0.0; tools.len()]);
-    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, closing, met, grip_n, least_pinch_half_gap_m: None, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
+    let empty_s = vec![0.0; tools.len()];
+    (shapes, Some(Bodies { of, half_gap_m, jaw_speed_m_per_s, closed_half_gap_m, closing, met, empty_s, grip_n, least_pinch_half_gap_m: None, arm: vec![None; n], commands: vec![ToolCommand::default(); n], feedback: vec![ToolFeedback::default(); n] }))
 }
 
 impl crate::hash::HashState for Bodies {
     /// The jaws' state and what the next step's pinch reads: each body's last feedback
     /// and where it was.
     fn hash_state(&self, h: &mut crate::hash::StateHasher) {
-        let Self { of: _, half_gap_m, jaw_speed_m_per_s: _, closed_half_gap_m, closing, met, grip_n, least_pinch_half_gap_m: _, arm, commands: _, feedback } = self;
+        let Self { of: _, half_gap_m, jaw_speed_m_per_s: _, closed_half_gap_m, closing, met, empty_s, grip_n, least_pinch_half_gap_m: _, arm, commands: _, feedback } = self;
         (half_gap_m, closed_half_gap_m).hash_state(h);
         (closing, met).hash_state(h);
+        // Only while a stopped grasp presses nothing (the grid's jaws), so that hashes
+        // where that never happens (every skin session) stay as they were.
+        for (tool, empty_s) in empty_s.iter().enumerate().filter(|(_, s)| **s != 0.0) {
+            (tool, *empty_s).hash_state(h);
+        }
         (grip_n, arm).hash_state(h);
         feedback.hash_state(h);
     }
@@ -179,15 +195,34 @@ impl Bodies {
     /// feedback, `self.feedback`), and no closer than [`Bodies::pinch_no_closer_than`]
     /// once they have met something between them (a model's contact cannot hold a layer
     /// thinner than its resolution: the grid's vertices pass the jaws' flats). They stay
-    /// there until the button is released. Meeting nothing, they close fully, as ever.
-    /// The skin's jaws stop at one thickness of it instead (crate::msm::grasp).
-    pub fn pinch(&mut self, tools: &[ToolShape]) {
+    /// there until the button is released, or until what they pinched has slipped out
+    /// from between them: given `inner_flat_contacts` (per body, the contacts its inner
+    /// flat pressed this step; the branched grid's own step counts them), jaws stopped
+    /// on tissue whose inner flats both press nothing for [`SLIPPED_OUT_AFTER_S`] forget
+    /// the stop and close on, as when they met nothing. (Their outward force cannot
+    /// tell: the tissue outside the jaws pushes them in, and stopped on a fold they felt
+    /// no net outward force for up to 0.2 s while holding it.) Meeting nothing, they
+    /// close fully, as ever. The skin's jaws stop at one thickness of it instead
+    /// (crate::msm::grasp).
+    pub fn pinch(&mut self, tools: &[ToolShape], inner_flat_contacts: Option<&[u32]>, dt_s: f64) {
         let Some(least_half_gap_m) = self.least_pinch_half_gap_m else { return };
         for (tool, shape) in tools.iter().enumerate() {
             if !matches!(shape.section, Section::Jaws { .. }) {
                 continue;
             }
             let now = self.half_gap_m[tool].0;
+            if self.holding(tool) {
+                if let Some(counts) = inner_flat_contacts {
+                    let pressed = self.of.iter().zip(counts).any(|(body, &n)| body.tool == tool && body.jaw.is_some() && n > 0);
+                    self.empty_s[tool] = if pressed { 0.0 } else { self.empty_s[tool] + dt_s };
+                    if self.empty_s[tool] >= SLIPPED_OUT_AFTER_S - 1e-12 {
+                        self.closed_half_gap_m[tool] = 0.0;
+                        self.met[tool] = false;
+                        self.empty_s[tool] = 0.0;
+                    }
+                }
+                continue;
+            }
             if !self.closing[tool] || self.closed_half_gap_m[tool] > 0.0 || now <= 0.0 {
                 continue;
             }
@@ -279,6 +314,7 @@ impl Bodies {
             };
             if !close {
                 self.met[tool] = false;
+                self.empty_s[tool] = 0.0;
                 *closed = 0.0;
             }
             let target = match close {
@@ -445,7 +481,7 @@ mod tests {
                 bodies.split(&[close], &tools, &mut shapes, 1e-3);
                 let n = squeeze_at(bodies.half_gap_m(0));
                 push(&mut bodies, n);
-                bodies.pinch(&tools);
+                bodies.pinch(&tools, None, 1e-3);
             }
             bodies
         };
@@ -463,6 +499,46 @@ mod tests {
         // Released: they open, forget the stop and the pinch.
         stopped.split(&[open], &tools, &mut expand(&tools).0, 1e-3);
         assert!(stopped.half_gap_m(0) > 2e-3 && stopped.pinched(0, &tools).is_none());
+    }
+
+    /// Jaws stopped on what they pinch hold it while either inner flat presses a contact;
+    /// once neither has for [`SLIPPED_OUT_AFTER_S`], it has slipped out: they forget the
+    /// stop, no longer grasp, and close on.
+    #[test]
+    fn stopped_jaws_whose_inner_flats_press_nothing_have_lost_their_grasp_and_close() {
+        let tools = [forceps()];
+        let close = ToolCommand { pose: Pose::new(Vec3::zeros(), Quat::identity()), active: true, cut: true, grip: None };
+        let (mut shapes, bodies) = expand(&tools);
+        let mut bodies = bodies.unwrap();
+        bodies.pinch_no_closer_than(5e-4);
+        let mut step = |bodies: &mut Bodies, squeeze: f64, inner_flats: [u32; 2]| {
+            bodies.split(&[close], &tools, &mut shapes, 1e-3);
+            bodies.feedback[0].force_n = Vec3::new(0.0, -squeeze, 0.0);
+            bodies.feedback[1].force_n = Vec3::new(0.0, squeeze, 0.0);
+            bodies.pinch(&tools, Some(&inner_flats), 1e-3);
+        };
+        // Stopped on the grip about 2 mm from the axis.
+        while bodies.half_gap_m(0) > 2e-3 + 1e-9 {
+            step(&mut bodies, 0.0, [0, 0]);
+        }
+        step(&mut bodies, 3.0, [2, 1]);
+        let stopped = bodies.half_gap_m(0);
+        assert!(stopped > 1e-3 && bodies.grasping(0) && bodies.pinched(0, &tools).is_some());
+        // One flat pressing, or neither for less than the time: still held (the tissue
+        // outside pushes the jaws in: no outward force).
+        for flats in [[0, 1], [1, 0], [0, 0], [0, 0], [3, 0]].into_iter().cycle().take(200) {
+            step(&mut bodies, 0.0, flats);
+        }
+        assert!(bodies.half_gap_m(0) == stopped && bodies.grasping(0));
+        // Neither for the time: let go, and close on.
+        for _ in 0..(SLIPPED_OUT_AFTER_S / 1e-3).round() as usize {
+            step(&mut bodies, 0.0, [0, 0]);
+        }
+        assert!(!bodies.grasping(0) && bodies.pinched(0, &tools).is_none(), "slipped out: no longer grasping");
+        for _ in 0..30 {
+            step(&mut bodies, 0.0, [0, 0]);
+        }
+        assert_eq!(bodies.half_gap_m(0), 0.0, "meeting nothing more, the jaws close fully");
     }
 
     #[test]
