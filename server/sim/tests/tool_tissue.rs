@@ -2109,6 +2109,54 @@ fn the_hands_squeeze_sets_the_grip_the_forceps_hold_the_grid_with() {
     assert_eq!((open.held_n, open.pull_n, open.released_n), (button_up.held_n, button_up.pull_n, button_up.released_n), "not squeezed is the button up");
 }
 
+/// What a grasp lifted until it slipped gave ([`lift_until_it_slips`]).
+#[derive(Debug)]
+struct Slip {
+    /// The strongest pull on the forceps (downwards), N.
+    held_n: f64,
+    /// When the pull first fell away, when it was last felt before the jaws closed, and
+    /// when they had closed fully after it, ms.
+    slipped_at: Option<u32>,
+    last_pull_at: Option<u32>,
+    closed_at: Option<u32>,
+    /// Steps spent grasping from the lift to the slip, and after the jaws closed.
+    grasping_before_slip: u32,
+    grasping_after_close: u32,
+    lift_from: u32,
+}
+
+/// Forceps pressed 6 mm into the grid block open (as [`grasp_and_lift_grid`]), closed
+/// from 460 ms (the jaws have `close_ms` to close), lifted at 20 mm/s for `lift_ms`, by
+/// `step(command)`, which returns the force on the forceps along z, the jaws' half gap
+/// and whether they grasp.
+fn lift_until_it_slips(top: Vec3, close_ms: u32, lift_ms: u32, mut step: impl FnMut(cutsim_sim::tool::ToolCommand) -> (f64, f64, bool)) -> Slip {
+    let lift_from = 460 + close_ms;
+    let mut slip = Slip { held_n: 0.0, slipped_at: None, last_pull_at: None, closed_at: None, grasping_before_slip: 0, grasping_after_close: 0, lift_from };
+    for ms in 0..lift_from + lift_ms {
+        let down = 0.05e-3 * f64::from(ms.min(160));
+        let up = 0.02e-3 * f64::from(ms.saturating_sub(lift_from));
+        let tip = Vec3::new(top.x + 0.0003, top.y + 0.0002, top.z + 0.002 - down + up);
+        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: ms >= 460, grip: None };
+        let (force, half_gap, grasping) = step(command);
+        if ms >= lift_from {
+            let pull = -force;
+            slip.held_n = slip.held_n.max(pull);
+            if slip.slipped_at.is_none() && slip.held_n > 0.5 && pull < 0.05 {
+                slip.slipped_at = Some(ms);
+            }
+            if pull >= 0.05 && slip.closed_at.is_none() {
+                slip.last_pull_at = Some(ms);
+            }
+            if slip.slipped_at.is_some() && slip.closed_at.is_none() && half_gap == 0.0 {
+                slip.closed_at = Some(ms);
+            }
+            slip.grasping_before_slip += u32::from(grasping && slip.slipped_at.is_none());
+            slip.grasping_after_close += u32::from(grasping && slip.closed_at.is_some());
+        }
+    }
+    slip
+}
+
 /// Forceps closed on the grid block's tissue and lifted farther than their grasp holds
 /// it: the tissue slips out from between the jaws (the pull on the forceps falls), and
 /// then the jaws let go of their stop and close fully, no longer grasping, as when they
@@ -2116,43 +2164,37 @@ fn the_hands_squeeze_sets_the_grip_the_forceps_hold_the_grid_with() {
 /// holding nothing until the button is released.
 #[test]
 fn jaws_the_grid_slipped_out_of_close_and_no_longer_grasp() {
-    let scene = grid_forceps_scene(false, 3.0, Some((0.5, 0.4)));
+    let friction = Some((0.5, 0.4));
+    let scene = grid_forceps_scene(false, 3.0, friction);
     let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
     let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
-    let top = grid.broad_top().unwrap();
     let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
-    let lift_from = 700u32;
-    let (mut held_n, mut slipped_at, mut closed_at) = (0.0f64, None, None);
-    let (mut grasping_before_slip, mut grasping_after_close) = (0u32, 0u32);
-    for ms in 0..lift_from + 1500 {
-        let down = 0.05e-3 * f64::from(ms.min(160));
-        let up = 0.02e-3 * f64::from(ms.saturating_sub(lift_from));
-        let tip = Vec3::new(top.x + 0.0003, top.y + 0.0002, top.z + 0.002 - down + up);
-        let command = cutsim_sim::tool::ToolCommand { pose: cutsim_sim::math::Pose::new(tip, Quat::identity()), active: true, cut: ms >= 460, grip: None };
+    let single = lift_until_it_slips(grid.broad_top().unwrap(), 240, 1500, |command| {
         grid.step(&[command], &mut feedback);
-        let (pull, gap, grasping) = (-feedback[0].force_n.z, 2.0 * grid.jaws_half_gap_m(0).unwrap(), feedback[0].grasping);
-        if ms % 100 == 0 {
-            println!("{ms} ms: lifted {:.1} mm, pull {pull:.3} N, jaws {:.2} mm apart, grasping {grasping}", up * 1e3, gap * 1e3);
-        }
-        if ms >= lift_from {
-            held_n = held_n.max(pull);
-            if slipped_at.is_none() && held_n > 0.5 && pull < 0.05 {
-                slipped_at = Some(ms);
-            }
-            if closed_at.is_none() && gap == 0.0 {
-                closed_at = Some(ms);
-            }
-            grasping_before_slip += u32::from(grasping && slipped_at.is_none());
-            grasping_after_close += u32::from(grasping && closed_at.is_some());
-        }
+        (feedback[0].force_n.z, grid.jaws_half_gap_m(0).unwrap(), feedback[0].grasping)
+    });
+    // Under a multirate schedule (thick jaws: thin ones are refused there), by the
+    // deformation steps' contacts.
+    let scene = grid_forceps_scene(true, 3.0, friction);
+    let schedule = cutsim_sim::scene::MultirateSpec { deformation_every_steps: serde_json::from_value(serde_json::json!(33)).unwrap() };
+    let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
+    let top = model.with_grid(|g| g.broad_top().unwrap());
+    let multi = lift_until_it_slips(top, 840, 2500, |command| {
+        model.step(&[command], &mut feedback);
+        (feedback[0].force_n.z, model.jaws_half_gap_m(0).unwrap(), feedback[0].grasping)
+    });
+    // Single-rate, the pull falls away once (the tissue slips out whole) and the jaws
+    // close within 10 ms and the last 1 mm at their speed. Under the multirate schedule
+    // the held tissue slips and catches again for a while (the pull swings between 0
+    // and 0.7 N), and the deformation steps, 33 ms apart, find the flats empty later.
+    for (name, slip, held_at_least_n, close_within_ms) in [("thin jaws", &single, 1.0, 30), ("thick jaws, multirate (33 ms)", &multi, 0.5, 800)] {
+        println!("{name}: held up to {:.2} N; the pull first fell away at {:?} ms, was last felt at {:?} ms; the jaws closed at {:?} ms", slip.held_n, slip.slipped_at, slip.last_pull_at, slip.closed_at);
+        let slipped_at = slip.slipped_at.unwrap_or_else(|| panic!("{name}: lifted 30 mm or more, the tissue slips out: {slip:?}"));
+        assert!(slip.held_n > held_at_least_n && slip.held_n <= 1.05 * 2.0 * 0.5 * 3.0, "{name}: held up to {:.2} N, within friction's limit", slip.held_n);
+        assert_eq!(slip.grasping_before_slip, slipped_at - slip.lift_from, "{name}: grasping all through the lift until the slip");
+        let closed_at = slip.closed_at.unwrap_or_else(|| panic!("{name}: slipped out, the jaws close: {slip:?}"));
+        let last_pull_at = slip.last_pull_at.unwrap();
+        assert!(closed_at > last_pull_at && closed_at - last_pull_at <= close_within_ms, "{name}: closed {} ms after the last pull", closed_at - last_pull_at);
+        assert_eq!(slip.grasping_after_close, 0, "{name}: closed on nothing, the forceps grasp nothing");
     }
-    println!("held up to {held_n:.2} N; slipped out at {slipped_at:?} ms, the jaws closed at {closed_at:?} ms");
-    let slipped_at = slipped_at.expect("lifted 30 mm, the tissue slips out");
-    assert!(held_n > 1.0 && held_n <= 1.05 * 2.0 * 0.5 * 3.0, "held up to {held_n:.2} N, within friction's limit");
-    assert_eq!(grasping_before_slip, slipped_at - lift_from, "grasping all through the lift until the slip");
-    let closed_at = closed_at.expect("slipped out, the jaws close");
-    // Nothing under either inner flat for SLIPPED_OUT_AFTER_S, then the last 1 mm at
-    // the jaws' speed (5 ms).
-    assert!(closed_at > slipped_at && closed_at - slipped_at <= 30, "closed {} ms after the slip", closed_at - slipped_at);
-    assert_eq!(grasping_after_close, 0, "closed on nothing, the forceps grasp nothing");
 }

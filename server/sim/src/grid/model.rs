@@ -131,9 +131,9 @@ pub struct BranchedGrid {
     /// Per body: its pinch (the direction its inner flat presses, tool frame; the grip,
     /// N), refreshed before each step.
     pinches: Vec<Option<crate::tool::bodies::Pinch>>,
-    /// Per body: the contacts its inner flat pressed this step, if it pinches (0
+    /// Per body: the contacts its inner flat pressed this step, if it pinched (None
     /// otherwise): jaws whose flats both press nothing have let go (Bodies::pinch).
-    inner_flat_contacts: Vec<u32>,
+    inner_flat_contacts: Vec<Option<u32>>,
     /// Per tool: its tip last step (grid frame), for its velocity.
     previous_tips: Vec<Option<Vec3>>,
     /// Per surface vertex: where it stuck to a tool (super::friction); forgotten at every
@@ -267,7 +267,7 @@ impl BranchedGrid {
             contact_on_face: Vec::with_capacity(contact_room),
             contact_pinch_n: Vec::with_capacity(contact_room),
             pinches: vec![None; tool_count],
-            inner_flat_contacts: vec![0; tool_count],
+            inner_flat_contacts: vec![None; tool_count],
             previous_tips: vec![None; tool_count],
             anchors: super::friction::Anchors::with_room(vertices, 2 * vertices),
             touches,
@@ -320,12 +320,12 @@ impl BranchedGrid {
             Some(mut bodies) => {
                 bodies.split(commands, &self.scene_tools, &mut self.tools, self.dt_s);
                 bodies.pinches(&self.scene_tools, &mut self.pinches);
-                self.inner_flat_contacts.fill(0);
+                self.inner_flat_contacts.fill(None);
                 self.advance(&bodies.commands, &mut bodies.feedback, multirate);
                 // Closing jaws stop on what pushes them back with the grip (their grasp:
                 // the tissue's friction holds it between them, grid::friction), and let
                 // go of it once it has slipped out from between them.
-                bodies.pinch(&self.scene_tools, Some(&self.inner_flat_contacts), self.dt_s);
+                bodies.pinch(&self.scene_tools, &self.inner_flat_contacts, self.dt_s);
                 self.counters.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }
@@ -338,6 +338,12 @@ impl BranchedGrid {
     /// splits them. `patches`: one per body.
     pub fn deformation_step_of_tools(&mut self, commands: &[ToolCommand], patches: &mut [ContactPatch], margin_m: f64, feedback: &mut [ToolFeedback]) {
         self.advance_tools(commands, feedback, Some(Deformation { path: &[], patches, margin_m }));
+    }
+
+    /// Per body (the bodies the grid meets: forceps as their jaws), the contacts its
+    /// inner flat pressed in the last step, where it pinched (None otherwise).
+    pub fn inner_flat_contacts(&self) -> &[Option<u32>] {
+        &self.inner_flat_contacts
     }
 
     /// Scene tool `tool`'s jaws' half gap, m: half the distance between their inner
@@ -376,6 +382,7 @@ impl BranchedGrid {
             tool.section = body.section;
         }
         self.pinches.copy_from_slice(pinches);
+        self.inner_flat_contacts.fill(None);
         self.advance(commands, feedback, Some(Deformation { path, patches, margin_m }));
     }
 
@@ -526,7 +533,7 @@ impl BranchedGrid {
         let pinch = self.pinches[i].map(|p| (tool_to_grid * p.inward_local, p.grip_n));
         let pressed = |normal: &Vec3| pinch.is_some_and(|(inward, _)| normal.dot(&inward) > 0.5);
         let pressed_count = touching.iter().filter(|(_, c)| pressed(&c.normal)).count() + faces.iter().filter(|f| pressed(&f.contact.normal)).count();
-        self.inner_flat_contacts[i] = pressed_count as u32;
+        self.inner_flat_contacts[i] = pinch.map(|_| pressed_count as u32);
         let pinch_n = |normal: &Vec3| match pinch {
             Some((_, grip_n)) if pressed(normal) => grip_n / pressed_count as f64,
             _ => 0.0,

@@ -161,6 +161,10 @@ struct Published {
     deltas: Vec<TopologyDelta>,
     counters: TissueCounters,
     grid_hash: u64,
+    /// Per body: the contacts its inner flat pressed in the deformation step, where it
+    /// pinched (grid::BranchedGrid::inner_flat_contacts): the haptic loop's jaws let go
+    /// of what slipped out from between them by it (crate::tool::bodies::Bodies::pinch).
+    inner_flat_contacts: Vec<Option<u32>>,
     /// How long the job took, ns (its step, compliance solves and this copy).
     took_ns: u64,
 }
@@ -175,6 +179,8 @@ impl Published {
         grid.drain_deltas(&mut self.deltas);
         self.counters = grid.counters();
         self.grid_hash = grid.state_hash();
+        self.inner_flat_contacts.clear();
+        self.inner_flat_contacts.extend_from_slice(grid.inner_flat_contacts());
         if self.topology_version != Some(grid.topology_version()) {
             let snapshot = grid.snapshot();
             let mut materials = vec![0u16; capacity];
@@ -558,9 +564,9 @@ impl Tissue for Multirate {
                 self.step_bodies(&bodies.commands, &mut bodies.feedback);
                 // Closing jaws stop on what pushes them back with the grip, as in the
                 // grid's own step (crate::grid::model): the rendered force is the squeeze.
-                // (The haptic loop does not know which contacts lie under the jaws' inner
-                // flats: jaws it stopped stay stopped until the button is released.)
-                bodies.pinch(&self.scene_tools, None, self.dt_s);
+                // They let go of what slipped out by the last deformation step's contacts
+                // under their inner flats (unknown until a step has pinched with them).
+                bodies.pinch(&self.scene_tools, &self.published.inner_flat_contacts, self.dt_s);
                 self.force_clamps += bodies.gather(&self.scene_tools, feedback);
                 self.bodies = Some(bodies);
             }

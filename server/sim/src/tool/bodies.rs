@@ -196,15 +196,16 @@ impl Bodies {
     /// once they have met something between them (a model's contact cannot hold a layer
     /// thinner than its resolution: the grid's vertices pass the jaws' flats). They stay
     /// there until the button is released, or until what they pinched has slipped out
-    /// from between them: given `inner_flat_contacts` (per body, the contacts its inner
-    /// flat pressed this step; the branched grid's own step counts them), jaws stopped
-    /// on tissue whose inner flats both press nothing for [`SLIPPED_OUT_AFTER_S`] forget
-    /// the stop and close on, as when they met nothing. (Their outward force cannot
+    /// from between them: by `inner_flat_contacts` (per body, the contacts its inner
+    /// flat pressed in the model's last step where it pinched, None where unknown: the
+    /// branched grid counts them), jaws stopped on tissue whose inner flats both press
+    /// nothing for [`SLIPPED_OUT_AFTER_S`] forget the stop and close on, as when they
+    /// met nothing. (Their outward force cannot
     /// tell: the tissue outside the jaws pushes them in, and stopped on a fold they felt
     /// no net outward force for up to 0.2 s while holding it.) Meeting nothing, they
     /// close fully, as ever. The skin's jaws stop at one thickness of it instead
     /// (crate::msm::grasp).
-    pub fn pinch(&mut self, tools: &[ToolShape], inner_flat_contacts: Option<&[u32]>, dt_s: f64) {
+    pub fn pinch(&mut self, tools: &[ToolShape], inner_flat_contacts: &[Option<u32>], dt_s: f64) {
         let Some(least_half_gap_m) = self.least_pinch_half_gap_m else { return };
         for (tool, shape) in tools.iter().enumerate() {
             if !matches!(shape.section, Section::Jaws { .. }) {
@@ -212,14 +213,14 @@ impl Bodies {
             }
             let now = self.half_gap_m[tool].0;
             if self.holding(tool) {
-                if let Some(counts) = inner_flat_contacts {
-                    let pressed = self.of.iter().zip(counts).any(|(body, &n)| body.tool == tool && body.jaw.is_some() && n > 0);
-                    self.empty_s[tool] = if pressed { 0.0 } else { self.empty_s[tool] + dt_s };
-                    if self.empty_s[tool] >= SLIPPED_OUT_AFTER_S - 1e-12 {
-                        self.closed_half_gap_m[tool] = 0.0;
-                        self.met[tool] = false;
-                        self.empty_s[tool] = 0.0;
-                    }
+                // Nothing under either flat only where both counts are known.
+                let (jaws, empty_flats) = self.of.iter().zip(inner_flat_contacts).filter(|(body, _)| body.tool == tool && body.jaw.is_some()).fold((0, 0), |(jaws, empty), (_, &n)| (jaws + 1, empty + usize::from(n == Some(0))));
+                let empty = jaws > 0 && empty_flats == jaws;
+                self.empty_s[tool] = if empty { self.empty_s[tool] + dt_s } else { 0.0 };
+                if self.empty_s[tool] >= SLIPPED_OUT_AFTER_S - 1e-12 {
+                    self.closed_half_gap_m[tool] = 0.0;
+                    self.met[tool] = false;
+                    self.empty_s[tool] = 0.0;
                 }
                 continue;
             }
@@ -481,7 +482,7 @@ mod tests {
                 bodies.split(&[close], &tools, &mut shapes, 1e-3);
                 let n = squeeze_at(bodies.half_gap_m(0));
                 push(&mut bodies, n);
-                bodies.pinch(&tools, None, 1e-3);
+                bodies.pinch(&tools, &[None, None], 1e-3);
             }
             bodies
         };
@@ -511,32 +512,34 @@ mod tests {
         let (mut shapes, bodies) = expand(&tools);
         let mut bodies = bodies.unwrap();
         bodies.pinch_no_closer_than(5e-4);
-        let mut step = |bodies: &mut Bodies, squeeze: f64, inner_flats: [u32; 2]| {
+        let mut step = |bodies: &mut Bodies, squeeze: f64, inner_flats: [Option<u32>; 2]| {
             bodies.split(&[close], &tools, &mut shapes, 1e-3);
             bodies.feedback[0].force_n = Vec3::new(0.0, -squeeze, 0.0);
             bodies.feedback[1].force_n = Vec3::new(0.0, squeeze, 0.0);
-            bodies.pinch(&tools, Some(&inner_flats), 1e-3);
+            bodies.pinch(&tools, &inner_flats, 1e-3);
         };
         // Stopped on the grip about 2 mm from the axis.
         while bodies.half_gap_m(0) > 2e-3 + 1e-9 {
-            step(&mut bodies, 0.0, [0, 0]);
+            step(&mut bodies, 0.0, [Some(0), Some(0)]);
         }
-        step(&mut bodies, 3.0, [2, 1]);
+        step(&mut bodies, 3.0, [Some(2), Some(1)]);
         let stopped = bodies.half_gap_m(0);
         assert!(stopped > 1e-3 && bodies.grasping(0) && bodies.pinched(0, &tools).is_some());
-        // One flat pressing, or neither for less than the time: still held (the tissue
-        // outside pushes the jaws in: no outward force).
-        for flats in [[0, 1], [1, 0], [0, 0], [0, 0], [3, 0]].into_iter().cycle().take(200) {
+        // One flat pressing, neither for less than the time, or not known (a step that
+        // did not pinch with them): still held (the tissue outside pushes the jaws in: no
+        // outward force).
+        let (none, one) = (Some(0), Some(1));
+        for flats in [[none, one], [one, none], [none, none], [none, none], [Some(3), none], [None, None], [none, None]].into_iter().cycle().take(210) {
             step(&mut bodies, 0.0, flats);
         }
         assert!(bodies.half_gap_m(0) == stopped && bodies.grasping(0));
         // Neither for the time: let go, and close on.
         for _ in 0..(SLIPPED_OUT_AFTER_S / 1e-3).round() as usize {
-            step(&mut bodies, 0.0, [0, 0]);
+            step(&mut bodies, 0.0, [Some(0), Some(0)]);
         }
         assert!(!bodies.grasping(0) && bodies.pinched(0, &tools).is_none(), "slipped out: no longer grasping");
         for _ in 0..30 {
-            step(&mut bodies, 0.0, [0, 0]);
+            step(&mut bodies, 0.0, [Some(0), Some(0)]);
         }
         assert_eq!(bodies.half_gap_m(0), 0.0, "meeting nothing more, the jaws close fully");
     }
