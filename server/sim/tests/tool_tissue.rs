@@ -2198,3 +2198,29 @@ fn jaws_the_grid_slipped_out_of_close_and_no_longer_grasp() {
         assert_eq!(slip.grasping_after_close, 0, "{name}: closed on nothing, the forceps grasp nothing");
     }
 }
+
+/// On the grid the forceps grip with their tips, `grip_length_m` from the tip: the
+/// contacts under their inner flats there take the grip (docs/branched-grid.md,
+/// "Grasping"). The thin jaws pressed 6 mm into the block hold it by contacts within
+/// 2 mm of their tips, so the default 10 mm holds as 2 mm does, and 0.5 mm, which
+/// leaves some of them out, holds less.
+#[test]
+fn the_grid_forceps_grip_with_their_tips() {
+    let held = |grip_length_m: f64| {
+        let mut json = serde_json::to_value(grid_forceps_scene(false, 3.0, Some((0.5, 0.4)))).unwrap();
+        json["tools"][0]["shape"]["forceps"]["grip_length_m"] = serde_json::json!(grip_length_m);
+        let scene = Scene::from_json_str(&json.to_string(), "block with forceps gripping with their tips", None).unwrap();
+        let ModelSpec::BranchedGrid(spec) = &scene.model else { unreachable!() };
+        let mut grid = cutsim_sim::grid::build_from_scene(&scene, spec).unwrap();
+        let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
+        let lift = grasp_and_lift_grid(grid.broad_top().unwrap(), 240, |command| {
+            grid.step(&[command], &mut feedback);
+            (feedback[0].force_n.z, grid.jaws_half_gap_m(0).unwrap(), None)
+        });
+        println!("grip length {:.1} mm: held {:.3} N at the end of the hold (up to {:.3} N)", grip_length_m * 1e3, lift.held_n, lift.pull_n);
+        lift.held_n
+    };
+    let (whole, tips, less) = (held(0.01), held(0.002), held(0.0005));
+    assert!((whole - tips).abs() <= 0.01 * whole, "every contact that holds lies within 2 mm of the tips: {tips:.3} against {whole:.3} N");
+    assert!(less < whole - 0.05 && less > 0.5, "gripping 0.5 mm from the tips holds less: {less:.3} against {whole:.3} N");
+}

@@ -529,13 +529,17 @@ impl BranchedGrid {
         let cutting = self.cutting(i, command);
         self.held_face_contacts(i, cutting, &placed, &touching, &mut triangles, &mut faces);
         // Under a jaw that pinches, the grip shared among the contacts its inner flat
-        // presses (vertices and points on the triangles' insides).
-        let pinch = self.pinches[i].map(|p| (tool_to_grid * p.inward_local, p.grip_n));
-        let pressed = |normal: &Vec3| pinch.is_some_and(|(inward, _)| normal.dot(&inward) > 0.5);
-        let pressed_count = touching.iter().filter(|(_, c)| pressed(&c.normal)).count() + faces.iter().filter(|f| pressed(&f.contact.normal)).count();
+        // presses (vertices and points on the triangles' insides) within its grip
+        // length of the tip.
+        let pinch = self.pinches[i].map(|p| (tool_to_grid * p.inward_local, p.grip_n, p.grip_length_m));
+        let axis = tool_to_grid * Vec3::z();
+        let pressed = |normal: &Vec3, point: &Vec3| pinch.is_some_and(|(inward, _, grip_length_m)| normal.dot(&inward) > 0.5 && (point - tip).dot(&axis) <= grip_length_m);
+        let surface = &self.surface;
+        let topo = &self.topo;
+        let pressed_count = touching.iter().filter(|(v, c)| pressed(&c.normal, &surface.position(topo, *v as usize))).count() + faces.iter().filter(|f| pressed(&f.contact.normal, &f.point)).count();
         self.inner_flat_contacts[i] = pinch.map(|_| pressed_count as u32);
-        let pinch_n = |normal: &Vec3| match pinch {
-            Some((_, grip_n)) if pressed(normal) => grip_n / pressed_count as f64,
+        let pinch_n = |normal: &Vec3, point: &Vec3| match pinch {
+            Some((_, grip_n, _)) if pressed(normal, point) => grip_n / pressed_count as f64,
             _ => 0.0,
         };
         for &(v, super::hold::Contact { normal, depth, entry }) in &touching {
@@ -549,7 +553,7 @@ impl BranchedGrid {
             // A vertex in contact with the same tool last step keeps its friction anchor.
             let from_tip = self.anchors.get(v).filter(|a| a.tool == i && a.step + 1 >= self.step_index).map(|a| a.from_tip);
             let slip = super::solver::embedded_velocity(&self.topo, element, &weights) - tool_velocity;
-            let pinch_n = pinch_n(&normal);
+            let pinch_n = pinch_n(&normal, &p);
             let (stick_stiffness, stick_force, kept) = Self::rub_about_tip(from_tip, &p, &tip, &normal, k, (k * depth).max(pinch_n), self.friction_at(v), &slip, self.dt_s);
             if let Some(from_tip) = kept {
                 self.anchors.set(v, super::friction::Anchor { tool: i, from_tip, step: self.step_index });
@@ -566,7 +570,7 @@ impl BranchedGrid {
             // one of its own anchor (as a vertex's, but decided before the solve only).
             let (centring_stiffness, centring_force) = f.centring.map_or((0.0, Vec3::zeros()), |offset| (k, offset * k));
             let point_velocity = super::solver::embedded_velocity(&self.topo, f.element, &f.weights);
-            let pinched_n = pinch_n(&normal);
+            let pinched_n = pinch_n(&normal, &f.point);
             let (rub_stiffness, rub_force, kept) = Self::rub_about_tip(f.held.anchor_from_tip, &f.point, &tip, &normal, k, (k * depth).max(pinched_n), self.friction_at(f.vertex as usize), &(point_velocity - tool_velocity), self.dt_s);
             f.held.anchor_from_tip = kept;
             let stick_stiffness = centring_stiffness + rub_stiffness;

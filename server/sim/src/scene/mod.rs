@@ -498,9 +498,9 @@ pub enum ToolShapeSpec {
         #[serde(default = "default_grip_force")]
         grip_force_n: ForceN,
         /// How far from the tip the jaws grip, m: tissue forceps grip with their
-        /// serrated tips, not their whole length (the skin's; on the branched grid the
-        /// jaws pinch along their whole flats). Default 10 mm; at most `length_m`
-        /// (refused beyond it).
+        /// serrated tips, not their whole length (on the skin, the fold they grasp; on
+        /// the branched grid, the contacts under their inner flats that take the grip).
+        /// Default 10 mm; at most `length_m` (refused beyond it).
         #[serde(default = "default_grip_length")]
         grip_length_m: ToolLengthM,
     },

@@ -39,6 +39,9 @@ pub struct Pinch {
     pub inward_local: Vec3,
     /// The grip it presses with, N.
     pub grip_n: f64,
+    /// How far from the tip along the axis it grips, m (the forceps' `grip_length_m`:
+    /// tissue forceps grip with their serrated tips).
+    pub grip_length_m: f64,
 }
 
 /// One of a forceps' jaws as a body.
@@ -257,14 +260,12 @@ impl Bodies {
     pub fn pinched(&self, body: usize, tools: &[ToolShape]) -> Option<Pinch> {
         let Body { tool, jaw } = self.of[body];
         let jaw = jaw?;
-        if !matches!(tools[tool].section, Section::Jaws { .. }) {
-            return None;
-        }
+        let Section::Jaws { grip_length_m, .. } = tools[tool].section else { return None };
         if !self.holding(tool) {
             return None;
         }
         let inward = Vec3::z().cross(&tools[tool].edge_local) * if jaw.side == 0 { 1.0 } else { -1.0 };
-        Some(Pinch { inward_local: inward, grip_n: self.grip_n[tool] })
+        Some(Pinch { inward_local: inward, grip_n: self.grip_n[tool], grip_length_m })
     }
 
     /// Every body's pinch ([`Bodies::pinched`]) into `out`, one per body.
@@ -490,7 +491,7 @@ mod tests {
         let grip = |gap: f64| if gap <= 2e-3 + 1e-9 { 3.0 } else { 0.0 };
         let mut stopped = run(true, &grip);
         assert!((stopped.half_gap_m(0) - 2e-3).abs() < 1e-9, "{}", stopped.half_gap_m(0));
-        assert_eq!(stopped.pinched(0, &tools), Some(Pinch { inward_local: Vec3::y(), grip_n: 3.0 }), "the first jaw (−y) presses +y");
+        assert_eq!(stopped.pinched(0, &tools), Some(Pinch { inward_local: Vec3::y(), grip_n: 3.0, grip_length_m: 0.01 }), "the first jaw (−y) presses +y");
         assert_eq!(stopped.pinched(1, &tools).map(|p| p.inward_local), Some(-Vec3::y()));
         // Met something softer: at the floor. Met nothing, or not pinching: closed.
         let soft = run(true, &|gap| if gap <= 2e-3 { 0.2 } else { 0.0 });
