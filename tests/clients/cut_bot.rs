@@ -50,10 +50,13 @@ fn example_scripts_pass_and_a_tampered_one_fails_readably() {
         let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
         assert_eq!(report["passed"], true);
         if script.ends_with("skin-patch-retract.json") {
-            // Each tool's own largest force: printed, in the JUnit properties, and checked.
-            assert!(text(&out).contains("PASS tools.forceps.max_force_n"), "{}", text(&out));
-            assert!(text(&out).lines().any(|l| l.trim_start().starts_with("forceps ") && l.ends_with(" N")), "{}", text(&out));
-            assert!(std::fs::read_to_string(&junit).unwrap().contains("<property name=\"max_force_n.forceps\""));
+            // Each tool's own largest force, and how long the forceps grasped: printed, in
+            // the JUnit properties, and checked.
+            assert!(text(&out).contains("PASS tools.forceps.max_force_n") && text(&out).contains("PASS tools.forceps.grasping_s"), "{}", text(&out));
+            assert!(text(&out).lines().any(|l| l.trim_start().starts_with("forceps ") && l.contains(" N, grasping ") && l.ends_with(" s")), "{}", text(&out));
+            assert!(text(&out).lines().any(|l| l.trim_start().starts_with("scalpel ") && l.ends_with(" N")), "{}", text(&out));
+            let xml = std::fs::read_to_string(&junit).unwrap();
+            assert!(xml.contains("<property name=\"max_force_n.forceps\"") && xml.contains("<property name=\"grasping_s.forceps\" value=\"0.8"), "{xml}");
         }
     }
 

@@ -25,7 +25,7 @@ pub fn render(script: &str, report: &pb::ScriptReport, elapsed: Duration) -> Str
     .into_iter()
     .chain(assessment_properties(report.assessment.as_ref()))
     .map(|(name, value)| (name.to_owned(), value))
-    .chain(report.tools.iter().map(|t| (format!("max_force_n.{}", t.name), t.max_force_n.to_string())))
+    .chain(report.tools.iter().flat_map(|t| [(format!("max_force_n.{}", t.name), t.max_force_n.to_string()), (format!("grasping_s.{}", t.name), t.grasping_s.to_string())]))
     {
         let _ = writeln!(out, "      <property name=\"{name}\" value=\"{}\"/>", escape(&value));
     }

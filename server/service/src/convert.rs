@@ -290,7 +290,7 @@ pub fn report(r: &RunReport, task: &TaskInfo) -> pb::ScriptReport {
         counters: Some(counters(&r.counters, r.pieces)),
         report_json: serde_json::to_string(r).unwrap_or_default(),
         assessment: Some(assessment(&r.assessment, String::new(), task)),
-        tools: r.tools.iter().map(|t| pb::ToolForceReport { name: t.name.clone(), max_force_n: t.max_force_n }).collect(),
+        tools: r.tools.iter().map(|t| pb::ToolForceReport { name: t.name.clone(), max_force_n: t.max_force_n, grasping_s: t.grasping_s }).collect(),
     }
 }
 

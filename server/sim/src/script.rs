@@ -164,6 +164,17 @@ pub struct ToolExpectations {
     /// The largest force on this tool over the run, N.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_force_n: Option<Bound>,
+    /// How long this tool grasped tissue over the run, s (forceps closing on it or
+    /// holding it: the feedback's `grasping`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grasping_s: Option<Bound>,
+}
+
+impl ToolExpectations {
+    /// Each expectation given, by its name.
+    fn bounds(&self) -> impl Iterator<Item = (&'static str, &Bound)> {
+        [("max_force_n", &self.max_force_n), ("grasping_s", &self.grasping_s)].into_iter().filter_map(|(name, bound)| bound.as_ref().map(|b| (name, b)))
+    }
 }
 
 /// A numeric expectation: any of min, max, equals, or approx with tolerance.
@@ -289,10 +300,11 @@ impl CutScript {
         }
         for (name, expect) in &self.expect.tools {
             tool_named(tools, name).map_err(|message| err(format!("expect.tools.{name}"), message))?;
-            match &expect.max_force_n {
-                None => return Err(err(format!("expect.tools.{name}"), "expects nothing: give max_force_n".into())),
-                Some(bound) if bound.is_empty() => return Err(err(format!("expect.tools.{name}.max_force_n"), "give at least one of min, max, equals, approx".into())),
-                Some(_) => {}
+            if expect.bounds().next().is_none() {
+                return Err(err(format!("expect.tools.{name}"), "expects nothing: give max_force_n or grasping_s".into()));
+            }
+            if let Some((key, _)) = expect.bounds().find(|(_, bound)| bound.is_empty()) {
+                return Err(err(format!("expect.tools.{name}.{key}"), "give at least one of min, max, equals, approx".into()));
             }
         }
         if let Some(h) = &self.expect.state_hash
@@ -380,12 +392,16 @@ impl Expectations {
             });
         }
         for (tool, expect) in &self.tools {
-            let Some(bound) = &expect.max_force_n else { continue };
-            let name = format!("tools.{tool}.max_force_n");
-            out.push(match report.tools.iter().find(|t| &t.name == tool) {
-                Some(t) => ExpectationResult { name, expected: bound.describe(), actual: format!("{}", t.max_force_n), passed: bound.holds(t.max_force_n) },
-                None => ExpectationResult { name, expected: bound.describe(), actual: "absent (the scene has no such tool)".into(), passed: false },
-            });
+            for (key, bound) in expect.bounds() {
+                let name = format!("tools.{tool}.{key}");
+                out.push(match report.tools.iter().find(|t| &t.name == tool) {
+                    Some(t) => {
+                        let actual = if key == "grasping_s" { t.grasping_s } else { t.max_force_n };
+                        ExpectationResult { name, expected: bound.describe(), actual: format!("{actual}"), passed: bound.holds(actual) }
+                    }
+                    None => ExpectationResult { name, expected: bound.describe(), actual: "absent (the scene has no such tool)".into(), passed: false },
+                });
+            }
         }
         if let Some(expected) = self.task_passed {
             let actual = a.passed;
@@ -557,7 +573,7 @@ mod tests {
         let e = CutScript::from_json_str(typo, "s").unwrap_err();
         assert_eq!(e.path, "tool");
         // One tool's expectations: a tool of the scene, and something to expect of it.
-        for (expect, path) in [(r#"{"knife":{"max_force_n":{"min":1}}}"#, "expect.tools.knife"), (r#"{"scalpel":{}}"#, "expect.tools.scalpel"), (r#"{"scalpel":{"max_force_n":{}}}"#, "expect.tools.scalpel.max_force_n")] {
+        for (expect, path) in [(r#"{"knife":{"max_force_n":{"min":1}}}"#, "expect.tools.knife"), (r#"{"scalpel":{}}"#, "expect.tools.scalpel"), (r#"{"scalpel":{"max_force_n":{}}}"#, "expect.tools.scalpel.max_force_n"), (r#"{"scalpel":{"max_force_n":{"min":1},"grasping_s":{}}}"#, "expect.tools.scalpel.grasping_s")] {
             let text = format!(r#"{{"tools":[],"expect":{{"tools":{expect}}}}}"#);
             let e = CutScript::from_json_str(&text, "s").unwrap().compile(&blade(), 0.001, "s").unwrap_err();
             assert_eq!(e.path, path, "{expect}: {}", e.message);

@@ -1928,6 +1928,9 @@ fn the_retract_example_grasps_the_lip_and_its_forceps_expectation_tells_a_grasp_
     assert_eq!(grasped.tools.iter().map(|t| t.name.as_str()).collect::<Vec<_>>(), ["scalpel", "probe", "forceps"]);
     assert_eq!(grasped.max_tool_force_n, forceps.max(scalpel), "the run's largest force is its tools' largest");
     assert!(forceps > 0.5 && forceps < scalpel, "the forceps feel the lip ({forceps:.2} N), less than the scalpel's cut ({scalpel:.2} N)");
+    // They grasp it for the hold (0.8 s: from when their jaws meet the lip to the release).
+    let grasping = grasped.tools.iter().map(|t| t.grasping_s).collect::<Vec<_>>();
+    assert!(grasping[0] == 0.0 && grasping[1] == 0.0 && grasping[2] > 0.5, "only the forceps grasp: {grasping:?} s");
 
     // The forceps' jaws never closed: they hold nothing, and only their expectation says so.
     let mut open = script.clone();
@@ -1935,10 +1938,13 @@ fn the_retract_example_grasps_the_lip_and_its_forceps_expectation_tells_a_grasp_
         k.cut = false;
     }
     let missed = run(&open);
-    let result = missed.expectations.iter().find(|e| e.name == "tools.forceps.max_force_n").unwrap();
-    println!("jaws open: {} ({})", result.actual, result.expected);
-    assert!(!missed.passed && !result.passed, "{:?}", missed.expectations);
-    assert!(missed.expectations.iter().filter(|e| e.name != result.name).all(|e| e.passed), "the cut is the same: {:?}", missed.expectations);
+    let forceps_expectations = ["tools.forceps.max_force_n", "tools.forceps.grasping_s"];
+    for name in forceps_expectations {
+        let result = missed.expectations.iter().find(|e| e.name == name).unwrap();
+        println!("jaws open: {name} {} ({})", result.actual, result.expected);
+        assert!(!result.passed, "{:?}", missed.expectations);
+    }
+    assert!(!missed.passed && missed.expectations.iter().filter(|e| !forceps_expectations.contains(&e.name.as_str())).all(|e| e.passed), "the cut is the same: {:?}", missed.expectations);
 
     let mut unknown = script.clone();
     let expect = unknown.expect.tools.remove("forceps").unwrap();
