@@ -171,9 +171,12 @@ pub struct ToolExpectations {
 }
 
 impl ToolExpectations {
-    /// Each expectation given, by its name.
-    fn bounds(&self) -> impl Iterator<Item = (&'static str, &Bound)> {
-        [("max_force_n", &self.max_force_n), ("grasping_s", &self.grasping_s)].into_iter().filter_map(|(name, bound)| bound.as_ref().map(|b| (name, b)))
+    /// Each expectation given: its name, its bound, and the value of the tool's report
+    /// it bounds.
+    fn bounds(&self) -> impl Iterator<Item = (&'static str, &Bound, fn(&crate::runner::ToolReport) -> f64)> {
+        let max_force_n: fn(&crate::runner::ToolReport) -> f64 = |t| t.max_force_n;
+        let grasping_s: fn(&crate::runner::ToolReport) -> f64 = |t| t.grasping_s;
+        [("max_force_n", &self.max_force_n, max_force_n), ("grasping_s", &self.grasping_s, grasping_s)].into_iter().filter_map(|(name, bound, value)| bound.as_ref().map(|b| (name, b, value)))
     }
 }
 
@@ -303,7 +306,7 @@ impl CutScript {
             if expect.bounds().next().is_none() {
                 return Err(err(format!("expect.tools.{name}"), "expects nothing: give max_force_n or grasping_s".into()));
             }
-            if let Some((key, _)) = expect.bounds().find(|(_, bound)| bound.is_empty()) {
+            if let Some((key, ..)) = expect.bounds().find(|(_, bound, _)| bound.is_empty()) {
                 return Err(err(format!("expect.tools.{name}.{key}"), "give at least one of min, max, equals, approx".into()));
             }
         }
@@ -392,13 +395,10 @@ impl Expectations {
             });
         }
         for (tool, expect) in &self.tools {
-            for (key, bound) in expect.bounds() {
+            for (key, bound, value) in expect.bounds() {
                 let name = format!("tools.{tool}.{key}");
-                out.push(match report.tools.iter().find(|t| &t.name == tool) {
-                    Some(t) => {
-                        let actual = if key == "grasping_s" { t.grasping_s } else { t.max_force_n };
-                        ExpectationResult { name, expected: bound.describe(), actual: format!("{actual}"), passed: bound.holds(actual) }
-                    }
+                out.push(match report.tools.iter().find(|t| &t.name == tool).map(value) {
+                    Some(actual) => ExpectationResult { name, expected: bound.describe(), actual: format!("{actual}"), passed: bound.holds(actual) },
                     None => ExpectationResult { name, expected: bound.describe(), actual: "absent (the scene has no such tool)".into(), passed: false },
                 });
             }

@@ -534,9 +534,11 @@ impl BranchedGrid {
         let pinch = self.pinches[i].map(|p| (tool_to_grid * p.inward_local, p.grip_n, p.grip_length_m));
         let axis = tool_to_grid * Vec3::z();
         let pressed = |normal: &Vec3, point: &Vec3| pinch.is_some_and(|(inward, _, grip_length_m)| normal.dot(&inward) > 0.5 && (point - tip).dot(&axis) <= grip_length_m);
-        let surface = &self.surface;
-        let topo = &self.topo;
-        let pressed_count = touching.iter().filter(|(v, c)| pressed(&c.normal, &surface.position(topo, *v as usize))).count() + faces.iter().filter(|f| pressed(&f.contact.normal, &f.point)).count();
+        // Counted only under a pinching jaw: the vertices' positions are not needed else.
+        let pressed_count = match pinch {
+            None => 0,
+            Some(_) => touching.iter().filter(|(v, c)| pressed(&c.normal, &self.surface.position(&self.topo, *v as usize))).count() + faces.iter().filter(|f| pressed(&f.contact.normal, &f.point)).count(),
+        };
         self.inner_flat_contacts[i] = pinch.map(|_| pressed_count as u32);
         let pinch_n = |normal: &Vec3, point: &Vec3| match pinch {
             Some((_, grip_n, _)) if pressed(normal, point) => grip_n / pressed_count as f64,
