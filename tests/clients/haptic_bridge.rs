@@ -143,6 +143,19 @@ async fn killing_the_server_ramps_the_force_to_zero() {
     assert!(after[zero..].iter().all(|r| r.1 == 0.0), "and stays zero");
 }
 
+/// A configuration the coupling cannot run with is refused before anything starts, with
+/// the setting's name and what it must be.
+#[test]
+fn a_coupling_that_cannot_run_is_refused() {
+    let dir = TempDir::new("bridge-bad-coupling");
+    let config = dir.0.join("config.json");
+    std::fs::write(&config, r#"{"coupling": {"local_max_stiffness_n_per_m": -5}}"#).unwrap();
+    let out = Command::new(BRIDGE).args(["--session", "s", "--token", "t", "--config", config.to_str().unwrap()]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("coupling: local_max_stiffness_n_per_m must be a number of at least 0, got -5"), "{stderr}");
+}
+
 /// A vendor driver's side of the UDP device protocol, played by the test: poses in,
 /// forces back, as docs/haptic-bridge.md describes. The driver's device has an analog
 /// gripper (buttons bit 1, its squeeze at offset 76): the bridge sends the squeeze with
@@ -302,6 +315,10 @@ async fn forceps_lifting_a_fold_of_skin_are_felt_pulling_through_the_bridge() {
     let report = run_bridge(&server, &session, &dir, &["--tool", "2", "--device", "sim:grasp", "--duration-s", "3.5", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--stale-ms", "1000"]);
     let grasping_ms = report["grasping_steps"].as_u64().unwrap();
     assert!(grasping_ms > 1000, "the server said the forceps held the fold while lifted and held (1.6–3 s): {grasping_ms} ms\n{report}");
+    // The coupling's local model learnt the fold's stiffness from the answers (1,800 to
+    // its cap of 3,000 N/m in recorded runs) and carried each answer to the proxy's pose.
+    let learnt = report["max_local_stiffness_n_per_m"].as_f64().unwrap();
+    assert!(learnt > 500.0, "the local model learnt the grasped fold's stiffness: {learnt} N/m\n{report}");
     let max_force = report["max_force_n"].as_f64().unwrap();
     assert!(max_force <= 3.3 + 1e-12, "the largest force sent to the device: {max_force} N\n{report}");
     let rows = trace(&dir);
@@ -376,7 +393,7 @@ async fn a_multirate_session_renders_a_force_the_rate_limit_never_has_to_cut() {
     let report = run_bridge(&server, &session, &dir, &["--tool", "1", "--device", "sim:press", "--duration-s", "3", "--max-force-n", "3.3", "--max-force-rate-n-per-s", "100", "--offset-m", "0", "0", "0.012", "--stale-ms", "1000"]);
     let rows = trace(&dir);
     let pressed = rows.iter().filter(|r| r.0 > 1.2 && r.0 < 2.8).map(|r| r.1).fold(f64::INFINITY, f64::min);
-    println!("multirate through the bridge: largest force {:.3} N, at least {pressed:.3} N while pressed, fastest change {:.1} N/s, rate-limited on {} of {} steps", report["max_force_n"], report["max_force_rate_n_per_s"], report["rate_limited"], report["device_steps"]);
+    println!("multirate through the bridge: largest force {:.3} N, at least {pressed:.3} N while pressed, fastest change {:.1} N/s, rate-limited on {} of {} steps, local stiffness up to {:.0} N/m", report["max_force_n"], report["max_force_rate_n_per_s"], report["rate_limited"], report["device_steps"], report["max_local_stiffness_n_per_m"]);
     assert!(pressed > 0.1, "the probe pressed 3 mm into the block feels it: {pressed} N");
     assert!(report["max_force_n"].as_f64().unwrap() < max_force, "{report}");
     assert_eq!(report["rate_limited"], 0, "the limiter had to cut the force's rate: {report}");

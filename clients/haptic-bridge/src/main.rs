@@ -12,6 +12,7 @@ mod cues;
 mod device;
 mod limiter;
 mod link;
+mod local_model;
 mod mapping;
 mod vec;
 
@@ -128,6 +129,8 @@ struct Report {
     stale_steps: u64,
     /// Ticks whose fresh answer said the tool grasps tissue (the coupling's grasp damper).
     grasping_steps: u64,
+    /// The largest tissue stiffness the coupling's local model learnt, N/m.
+    max_local_stiffness_n_per_m: f64,
     rtt_samples: usize,
     rtt_p50_us: u32,
     rtt_p99_us: u32,
@@ -177,6 +180,7 @@ fn load_config(args: &Args) -> anyhow::Result<Config> {
     l.ramp_ms = args.ramp_ms.unwrap_or(l.ramp_ms);
     config.workspace.check().map_err(|e| anyhow!("workspace: {e}"))?;
     config.limits.check().map_err(|e| anyhow!("limits: {e}"))?;
+    config.coupling.check().map_err(|e| anyhow!("coupling: {e}"))?;
     Ok(config)
 }
 
@@ -229,6 +233,9 @@ fn run(args: &Args) -> anyhow::Result<()> {
     // The last tick's start and the device's position then.
     let mut previous = None::<(Instant, V3)>;
     let mut previous_force = V3::default();
+    // The poses sent lately, to find the one an answer is for; the newest answer's echo.
+    let mut sent_poses = SentPoses::default();
+    let mut last_answer = None::<Instant>;
     let mut next = Instant::now();
     let deadline = args.duration_s.map(|s| origin + Duration::from_secs_f64(s));
     // After the run, a last stretch with no answers brings the force to zero smoothly.
@@ -256,7 +263,21 @@ fn run(args: &Args) -> anyhow::Result<()> {
         let fresh = ramping_out_until.is_none()
             && connected
             && answer.as_ref().is_some_and(|a| now.duration_since(a.received).as_secs_f64() * 1e3 <= config.limits.stale_ms);
-        let (tissue, resistance, grasping) = if fresh { answer.map_or_else(Default::default, |a| (a.force, a.resistance, a.grasping)) } else { Default::default() };
+        let (tissue, resistance, grasping) = if fresh { answer.as_ref().map_or_else(Default::default, |a| (a.force, a.resistance, a.grasping)) } else { Default::default() };
+        match answer.as_ref().filter(|_| fresh) {
+            // Each new answer teaches the local model, at the pose it answered (a server
+            // catching up answers one pose several times, as the tissue moves on).
+            Some(a) if Some(a.received) != last_answer => {
+                last_answer = Some(a.received);
+                match sent_poses.find(a.echo_client_time_ns) {
+                    Some(at) => coupling.answered(at, a.force, a.resistance),
+                    None => coupling.forget_answers(),
+                }
+            }
+            Some(_) => {}
+            None => coupling.forget_answers(),
+        }
+        report.max_local_stiffness_n_per_m = report.max_local_stiffness_n_per_m.max(coupling.local_stiffness_n_per_m());
         coupling.set_grasping(grasping);
         report.grasping_steps += u64::from(grasping);
         let mut wanted = if state.present { coupling.advance(elapsed_s, dt_s, from, position, tissue, resistance) } else { V3::default() };
@@ -269,12 +290,14 @@ fn run(args: &Args) -> anyhow::Result<()> {
         if state.present && ramping_out_until.is_none() {
             let q = config.workspace.orientation(state.orientation);
             let p = coupling.proxy;
+            let client_time_ns = (Instant::now() - origin).as_nanos() as u64 + 1;
+            sent_poses.push(client_time_ns, p);
             link.send(pb::ToolCommand {
                 tool: args.tool,
                 pose: Some(pb::Pose { position_m: Some(pb::Vec3 { x: p.0, y: p.1, z: p.2 }), orientation: Some(pb::Quaternion { w: q.0, x: q.1, y: q.2, z: q.3 }) }),
                 active: true,
                 cut: state.buttons & 1 == 1,
-                client_time_ns: (Instant::now() - origin).as_nanos() as u64 + 1,
+                client_time_ns,
                 feedback_every_steps: 1,
                 grip: state.grip,
             });
@@ -338,6 +361,32 @@ fn run(args: &Args) -> anyhow::Result<()> {
         std::fs::write(path, serde_json::to_string_pretty(&report)?).with_context(|| format!("cannot write {}", path.display()))?;
     }
     Ok(())
+}
+
+/// The proxy poses of the last commands sent, by their `client_time_ns`: an answer
+/// echoes the command it used, and the local model learns at that pose. A fixed ring
+/// (the device loop allocates nothing): answers come within a round trip, and an
+/// answer for a pose older than the ring holds is not learnt from.
+struct SentPoses {
+    poses: [(u64, V3); 256],
+    next: usize,
+}
+
+impl Default for SentPoses {
+    fn default() -> Self {
+        Self { poses: [(0, V3::default()); 256], next: 0 }
+    }
+}
+
+impl SentPoses {
+    fn push(&mut self, client_time_ns: u64, pose: V3) {
+        self.poses[self.next] = (client_time_ns, pose);
+        self.next = (self.next + 1) % self.poses.len();
+    }
+
+    fn find(&self, client_time_ns: u64) -> Option<V3> {
+        self.poses.iter().find(|(t, _)| *t == client_time_ns && client_time_ns != 0).map(|(_, pose)| *pose)
+    }
 }
 
 /// Calls `on_interrupt` on SIGINT or SIGTERM (the device loop then fades the force out).
