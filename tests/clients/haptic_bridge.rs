@@ -156,6 +156,32 @@ fn a_coupling_that_cannot_run_is_refused() {
     assert!(stderr.contains("coupling: local_max_stiffness_n_per_m must be a number of at least 0, got -5"), "{stderr}");
 }
 
+/// A server whose sessions wait a second for a client's commands before lifting its tool
+/// (`limits.stale_command_ms`, config written into `dir`), and a real-time session on
+/// the default scene.
+async fn patient_server_on_the_default_scene(dir: &TempDir) -> (Server, Created) {
+    let config = dir.0.join("config.json");
+    std::fs::write(&config, r#"{"limits": {"stale_command_ms": 1000}}"#).unwrap();
+    let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
+    let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+    (server, session)
+}
+
+/// A `CSD1` pose datagram (docs/haptic-bridge.md): the tool upright at `position_m`.
+fn pose_datagram(sequence: u32, clock: Duration, position_m: [f64; 3], buttons: u32, squeeze: f32) -> Vec<u8> {
+    let mut pose = Vec::with_capacity(80);
+    pose.extend_from_slice(b"CSD1");
+    pose.extend_from_slice(&sequence.to_le_bytes());
+    pose.extend_from_slice(&(clock.as_nanos() as u64).to_le_bytes());
+    for v in [position_m[0], position_m[1], position_m[2], 1.0, 0.0, 0.0, 0.0] {
+        pose.extend_from_slice(&v.to_le_bytes());
+    }
+    pose.extend_from_slice(&buttons.to_le_bytes());
+    pose.extend_from_slice(&squeeze.to_le_bytes());
+    assert_eq!(pose.len(), 80);
+    pose
+}
+
 /// A vendor driver's side of the UDP device protocol, played by the test: poses in,
 /// forces back, as docs/haptic-bridge.md describes. The driver's device has an analog
 /// gripper (buttons bit 1, its squeeze at offset 76): the bridge sends the squeeze with
@@ -184,16 +210,7 @@ async fn a_udp_device_driver_gets_forces_back() {
         let t = start.elapsed().as_secs_f64();
         let z = 0.005 - 0.008 * (t / 1.5).min(1.0);
         sequence += 1;
-        let mut pose = Vec::with_capacity(80);
-        pose.extend_from_slice(b"CSD1");
-        pose.extend_from_slice(&sequence.to_le_bytes());
-        pose.extend_from_slice(&(start.elapsed().as_nanos() as u64).to_le_bytes());
-        for v in [0.01f64, 0.01, z, 1.0, 0.0, 0.0, 0.0] {
-            pose.extend_from_slice(&v.to_le_bytes());
-        }
-        pose.extend_from_slice(&(1u32 << 1).to_le_bytes());
-        pose.extend_from_slice(&0.375f32.to_le_bytes());
-        assert_eq!(pose.len(), 80);
+        let pose = pose_datagram(sequence, start.elapsed(), [0.01, 0.01, z], 1 << 1, 0.375);
         driver.send_to(&pose, ("127.0.0.1", port)).unwrap();
         let mut buf = [0u8; 128];
         while let Ok((n, _)) = driver.recv_from(&mut buf) {
@@ -212,6 +229,60 @@ async fn a_udp_device_driver_gets_forces_back() {
     assert!(strongest > 0.05, "the driver felt the skin push back: {strongest} N");
     let squeezes: Vec<serde_json::Value> = recorded_commands(&server, &session, 1).await.iter().map(|c| c["grip"].clone()).collect();
     assert!(squeezes.len() > 100 && squeezes.iter().all(|g| g == 0.375), "every command carries the gripper's squeeze: {:?}", &squeezes[..squeezes.len().min(5)]);
+}
+
+/// A driver whose device has a force-feedback gripper, driving the default scene's
+/// forceps over UDP as `sim:grasp` does (lowered 6 mm into the skin, closed from 1.2 s
+/// with the gripper squeezed to half, lifted 10 mm from 1.6 s, let go at 3 s): the
+/// gripper is sent how hard the skin between the jaws pushes them apart (the f32 at
+/// offset 60 of each force datagram). Nothing while the jaws are open; held, half the
+/// forceps' 3 N grip, which the squeeze pinches with; let go, nothing again.
+#[tokio::test(flavor = "multi_thread")]
+async fn an_analog_gripper_is_sent_how_hard_the_jaws_are_pushed_apart() {
+    let _machine = alone().await;
+    // As in the grasp test below: the server waits a second for a busy bridge's commands.
+    let dir = TempDir::new("bridge-gripper");
+    let (server, session) = patient_server_on_the_default_scene(&dir).await;
+    let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let bridge = Command::new(BRIDGE)
+        .args(["--server", &format!("http://{}", server.grpc), "--session", &session.id, "--token", &session.control, "--tool", "2"])
+        .args(["--device", &format!("udp:127.0.0.1:{port}"), "--duration-s", "4", "--stale-ms", "1000", "--max-force-n", "3.3"])
+        .arg("--report")
+        .arg(dir.0.join("report.json"))
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let driver = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    driver.set_nonblocking(true).unwrap();
+    let start = std::time::Instant::now();
+    // (time, gripper force) of every force datagram.
+    let mut grip = Vec::new();
+    let mut sequence = 0u32;
+    while start.elapsed() < Duration::from_millis(3800) {
+        let t = start.elapsed().as_secs_f64();
+        let z = 0.005 - 0.011 * t.min(1.0) + 0.02 * (t - 1.6).clamp(0.0, 0.5);
+        let closed = (1.2..3.0).contains(&t);
+        sequence += 1;
+        let pose = pose_datagram(sequence, start.elapsed(), [0.01, 0.01, z], u32::from(closed) | 1 << 1, if closed { 0.5 } else { 0.0 });
+        driver.send_to(&pose, ("127.0.0.1", port)).unwrap();
+        let mut buf = [0u8; 128];
+        while let Ok((n, _)) = driver.recv_from(&mut buf) {
+            assert_eq!(n, 64);
+            grip.push((start.elapsed().as_secs_f64(), f64::from(f32::from_le_bytes(buf[60..64].try_into().unwrap()))));
+        }
+        std::thread::sleep(Duration::from_micros(900));
+    }
+    let out = tokio::task::spawn_blocking(move || bridge.wait_with_output()).await.unwrap().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.0.join("report.json")).unwrap()).unwrap();
+    let within = |from: f64, to: f64| -> Vec<f64> { grip.iter().filter(|g| g.0 > from && g.0 < to).map(|g| g.1).collect() };
+    let (open, held, let_go) = (within(0.2, 1.15), within(2.2, 2.95), within(3.3, 3.8));
+    let range = |v: &[f64]| v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+    println!("the gripper, open: {:?} N; held: {:?} N; let go: {:?} N; largest {} N", range(&open), range(&held), range(&let_go), report["max_grip_force_n"]);
+    assert!(open.len() > 500 && open.iter().all(|&g| g == 0.0), "open jaws: nothing pushes them apart: {:?}", range(&open));
+    assert!(held.len() > 500 && held.iter().all(|&g| (g - 1.5).abs() < 1e-6), "held, the skin pushes the jaws apart with the half grip squeezed: {:?}", range(&held));
+    assert!(let_go.len() > 300 && let_go.iter().all(|&g| g == 0.0), "let go: {:?}", range(&let_go));
+    assert!((report["max_grip_force_n"].as_f64().unwrap() - 1.5).abs() < 1e-6, "{report}");
 }
 
 /// A haptic client whose packets stop without the connection closing (its process
@@ -299,10 +370,7 @@ async fn forceps_lifting_a_fold_of_skin_are_felt_pulling_through_the_bridge() {
     // and lifted forceps let go of what they held: this test is about the grasp, so the
     // server waits a second, and the bridge renders the last force for as long.
     let dir = TempDir::new("bridge-grasp");
-    let config = dir.0.join("config.json");
-    std::fs::write(&config, r#"{"limits": {"stale_command_ms": 1000}}"#).unwrap();
-    let server = Server::start_with(&["--no-session", "--config", config.to_str().unwrap()]);
-    let session = create(&server, "skin-patch", pb::SessionMode::Realtime).await;
+    let (server, session) = patient_server_on_the_default_scene(&dir).await;
     assert_eq!(session.info.tools[2].name, "forceps");
     // A grasped fold is a stiff load on the coupling (the skin's pull changes by
     // newtons per millimetre of the jaws' motion) answered milliseconds late: with the

@@ -75,12 +75,17 @@ async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
     // (step, grasping, jaws' gap) of the forceps in every tool frame; the scalpel's gap.
     let seen = std::cell::RefCell::new(Vec::new());
     let scalpel_gap = std::cell::Cell::new(None);
+    // (step, how hard the lip pushes the jaws apart) of the forceps; the scalpel's.
+    let pushed = std::cell::RefCell::new(Vec::new());
+    let scalpel_pushed = std::cell::Cell::new(None);
     let watch = |v: &Viewer| {
         if let Some(states) = &v.last_tools {
             if let Some(forceps) = states.tools.get(2).filter(|t| t.active) {
                 seen.borrow_mut().push((states.step, forceps.grasping, forceps.jaws_gap_m));
+                pushed.borrow_mut().push((states.step, forceps.jaws_force_n));
             }
             scalpel_gap.set(scalpel_gap.get().or(states.tools.first().map(|t| t.jaws_gap_m)));
+            scalpel_pushed.set(scalpel_pushed.get().or(states.tools.first().map(|t| t.jaws_force_n)));
         }
         false
     };
@@ -95,6 +100,13 @@ async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
     assert!(gaps.iter().all(|g| (2.0 - 1e-9..=8.0 + 1e-9).contains(&g.2)), "the jaws never close past the lip they grasp: {gaps:?}");
     let held: Vec<&(u64, bool, f64)> = gaps.iter().filter(|g| (1200..1700).contains(&g.0)).collect();
     assert!(!held.is_empty() && held.iter().all(|g| g.1 && (g.2 - 2.0).abs() < 1e-9), "while they hold the lip, the jaws are stopped one skin thickness apart, grasping: {held:?}");
+    // Stopped on it, the jaws are pushed apart as hard as they pinch: the whole 3 N grip
+    // (the example squeezes with no analog gripper); let go of, by nothing.
+    let pushed = pushed.into_inner();
+    assert_eq!(scalpel_pushed.get(), Some(None), "a scalpel has no jaws to push apart");
+    let pushed_while_held: Vec<_> = pushed.iter().filter(|p| (1200..1700).contains(&p.0)).collect();
+    assert!(!pushed_while_held.is_empty() && pushed_while_held.iter().all(|p| p.1 == Some(3.0)), "while they hold the lip, the jaws are pushed apart with the grip: {pushed_while_held:?}");
+    assert!(pushed.iter().filter(|p| p.0 >= 1800).all(|p| p.1 == Some(0.0)), "let go of, nothing pushes the jaws apart: {pushed:?}");
     assert!(viewer.errors.is_empty(), "{:?}", viewer.errors);
 }
 

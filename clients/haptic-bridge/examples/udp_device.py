@@ -19,7 +19,9 @@ import time
 # 80 bytes: CSD1, sequence, device ns, position m, quaternion wxyz, buttons (bit 0: cut or
 # close the forceps; bit 1: the squeeze that follows is an analog gripper's), squeeze 0–1.
 POSE = struct.Struct("<4sIQ3d4dIf")
-FORCE = struct.Struct("<4sI3d3dII")  # 64 bytes: CSF1, sequence, force N, torque N·m, flags, reserved
+# 64 bytes: CSF1, sequence, force N, torque N·m, flags, the force to render on an analog
+# gripper against its squeeze N (forceps: how hard the jaws are pushed apart).
+FORCE = struct.Struct("<4sI3d3dIf")
 
 
 def main():
@@ -37,7 +39,7 @@ def main():
         try:
             while True:
                 data, _ = sock.recvfrom(128)
-                magic, seq, fx, fy, fz, _tx, _ty, _tz, flags, _ = FORCE.unpack(data)
+                magic, seq, fx, fy, fz, _tx, _ty, _tz, flags, _gripper_n = FORCE.unpack(data)
                 if magic == b"CSF1" and seq % 250 == 0:
                     print(f"t={t:5.2f} s  z={z * 1000:5.2f} mm  force=({fx:+.3f}, {fy:+.3f}, {fz:+.3f}) N  link {'ok' if flags & 1 else 'stale'}")
         except BlockingIOError:

@@ -29,8 +29,10 @@ pub trait Device: Send {
     fn name(&self) -> String;
     /// The newest state, `t` after the bridge started.
     fn read(&mut self, t: Duration) -> DeviceState;
-    /// Renders a force (device frame, N); `fresh` tells the device the link is healthy.
-    fn write_force(&mut self, force: V3, fresh: bool);
+    /// Renders a force (device frame, N) and, on an analog gripper, `grip_n` against the
+    /// squeeze (N: how hard the tissue between the forceps' jaws pushes them apart);
+    /// `fresh` tells the device the link is healthy.
+    fn write_force(&mut self, force: V3, grip_n: f64, fresh: bool);
 }
 
 /// A simulated stylus following a scripted trajectory in scene units (m).
@@ -78,7 +80,7 @@ impl Device for SimDevice {
         DeviceState { present: true, position_m, orientation: Quat::default(), buttons, grip: None }
     }
 
-    fn write_force(&mut self, _force: V3, _fresh: bool) {}
+    fn write_force(&mut self, _force: V3, _grip_n: f64, _fresh: bool) {}
 }
 
 /// Datagram sizes of the UDP device protocol.
@@ -127,7 +129,7 @@ pub fn decode_pose(b: &[u8]) -> Option<(u32, DeviceState)> {
     finite.then_some((sequence, DeviceState { present: true, position_m, orientation: q.normalized(), buttons, grip: grip.map(|g| g.clamp(0.0, 1.0)) }))
 }
 
-pub fn encode_force(sequence: u32, force: V3, fresh: bool) -> [u8; FORCE_DATAGRAM] {
+pub fn encode_force(sequence: u32, force: V3, grip_n: f64, fresh: bool) -> [u8; FORCE_DATAGRAM] {
     let mut b = [0u8; FORCE_DATAGRAM];
     b[..4].copy_from_slice(b"CSF1");
     b[4..8].copy_from_slice(&sequence.to_le_bytes());
@@ -135,6 +137,7 @@ pub fn encode_force(sequence: u32, force: V3, fresh: bool) -> [u8; FORCE_DATAGRA
         b[8 + 8 * k..16 + 8 * k].copy_from_slice(&c.to_le_bytes());
     }
     b[56..60].copy_from_slice(&u32::from(fresh).to_le_bytes());
+    b[60..64].copy_from_slice(&(grip_n as f32).to_le_bytes());
     b
 }
 
@@ -159,9 +162,9 @@ impl Device for UdpDevice {
         self.last
     }
 
-    fn write_force(&mut self, force: V3, fresh: bool) {
+    fn write_force(&mut self, force: V3, grip_n: f64, fresh: bool) {
         if let Some(peer) = self.peer {
-            let _ = self.socket.send_to(&encode_force(self.sequence, force, fresh), peer);
+            let _ = self.socket.send_to(&encode_force(self.sequence, force, grip_n, fresh), peer);
         }
     }
 }
@@ -192,8 +195,9 @@ mod tests {
             b[76..80].copy_from_slice(&squeeze.to_le_bytes());
             assert_eq!(decode_pose(&b).map(|(_, s)| s.grip.expect("a gripper")), read, "squeeze {squeeze}");
         }
-        let f = encode_force(7, V3(1.0, 2.0, 3.0), true);
+        let f = encode_force(7, V3(1.0, 2.0, 3.0), 1.5, true);
         assert_eq!(&f[..4], b"CSF1");
         assert_eq!(f64::from_le_bytes(f[24..32].try_into().unwrap()), 3.0);
+        assert_eq!(f32::from_le_bytes(f[60..64].try_into().unwrap()), 1.5, "the gripper's force at offset 60");
     }
 }

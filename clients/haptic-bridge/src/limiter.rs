@@ -15,18 +15,26 @@ pub struct Limits {
     pub stale_ms: f64,
     /// How long the force takes to fade to zero once answers are stale, ms.
     pub ramp_ms: f64,
+    /// An analog gripper's rated force, N (the force the forceps' jaws are pushed apart
+    /// with, rendered against the squeeze, is limited to it, at the same rate limit).
+    pub max_grip_force_n: f64,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        // A PHANToM Omni class device: 3.3 N rated.
-        Self { max_force_n: 3.3, max_force_rate_n_per_s: 100.0, stale_ms: 20.0, ramp_ms: 50.0 }
+        // A PHANToM Omni class device: 3.3 N rated. A gripper rendering force: 8 N (a
+        // Force Dimension omega.7's, the vendor's figure).
+        Self { max_force_n: 3.3, max_force_rate_n_per_s: 100.0, stale_ms: 20.0, ramp_ms: 50.0, max_grip_force_n: 8.0 }
     }
 }
 
 impl Limits {
+    /// The limits of an analog gripper's force: its own rated force, the rest alike.
+    pub fn of_gripper(&self) -> Limits {
+        Limits { max_force_n: self.max_grip_force_n, ..*self }
+    }
     pub fn check(&self) -> Result<(), String> {
-        for (name, v) in [("max_force_n", self.max_force_n), ("max_force_rate_n_per_s", self.max_force_rate_n_per_s), ("stale_ms", self.stale_ms), ("ramp_ms", self.ramp_ms)] {
+        for (name, v) in [("max_force_n", self.max_force_n), ("max_force_rate_n_per_s", self.max_force_rate_n_per_s), ("stale_ms", self.stale_ms), ("ramp_ms", self.ramp_ms), ("max_grip_force_n", self.max_grip_force_n)] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{name} must be a positive number, got {v}"));
             }
@@ -90,7 +98,7 @@ mod tests {
 
     #[test]
     fn clamps_limits_rate_and_ramps() {
-        let limits = Limits { max_force_n: 1.0, max_force_rate_n_per_s: 100.0, stale_ms: 20.0, ramp_ms: 50.0 };
+        let limits = Limits { max_force_n: 1.0, max_force_rate_n_per_s: 100.0, stale_ms: 20.0, ramp_ms: 50.0, max_grip_force_n: 8.0 };
         let mut l = Limiter::new(limits);
         let mut prev = V3::default();
         for _ in 0..100 {

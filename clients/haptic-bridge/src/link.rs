@@ -23,6 +23,8 @@ pub struct Answer {
     pub resistance: V3,
     /// The tool grasps tissue (forceps stopped on what they hold).
     pub grasping: bool,
+    /// How hard what lies between the forceps' jaws pushes them apart, N (0: other tools).
+    pub jaws_force_n: f64,
     /// `client_time_ns` of the command whose pose the answer is for (0: none yet).
     pub echo_client_time_ns: u64,
     pub received: Instant,
@@ -133,7 +135,7 @@ async fn run(
                     let now = Instant::now();
                     let force = f.force_n.map_or(V3::default(), |v| V3(v.x, v.y, v.z));
                     let resistance = f.resistance_n.map_or(V3::default(), |v| V3(v.x, v.y, v.z));
-                    answer.store(Some(Arc::new(Answer { force, resistance, grasping: f.grasping, echo_client_time_ns: f.echo_client_time_ns, received: now })));
+                    answer.store(Some(Arc::new(Answer { force, resistance, grasping: f.grasping, jaws_force_n: f.jaws_force_n, echo_client_time_ns: f.echo_client_time_ns, received: now })));
                     if f.echo_client_time_ns != 0 && f.echo_client_time_ns != last_echo {
                         last_echo = f.echo_client_time_ns;
                         let rtt = (now.duration_since(origin).as_nanos() as u64).saturating_sub(f.echo_client_time_ns) / 1000;

@@ -67,7 +67,7 @@ struct Args {
     /// Write statistics as JSON here at exit.
     #[arg(long)]
     report: Option<PathBuf>,
-    /// Write every millisecond's rendered force as CSV here (t_s, fx, fy, fz, magnitude, fresh, connected).
+    /// Write every millisecond's rendered force as CSV here (t_s, fx, fy, fz, magnitude, fresh, connected, grip_n).
     #[arg(long)]
     trace: Option<PathBuf>,
     /// JSON file with `workspace`, `coupling` and `limits` (flags override it).
@@ -129,6 +129,8 @@ struct Report {
     stale_steps: u64,
     /// Ticks whose fresh answer said the tool grasps tissue (the coupling's grasp damper).
     grasping_steps: u64,
+    /// The largest force sent to an analog gripper, N (the forceps' jaws pushed apart).
+    max_grip_force_n: f64,
     /// The largest tissue stiffness the coupling's local model learnt, N/m.
     max_local_stiffness_n_per_m: f64,
     rtt_samples: usize,
@@ -221,7 +223,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
         None => None,
     };
     if let Some(t) = trace.as_mut() {
-        writeln!(t, "t_s,fx_n,fy_n,fz_n,magnitude_n,fresh,connected")?;
+        writeln!(t, "t_s,fx_n,fy_n,fz_n,magnitude_n,fresh,connected,grip_n")?;
     }
 
     precise_timers();
@@ -229,10 +231,12 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let dt_s = dt.as_secs_f64();
     let mut coupling = Coupling::new(config.coupling);
     let mut limiter = Limiter::new(config.limits);
+    let mut grip_limiter = Limiter::new(config.limits.of_gripper());
     let mut report = Report { device: device.name(), session: args.session.clone(), tool: args.tool, config, ..Default::default() };
     // The last tick's start and the device's position then.
     let mut previous = None::<(Instant, V3)>;
     let mut previous_force = V3::default();
+    let mut previous_grip_n = 0.0;
     // The poses sent lately, to find the one an answer is for; the newest answer's echo.
     let mut sent_poses = SentPoses::default();
     let mut last_answer = None::<Instant>;
@@ -247,7 +251,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
             ramping_out_until = Some(now + Duration::from_secs_f64(config.limits.ramp_ms / 1e3 + 0.5));
         }
         if let Some(until) = ramping_out_until
-            && (previous_force.norm() == 0.0 || now >= until)
+            && ((previous_force.norm() == 0.0 && previous_grip_n == 0.0) || now >= until)
         {
             break;
         }
@@ -285,7 +289,13 @@ fn run(args: &Args) -> anyhow::Result<()> {
             wanted = wanted + pulse.step(elapsed_s, w.warnings.load(Ordering::Acquire), tissue);
         }
         let force = limiter.apply(config.workspace.force_to_device(wanted), fresh, elapsed_s);
-        device.write_force(force, fresh);
+        // The gripper's force goes as the answer came (the squeeze is the hand's, not the
+        // proxy's), through limits of its own.
+        let jaws_force_n = if fresh { answer.as_ref().map_or(0.0, |a| a.jaws_force_n) } else { 0.0 };
+        let grip_n = grip_limiter.apply(V3(jaws_force_n, 0.0, 0.0), fresh, elapsed_s).0;
+        device.write_force(force, grip_n, fresh);
+        report.max_grip_force_n = report.max_grip_force_n.max(grip_n);
+        previous_grip_n = grip_n;
 
         if state.present && ramping_out_until.is_none() {
             let q = config.workspace.orientation(state.orientation);
@@ -311,7 +321,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
         report.stale_steps += u64::from(!fresh);
         previous_force = force;
         if let Some(t) = trace.as_mut() {
-            writeln!(t, "{:.6},{},{},{},{},{},{}", (now - origin).as_secs_f64(), force.0, force.1, force.2, force.norm(), u8::from(fresh), u8::from(connected))?;
+            writeln!(t, "{:.6},{},{},{},{},{},{},{}", (now - origin).as_secs_f64(), force.0, force.1, force.2, force.norm(), u8::from(fresh), u8::from(connected), grip_n)?;
         }
 
         // Ticks are due every millisecond. After one the OS delayed by less than a tick

@@ -248,6 +248,7 @@ pub fn tool_states(frame: &Frame) -> pb::ToolStates {
                 cutting: t.feedback.cutting,
                 jaws_gap_m: t.jaws_half_gap_m.map(|h| 2.0 * h),
                 grasping: t.feedback.grasping,
+                jaws_force_n: t.jaws_half_gap_m.map(|_| t.feedback.jaws_force_n),
             })
             .collect(),
     }

@@ -204,6 +204,7 @@ impl Stream for FeedbackStream {
                     tool: tool as u32,
                     resistance_n: Some(convert::vec3(&r.feedback.resistance_n)),
                     grasping: r.feedback.grasping,
+                    jaws_force_n: r.feedback.jaws_force_n,
                 });
             }
         }

@@ -177,11 +177,19 @@ pub struct ToolFeedback {
     /// millimetre, which a haptic coupling damps more firmly (docs/haptic-bridge.md,
     /// "Grasping through the bridge").
     pub grasping: bool,
+    /// Forceps: how hard what lies between the jaws pushes them apart, N — what an
+    /// analog gripper renders against the hand's squeeze (docs/haptic-bridge.md). Jaws
+    /// stopped on tissue are closed by force, so it pushes back as hard as they pinch
+    /// (the squeeze's share of the grip: [`ToolCommand::grip_n`]); grid jaws still
+    /// closing feel the lesser of the two jaws' outward forces; open jaws, jaws closing
+    /// on nothing and other tools, 0. (Not hashed: it follows from the jaws' hashed
+    /// state and the bodies' feedback.)
+    pub jaws_force_n: f64,
 }
 
 impl crate::hash::HashState for ToolFeedback {
     fn hash_state(&self, h: &mut crate::hash::StateHasher) {
-        let Self { force_n, torque_nm, contacts, cutting, force_clamped, resistance_n, grasping } = self;
+        let Self { force_n, torque_nm, contacts, cutting, force_clamped, resistance_n, grasping, jaws_force_n: _ } = self;
         (force_n, torque_nm).hash_state(h);
         (contacts, cutting).hash_state(h);
         (force_clamped, grasping).hash_state(h);

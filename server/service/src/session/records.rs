@@ -88,7 +88,7 @@ impl FeedbackRecord {
             r.x.to_bits(),
             r.y.to_bits(),
             r.z.to_bits(),
-            0,
+            self.feedback.jaws_force_n.to_bits(),
         ]
     }
 
@@ -104,6 +104,7 @@ impl FeedbackRecord {
                 force_clamped: (w[7] >> 33) & 1 == 1,
                 grasping: (w[7] >> 34) & 1 == 1,
                 resistance_n: Vec3::new(f(11), f(12), f(13)),
+                jaws_force_n: f(14),
             },
             echo_client_time_ns: w[8],
             server_latency_ns: w[9],
@@ -149,6 +150,7 @@ mod tests {
                 force_clamped: false,
                 resistance_n: Vec3::new(-0.5, 0.25, 0.0),
                 grasping: true,
+                jaws_force_n: 2.5,
             },
             echo_client_time_ns: 11,
             server_latency_ns: 12,

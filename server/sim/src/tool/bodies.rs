@@ -288,6 +288,21 @@ impl Bodies {
         if least.is_finite() { least.max(0.0) } else { 0.0 }
     }
 
+    /// How hard what lies between tool `tool`'s jaws pushes them apart, N
+    /// ([`ToolFeedback::jaws_force_n`]): jaws stopped on it are closed by force and pinch
+    /// with the grip, which it pushes back with; jaws closing push it aside against the
+    /// lesser of their outward forces in the last step ([`Bodies::squeeze_n`], none on
+    /// the skin, whose jaws stop on its fold at once), never more than the grip.
+    fn jaws_force_n(&self, tool: usize) -> f64 {
+        if self.holding(tool) {
+            self.grip_n[tool]
+        } else if self.closing[tool] && self.met[tool] {
+            self.squeeze_n(tool).min(self.grip_n[tool])
+        } else {
+            0.0
+        }
+    }
+
     /// Tool `tool`'s jaws' half gap now, m (None for a tool without jaws).
     pub fn jaws_half_gap_m(&self, tool: usize) -> Option<f64> {
         self.first_jaw(tool).map(|_| self.half_gap_m(tool))
@@ -372,6 +387,7 @@ impl Bodies {
         }
         for (tool, fb) in feedback.iter_mut().enumerate() {
             fb.grasping = self.grasping(tool);
+            fb.jaws_force_n = self.jaws_force_n(tool);
         }
         let mut clamped = 0;
         for (fb, tool) in feedback.iter_mut().zip(tools) {
