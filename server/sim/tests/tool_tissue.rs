@@ -2080,11 +2080,22 @@ fn forceps_closed_on_the_grid_grasp_it_by_friction_and_lift_it() {
     let mut model = cutsim_sim::multirate::build_from_scene(&scene, &schedule).unwrap();
     let top = model.with_grid(|g| g.broad_top().unwrap());
     let mut feedback = vec![cutsim_sim::tool::ToolFeedback::default()];
-    // The paced jaws take 0.66 s to close.
+    // The paced jaws take 0.66 s to close. The haptic loop's feedback also says how hard
+    // the jaws are pushed apart (for an analog gripper): stopped on the tissue, the grip.
+    // (Closing on it, before they stop, the lesser of their outward forces.)
+    let (mut pushed_apart, mut grasping_steps) = (Vec::new(), 0);
     let multi = grasp_and_lift_grid(top, 840, |command| {
         model.step(&[command], &mut feedback);
+        if feedback[0].grasping {
+            pushed_apart.push(feedback[0].jaws_force_n);
+            grasping_steps += 1;
+        }
         (feedback[0].force_n.z, model.jaws_half_gap_m(0).unwrap(), model.with_grid(|g| surface_on(g, &command)))
     });
+    let stopped = pushed_apart.iter().filter(|&&f| f == 3.0).count();
+    let closing_on_it = pushed_apart.iter().all(|&f| (0.0..=3.0).contains(&f));
+    println!("  multirate: grasping for {grasping_steps} steps, the jaws pushed apart with the 3 N grip on {stopped} of them, the last {:?} N", pushed_apart.last());
+    assert!(grasping_steps > 800 && stopped > 800 && closing_on_it && pushed_apart.last() == Some(&3.0), "multirate: grasping for {grasping_steps} steps, the jaws pushed apart with the grip on {stopped}");
     println!("  multirate (deformation every 33 ms): stopped {:.2} mm apart; the tissue rose {:.2} mm, pulling back with up to {:.2} N, {:.2} N at the end; released, {:.3} N", 2e3 * multi.stopped_half_gap_m, multi.rise_m * 1e3, multi.pull_n, multi.held_n, multi.released_n);
     assert!((multi.stopped_half_gap_m - 5e-4).abs() < 1e-5 && multi.held_n > 0.5 && multi.pull_n <= 1.05 * limit(3.0) && multi.released_n.abs() < 0.05, "{multi:?}");
 }
