@@ -104,6 +104,7 @@ pub struct Stopped {
 /// [`run`], calling `after_step(tissue, commands, feedback)` after every step (the
 /// server publishes deltas and frames and records commands there; it is not timed); the
 /// hook may stop the run.
+#[allow(clippy::too_many_arguments)]
 pub fn run_with_hook(
     tissue: &mut dyn Tissue,
     scene_name: &str,

@@ -135,7 +135,7 @@ fn short_refusal(message: &str) -> String {
 fn percent(e: Option<f64>) -> String {
     match e {
         None => "–".into(),
-        Some(e) if e == 0.0 => "0 (the reference)".into(),
+        Some(0.0) => "0 (the reference)".into(),
         Some(e) => format!("{:.2} %", 100.0 * e),
     }
 }

@@ -209,6 +209,10 @@ impl Progress {
     }
 }
 
+/// A study: its name, its problem (the scene under gravity), the scene as users run it
+/// (timed), its settings, and the levels of its weighting comparison.
+type Plan = (String, Problem, Scene, Vec<Setting>, Vec<u32>);
+
 fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     let (warmup, steps) = if quick { (20, 80) } else { (50, 300) };
     let all = problems().map_err(|e| e.to_string())?;
@@ -218,7 +222,7 @@ fn sweep(quick: bool, out: &Path) -> Result<(), String> {
     let dt = 0.001;
     // (study, problem (its scene under gravity), the scene as users run it (timed), settings,
     // levels for the weighting comparison).
-    let mut plans: Vec<(String, Problem, Scene, Vec<Setting>, Vec<u32>)> = Vec::new();
+    let mut plans: Vec<Plan> = Vec::new();
     let mut cantilever_settings = Vec::new();
     for level in 0..=3 {
         for mass in [MassSpec::Lumped, MassSpec::Consistent] {

@@ -228,6 +228,8 @@ impl BranchedGrid {
         None
     }
 
+    // The parts the builder made, each once: a struct of them would only be unpacked here.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn assemble(
         dt_s: f64,
         frame: Frame,

@@ -129,16 +129,23 @@ pub fn static_hierarchy(topo: &Topology, k: &BlockMatrix<f64>, active: &[bool]) 
 /// dense factor of 3,000 unknowns: 72 MB, seconds to make).
 pub const STATIC_COARSEST_UNKNOWNS: usize = 3_000;
 
+/// What a rebuild of the hierarchy reads: the coarsening, and which fine unknowns are
+/// active (not held).
+type RebuildInput = (Arc<Coarsening>, Arc<Vec<bool>>);
+
+/// A rebuild out with the worker: its due step, its topology generation, and its input.
+type PendingRebuild = (u64, u64, Arc<Coarsening>, Arc<Vec<bool>>);
+
 /// The multigrid preconditioner's state (see the module docs).
 #[derive(Debug, Default)]
 pub struct Multigrid {
     current: Option<Box<Levels>>,
     /// A rebuild out with the worker: its due step, the topology generation it is for,
     /// and what it reads (kept so that a clone can redo it).
-    pending: Option<(u64, u64, Arc<Coarsening>, Arc<Vec<bool>>)>,
+    pending: Option<PendingRebuild>,
     /// A clone's copy of its original's pending result, computed when it was cloned.
     precomputed: Option<Box<Levels>>,
-    worker: Option<Background<(Arc<Coarsening>, Arc<Vec<bool>>), Box<Levels>>>,
+    worker: Option<Background<RebuildInput, Box<Levels>>>,
     /// One more for every topology change: results for an older one are dropped.
     generation: u64,
     /// A cut made the hierarchy stale: a new one is asked of the worker.

@@ -549,6 +549,9 @@ impl Tissue for Multirate {
         Some(1.0 / (self.dt_s * self.every as f64))
     }
 
+    // The session's tools are the scene's; `self.tools` are the bodies they move (forceps
+    // as two jaws).
+    #[allow(clippy::misnamed_getters)]
     fn tools(&self) -> &[ToolShape] {
         &self.scene_tools
     }
