@@ -259,9 +259,10 @@ fn print_report(name: &str, r: &pb::ScriptReport) {
     println!("pieces           {}", r.pieces);
     println!("max tool force   {:.4} N", r.max_tool_force_n);
     for t in &r.tools {
-        match t.grasping_s > 0.0 {
-            true => println!("  {:<14} {:.4} N, grasping {:.3} s", t.name, t.max_force_n, t.grasping_s),
-            false => println!("  {:<14} {:.4} N", t.name, t.max_force_n),
+        if t.grasping_s > 0.0 {
+            println!("  {:<14} {:.4} N, grasping {:.3} s", t.name, t.max_force_n, t.grasping_s);
+        } else {
+            println!("  {:<14} {:.4} N", t.name, t.max_force_n);
         }
     }
     println!("state_hash       {}", r.state_hash);

@@ -33,6 +33,7 @@ impl Limits {
     pub fn of_gripper(&self) -> Limits {
         Limits { max_force_n: self.max_grip_force_n, ..*self }
     }
+
     pub fn check(&self) -> Result<(), String> {
         for (name, v) in [("max_force_n", self.max_force_n), ("max_force_rate_n_per_s", self.max_force_rate_n_per_s), ("stale_ms", self.stale_ms), ("ramp_ms", self.ramp_ms), ("max_grip_force_n", self.max_grip_force_n)] {
             if !(v.is_finite() && v > 0.0) {

@@ -87,11 +87,12 @@ impl LocalModel {
     }
 
     /// The elastic force on the proxy at `x`, where the newest answer's elastic force is
-    /// `answer`: carried along its direction by the stiffness learnt, if it is the answer
-    /// the model was told of ([`LocalModel::answered`]); else, or with no stiffness
-    /// learnt yet, the answer itself.
+    /// `answer`: carried along its direction by the stiffness learnt. With no stiffness
+    /// learnt, or no answer learnt from (forgotten: [`LocalModel::forget`]), the answer
+    /// itself. The caller tells the model of every answer it passes here, or forgets.
     pub fn force_at(&self, x: V3, answer: V3) -> V3 {
-        let Some((at, elastic)) = self.anchor.filter(|&(_, elastic)| elastic == answer) else { return answer };
+        let Some((at, elastic)) = self.anchor else { return answer };
+        debug_assert_eq!(elastic, answer, "the model was told of the answer it carries");
         if self.stiffness_n_per_m == 0.0 {
             return answer;
         }

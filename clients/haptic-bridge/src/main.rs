@@ -267,8 +267,9 @@ fn run(args: &Args) -> anyhow::Result<()> {
         let fresh = ramping_out_until.is_none()
             && connected
             && answer.as_ref().is_some_and(|a| now.duration_since(a.received).as_secs_f64() * 1e3 <= config.limits.stale_ms);
-        let (tissue, resistance, grasping) = if fresh { answer.as_ref().map_or_else(Default::default, |a| (a.force, a.resistance, a.grasping)) } else { Default::default() };
-        match answer.as_ref().filter(|_| fresh) {
+        let fresh_answer = answer.as_deref().filter(|_| fresh);
+        let (tissue, resistance, grasping, jaws_force_n) = fresh_answer.map_or_else(Default::default, |a| (a.force, a.resistance, a.grasping, a.jaws_force_n));
+        match fresh_answer {
             // Each new answer teaches the local model, at the pose it answered (a server
             // catching up answers one pose several times, as the tissue moves on).
             Some(a) if Some(a.received) != last_answer => {
@@ -291,7 +292,6 @@ fn run(args: &Args) -> anyhow::Result<()> {
         let force = limiter.apply(config.workspace.force_to_device(wanted), fresh, elapsed_s);
         // The gripper's force goes as the answer came (the squeeze is the hand's, not the
         // proxy's), through limits of its own.
-        let jaws_force_n = if fresh { answer.as_ref().map_or(0.0, |a| a.jaws_force_n) } else { 0.0 };
         let grip_n = grip_limiter.apply(V3(jaws_force_n, 0.0, 0.0), fresh, elapsed_s).0;
         device.write_force(force, grip_n, fresh);
         report.max_grip_force_n = report.max_grip_force_n.max(grip_n);
@@ -394,8 +394,14 @@ impl SentPoses {
         self.next = (self.next + 1) % self.poses.len();
     }
 
+    /// The pose sent with `client_time_ns`, looked for from the newest (an answer is for
+    /// one of the last few).
     fn find(&self, client_time_ns: u64) -> Option<V3> {
-        self.poses.iter().find(|(t, _)| *t == client_time_ns && client_time_ns != 0).map(|(_, pose)| *pose)
+        if client_time_ns == 0 {
+            return None;
+        }
+        let (older, newer) = self.poses.split_at(self.next);
+        newer.iter().chain(older).rev().find(|(t, _)| *t == client_time_ns).map(|(_, pose)| *pose)
     }
 }
 

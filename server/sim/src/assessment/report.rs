@@ -102,9 +102,9 @@ fn metric_rows(a: &Assessment) -> Vec<(&'static str, String)> {
     ]
 }
 
-
 /// A point in the plot's plane, m.
 type Point2 = (f64, f64);
+
 /// The plan (its band shaded, the line dashed), the cut path per stroke and the no-go
 /// regions, seen along the plan's normal; 10 mm scale bar.
 fn plan_figure(task: &Task, history: &History) -> String {
@@ -120,7 +120,7 @@ fn plan_figure(task: &Task, history: &History) -> String {
     let v = normal.cross(&u);
     let flat = |p: &Vec3| (p.dot(&u), p.dot(&v));
     let band = task.plan.as_ref().map_or(0.0, |p| p.band_m);
-    let mut points: Vec<(f64, f64)> = plan.iter().chain(cut.iter().map(|(_, p)| p)).map(flat).collect();
+    let mut points: Vec<Point2> = plan.iter().chain(cut.iter().map(|(_, p)| p)).map(flat).collect();
     // Each no-go region's name and its box's lower and upper corners in the plot's plane.
     let boxes: Vec<(String, Point2, Point2)> = task
         .no_go
