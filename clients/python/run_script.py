@@ -65,7 +65,7 @@ def main() -> int:
         return 2
     print(f"{report.scene}: {report.steps} steps, {report.cuts} cut(s), incision {report.incision_length_m * 1000:.1f} mm, state_hash {report.state_hash}")
     for t in report.tools:
-        grasping = f", grasping {t.grasping_s:.3f} s" if t.grasping_s > 0 else ""
+        grasping = f", grasping {t.grasping_s:.3f} s, pinching at most {t.max_jaws_force_n:.2f} N" if t.grasping_s > 0 else ""
         print(f"tool {t.name}: largest force {t.max_force_n:.2f} N{grasping}")
     for e in report.expectations:
         print(f"{'PASS' if e.passed else 'FAIL'} {e.name}: expected {e.expected}, got {e.actual}")

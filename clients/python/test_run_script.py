@@ -49,6 +49,12 @@ class RunScriptExample(unittest.TestCase):
         self.assertRegex(result.stdout, r"tool scalpel: largest force [1-9][0-9.]* N")
         self.assertIn("tool forceps: largest force 0.00 N", result.stdout)
 
+    def test_forceps_report_their_grasp_and_pinch(self):
+        result = self.run_example(REPO / "clients" / "cut-bot" / "examples" / "skin-patch-retract.json")
+        self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
+        self.assertRegex(result.stdout, r"tool forceps: largest force [0-9.]+ N, grasping 0\.[0-9]+ s, pinching at most 3\.00 N")
+        self.assertIn("PASS tools.forceps.max_jaws_force_n", result.stdout)
+
     def test_failed_expectation_exits_1(self):
         text = (REPO / "clients" / "cut-bot" / "examples" / "skin-patch-straight.json").read_text()
         with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:

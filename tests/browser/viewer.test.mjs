@@ -91,7 +91,8 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
         const panel = window.cutsimViewer.panels.get(id);
         const a = panel?.assessment;
         const text = (role) => panel.el.querySelector(`[data-role="${role}"]`).textContent;
-        return a && a.steps === 1500 && { score: a.score, passed: a.passed, plan: Boolean(panel.planLine), verdict: text('verdict'), coverage: text('coverage'), task: text('task-text') };
+        const gripShown = !panel.el.querySelector('[data-role="grip"]').hidden;
+        return a && a.steps === 1500 && { score: a.score, passed: a.passed, plan: Boolean(panel.planLine), verdict: text('verdict'), coverage: text('coverage'), task: text('task-text'), gripShown, peakGrip: a.peak_grip_force_n };
       }, id),
     );
     assert.equal(task.passed, report.assessment.passed, 'the page shows the report\'s verdict');
@@ -99,6 +100,7 @@ test('the viewer shows sessions, follows a cut and recovers after a restart', as
     assert.equal(task.verdict, report.assessment.passed ? 'passed' : 'failed');
     assert.match(task.task, /straight 40 mm incision/);
     assert.ok(task.plan, 'the planned incision is drawn');
+    assert.deepEqual([task.gripShown, task.peakGrip], [false, 0], 'a scalpel pinches nothing: no grip shown');
     await page.locator(`.panel[data-session="${id}"]`).screenshot({ path: path.join(artifacts, 'viewer-assessment.png') });
 
     // The printable report: a download of its own, with the verdict and both figures.

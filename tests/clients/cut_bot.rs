@@ -50,13 +50,17 @@ fn example_scripts_pass_and_a_tampered_one_fails_readably() {
         let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
         assert_eq!(report["passed"], true);
         if script.ends_with("skin-patch-retract.json") {
-            // Each tool's own largest force, and how long the forceps grasped: printed, in
-            // the JUnit properties, and checked.
-            assert!(text(&out).contains("PASS tools.forceps.max_force_n") && text(&out).contains("PASS tools.forceps.grasping_s"), "{}", text(&out));
-            assert!(text(&out).lines().any(|l| l.trim_start().starts_with("forceps ") && l.contains(" N, grasping ") && l.ends_with(" s")), "{}", text(&out));
+            // Each tool's own largest force, how long the forceps grasped and how hard they
+            // pinched: printed, in the JUnit properties, and checked.
+            for expectation in ["max_force_n", "grasping_s", "max_jaws_force_n"] {
+                assert!(text(&out).contains(&format!("PASS tools.forceps.{expectation}")), "{}", text(&out));
+            }
+            assert!(text(&out).lines().any(|l| l.trim_start().starts_with("forceps ") && l.contains(" N, grasping ") && l.ends_with(", pinching at most 3.00 N")), "{}", text(&out));
+            assert!(text(&out).lines().any(|l| l.trim() == "peak grip 3.00 N"), "the assessment's hardest pinch: {}", text(&out));
             assert!(text(&out).lines().any(|l| l.trim_start().starts_with("scalpel ") && l.ends_with(" N")), "{}", text(&out));
             let xml = std::fs::read_to_string(&junit).unwrap();
             assert!(xml.contains("<property name=\"max_force_n.forceps\"") && xml.contains("<property name=\"grasping_s.forceps\" value=\"0.8"), "{xml}");
+            assert!(xml.contains("<property name=\"max_jaws_force_n.forceps\" value=\"3\"/>") && xml.contains("<property name=\"assessment.peak_grip_force_n\" value=\"3\"/>"), "{xml}");
         }
     }
 

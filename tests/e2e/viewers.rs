@@ -89,7 +89,7 @@ async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
         }
         false
     };
-    run_script_watched(&server, &session, &example_script("skin-patch-retract.json"), &mut viewer, watch).await;
+    let report = run_script_watched(&server, &session, &example_script("skin-patch-retract.json"), &mut viewer, watch).await;
     let seen = seen.into_inner();
     let mut gaps: Vec<(u64, bool, f64)> = seen.iter().map(|&(step, grasping, gap)| (step, grasping, gap.map_or(f64::NAN, |g| g * 1e3))).collect();
     gaps.dedup_by_key(|g| g.0);
@@ -107,6 +107,10 @@ async fn viewers_see_the_forceps_jaws_stopped_on_what_they_grasp() {
     let pushed_while_held: Vec<_> = pushed.iter().filter(|p| (1200..1700).contains(&p.0)).collect();
     assert!(!pushed_while_held.is_empty() && pushed_while_held.iter().all(|p| p.1 == Some(3.0)), "while they hold the lip, the jaws are pushed apart with the grip: {pushed_while_held:?}");
     assert!(pushed.iter().filter(|p| p.0 >= 1800).all(|p| p.1 == Some(0.0)), "let go of, nothing pushes the jaws apart: {pushed:?}");
+    // The run's report and the trainee's metrics keep the hardest pinch: the grip.
+    let pinched: Vec<f64> = report.tools.iter().map(|t| t.max_jaws_force_n).collect();
+    assert_eq!(pinched, [0.0, 0.0, 3.0], "only the forceps pinch, with their grip");
+    assert_eq!(report.assessment.as_ref().map(|a| (a.peak_grip_force_n, a.time_above_grip_limit_s)), Some((3.0, None)), "the scene's task sets no grip limit");
     assert!(viewer.errors.is_empty(), "{:?}", viewer.errors);
 }
 

@@ -105,6 +105,7 @@ export class SessionPanel {
               <dt>strokes</dt><dd data-role="strokes">–</dd>
               <dt>path</dt><dd data-role="path">–</dd>
               <dt>peak force</dt><dd data-role="peak">–</dd>
+              <dt data-role="grip-label" hidden>peak grip</dt><dd data-role="grip" hidden>–</dd>
               <dt>no-go</dt><dd data-role="nogo">–</dd>
             </dl>
             <ul class="warnings" data-role="warnings"></ul>
@@ -565,6 +566,11 @@ export class SessionPanel {
     set('strokes', `${a.strokes}`);
     set('path', `${a.path_length_mm.toFixed(0)} mm${a.economy_of_motion == null ? '' : `, economy ${a.economy_of_motion.toFixed(2)}`}`);
     set('peak', `${a.peak_force_n.toFixed(2)} N${a.time_above_force_limit_s ? `, ${a.time_above_force_limit_s.toFixed(2)} s over the limit` : ''}`);
+    // The forceps' hardest pinch, once there was one (or the task limits it).
+    const grip = a.peak_grip_force_n > 0 || a.time_above_grip_limit_s != null;
+    this.field('grip-label').hidden = !grip;
+    this.field('grip').hidden = !grip;
+    set('grip', `${a.peak_grip_force_n.toFixed(2)} N${a.time_above_grip_limit_s ? `, ${a.time_above_grip_limit_s.toFixed(2)} s over the limit` : ''}`);
     set('nogo', a.no_go_entries ? `${a.no_go_entries} entr${a.no_go_entries === 1 ? 'y' : 'ies'}` : 'none');
     // Warnings as they happened, newest first (text, never markup).
     const list = this.field('warnings');

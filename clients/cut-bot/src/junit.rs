@@ -25,7 +25,13 @@ pub fn render(script: &str, report: &pb::ScriptReport, elapsed: Duration) -> Str
     .into_iter()
     .chain(assessment_properties(report.assessment.as_ref()))
     .map(|(name, value)| (name.to_owned(), value))
-    .chain(report.tools.iter().flat_map(|t| [(format!("max_force_n.{}", t.name), t.max_force_n.to_string()), (format!("grasping_s.{}", t.name), t.grasping_s.to_string())]))
+    .chain(report.tools.iter().flat_map(|t| {
+        [
+            (format!("max_force_n.{}", t.name), t.max_force_n.to_string()),
+            (format!("grasping_s.{}", t.name), t.grasping_s.to_string()),
+            (format!("max_jaws_force_n.{}", t.name), t.max_jaws_force_n.to_string()),
+        ]
+    }))
     {
         let _ = writeln!(out, "      <property name=\"{name}\" value=\"{}\"/>", escape(&value));
     }
@@ -66,6 +72,8 @@ fn assessment_properties(a: Option<&pb::Assessment>) -> Vec<(&'static str, Strin
         Some(("assessment.peak_force_n", a.peak_force_n.to_string())),
         Some(("assessment.mean_force_n", a.mean_force_n.to_string())),
         optional("assessment.time_above_force_limit_s", a.time_above_force_limit_s),
+        Some(("assessment.peak_grip_force_n", a.peak_grip_force_n.to_string())),
+        optional("assessment.time_above_grip_limit_s", a.time_above_grip_limit_s),
         optional("assessment.log_dimensionless_jerk", a.log_dimensionless_jerk),
         Some(("assessment.no_go_entries", a.no_go_entries.to_string())),
         (!a.failures.is_empty()).then(|| ("assessment.failures", a.failures.join("; "))),

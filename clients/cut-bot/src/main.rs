@@ -247,6 +247,9 @@ fn print_assessment(a: &pb::Assessment) {
         a.path_length_mm,
         a.peak_force_n
     );
+    if a.peak_grip_force_n > 0.0 {
+        println!("  peak grip {:.2} N{}", a.peak_grip_force_n, a.time_above_grip_limit_s.map_or(String::new(), |t| format!(" ({t:.3} s above the grip limit)")));
+    }
     println!("  task {}", if passed { "passed".to_owned() } else { format!("failed: {}", a.failures.join("; ")) });
 }
 
@@ -260,7 +263,7 @@ fn print_report(name: &str, r: &pb::ScriptReport) {
     println!("max tool force   {:.4} N", r.max_tool_force_n);
     for t in &r.tools {
         if t.grasping_s > 0.0 {
-            println!("  {:<14} {:.4} N, grasping {:.3} s", t.name, t.max_force_n, t.grasping_s);
+            println!("  {:<14} {:.4} N, grasping {:.3} s, pinching at most {:.2} N", t.name, t.max_force_n, t.grasping_s, t.max_jaws_force_n);
         } else {
             println!("  {:<14} {:.4} N", t.name, t.max_force_n);
         }

@@ -104,10 +104,10 @@ pub fn run(args: &RecordArgs) -> anyhow::Result<()> {
             keys.push(keyframe(*step));
             // A command holds until the next one: pin it on the step before, so the
             // script does not interpolate where the session did not move.
-            if let Some((next, _, _)) = commands.get(i + 1) {
-                if *next > step + 1 {
-                    keys.push(keyframe(next - 1));
-                }
+            if let Some((next, _, _)) = commands.get(i + 1)
+                && *next > step + 1
+            {
+                keys.push(keyframe(next - 1));
             }
         }
     }
@@ -133,7 +133,7 @@ pub fn run(args: &RecordArgs) -> anyhow::Result<()> {
         Some(path) => std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?,
         None => print!("{text}"),
     }
-    if epoch.checkpoints.get(&epoch.steps).is_none() {
+    if !epoch.checkpoints.contains_key(&epoch.steps) {
         eprintln!("note: the recording has no state hash at step {}; the script checks no hash (ask the server for one with GetSession with_state_hash)", epoch.steps);
     }
     Ok(())

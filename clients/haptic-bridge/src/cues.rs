@@ -1,5 +1,5 @@
 //! Training cues (off by default, `--cues`): a short force pulse when the trainee enters
-//! a no-go region of the session's task or goes above its force limit.
+//! a no-go region of the session's task or goes above its force limit or its grip limit.
 //!
 //! A watcher thread asks the server for the session's assessment (`GetAssessment`) ten
 //! times a second and counts the warnings it lists; the device loop starts a pulse for
@@ -34,7 +34,7 @@ pub struct Watcher {
 
 /// The warnings of an assessment that deserve a cue.
 pub fn warnings(a: &pb::Assessment) -> u64 {
-    let listed = a.events.iter().filter(|e| e.kind == "no_go" || e.kind == "force_limit").count() as u64;
+    let listed = a.events.iter().filter(|e| matches!(e.kind.as_str(), "no_go" | "force_limit" | "grip_limit")).count() as u64;
     // Events past the kept list are only counted; no-go entries always are.
     listed.max(a.no_go_entries) + a.events_dropped
 }
@@ -170,9 +170,9 @@ mod tests {
     }
 
     #[test]
-    fn warnings_count_no_go_entries_and_force_limit_crossings() {
+    fn warnings_count_no_go_entries_and_force_and_grip_limit_crossings() {
         let event = |kind: &str| pb::AssessmentEvent { kind: kind.into(), ..Default::default() };
-        let a = pb::Assessment { no_go_entries: 1, events: vec![event("no_go"), event("completed"), event("force_limit"), event("outside_band")], ..Default::default() };
-        assert_eq!(warnings(&a), 2);
+        let a = pb::Assessment { no_go_entries: 1, events: vec![event("no_go"), event("completed"), event("force_limit"), event("outside_band"), event("grip_limit")], ..Default::default() };
+        assert_eq!(warnings(&a), 3);
     }
 }

@@ -113,6 +113,8 @@ pub fn assessment(a: &Assessment, problem: String, task: &TaskInfo) -> pb::Asses
         peak_force_n: a.peak_force_n,
         mean_force_n: a.mean_force_n,
         time_above_force_limit_s: a.time_above_force_limit_s,
+        peak_grip_force_n: a.peak_grip_force_n,
+        time_above_grip_limit_s: a.time_above_grip_limit_s,
         jerk_rms_m_per_s3: a.jerk_rms_m_per_s3,
         log_dimensionless_jerk: a.log_dimensionless_jerk,
         no_go_entries: a.no_go_entries,
@@ -291,7 +293,7 @@ pub fn report(r: &RunReport, task: &TaskInfo) -> pb::ScriptReport {
         counters: Some(counters(&r.counters, r.pieces)),
         report_json: serde_json::to_string(r).unwrap_or_default(),
         assessment: Some(assessment(&r.assessment, String::new(), task)),
-        tools: r.tools.iter().map(|t| pb::ToolForceReport { name: t.name.clone(), max_force_n: t.max_force_n, grasping_s: t.grasping_s }).collect(),
+        tools: r.tools.iter().map(|t| pb::ToolForceReport { name: t.name.clone(), max_force_n: t.max_force_n, grasping_s: t.grasping_s, max_jaws_force_n: t.max_jaws_force_n }).collect(),
     }
 }
 

@@ -65,6 +65,10 @@ pub struct ToolReport {
     /// it (its feedback's `grasping`, crate::tool::ToolFeedback); 0 for other tools.
     #[serde(default)]
     pub grasping_s: f64,
+    /// Forceps: the hardest their jaws pinched what they held over the run, N (the
+    /// feedback's `jaws_force_n`); 0 for other tools.
+    #[serde(default)]
+    pub max_jaws_force_n: f64,
 }
 
 /// Progress of a run, reported every few steps.
@@ -122,6 +126,7 @@ pub fn run_with_hook(
     let mut max_force: f64 = 0.0;
     let mut tool_max_force = vec![0.0_f64; tools];
     let mut tool_grasping_steps = vec![0_u64; tools];
+    let mut tool_max_jaws_force = vec![0.0_f64; tools];
     let mut assessor = Assessor::new(task, tools, tissue.time_step_s());
     let mut samples = vec![ToolSample::default(); tools];
     let start = Instant::now();
@@ -135,10 +140,11 @@ pub fn run_with_hook(
         if after_step(tissue, &commands, &feedback).is_break() {
             return Err(Stopped { at_step: step + 1 });
         }
-        for ((most, grasping), fb) in tool_max_force.iter_mut().zip(tool_grasping_steps.iter_mut()).zip(&feedback) {
+        for (((most, grasping), hardest_pinch), fb) in tool_max_force.iter_mut().zip(tool_grasping_steps.iter_mut()).zip(tool_max_jaws_force.iter_mut()).zip(&feedback) {
             *most = most.max(fb.force_n.norm());
             max_force = max_force.max(*most);
             *grasping += u64::from(fb.grasping);
+            *hardest_pinch = hardest_pinch.max(fb.jaws_force_n);
         }
         fill_samples(&mut samples, &commands, &feedback);
         assessor.observe(&samples);
@@ -163,7 +169,14 @@ pub fn run_with_hook(
         pieces: tissue.pieces() as u64,
         reconstruction_fallbacks: counters.reconstruction_fallbacks,
         max_tool_force_n: max_force,
-        tools: tissue.tools().iter().zip(tool_max_force).zip(tool_grasping_steps).map(|((t, max_force_n), grasping)| ToolReport { name: t.name.clone(), max_force_n, grasping_s: grasping as f64 * tissue.time_step_s() }).collect(),
+        tools: tissue
+            .tools()
+            .iter()
+            .zip(tool_max_force)
+            .zip(tool_grasping_steps)
+            .zip(tool_max_jaws_force)
+            .map(|(((t, max_force_n), grasping), max_jaws_force_n)| ToolReport { name: t.name.clone(), max_force_n, grasping_s: grasping as f64 * tissue.time_step_s(), max_jaws_force_n })
+            .collect(),
         step_time_p50_us: us(histogram.quantile_ns(0.5)),
         step_time_p99_us: us(histogram.quantile_ns(0.99)),
         step_time_max_us: us(histogram.max_ns()),

@@ -139,6 +139,12 @@ pub struct Expectations {
     /// Assessment: Time above the task's force limit, s.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub time_above_force_limit_s: Option<Bound>,
+    /// Assessment: The hardest any forceps pinched what they held, N.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub peak_grip_force_n: Option<Bound>,
+    /// Assessment: Time any forceps pinched harder than the task's grip limit, s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_above_grip_limit_s: Option<Bound>,
     /// Assessment: Smoothness of the tool path (higher is smoother).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub log_dimensionless_jerk: Option<Bound>,
@@ -168,6 +174,10 @@ pub struct ToolExpectations {
     /// holding it: the feedback's `grasping`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub grasping_s: Option<Bound>,
+    /// Forceps: the hardest their jaws pinched what they held over the run, N (the grip
+    /// they were squeezed with, once stopped on the tissue).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_jaws_force_n: Option<Bound>,
 }
 
 impl ToolExpectations {
@@ -176,7 +186,10 @@ impl ToolExpectations {
     fn bounds(&self) -> impl Iterator<Item = (&'static str, &Bound, fn(&crate::runner::ToolReport) -> f64)> {
         let max_force_n: fn(&crate::runner::ToolReport) -> f64 = |t| t.max_force_n;
         let grasping_s: fn(&crate::runner::ToolReport) -> f64 = |t| t.grasping_s;
-        [("max_force_n", &self.max_force_n, max_force_n), ("grasping_s", &self.grasping_s, grasping_s)].into_iter().filter_map(|(name, bound, value)| bound.as_ref().map(|b| (name, b, value)))
+        let max_jaws_force_n: fn(&crate::runner::ToolReport) -> f64 = |t| t.max_jaws_force_n;
+        [("max_force_n", &self.max_force_n, max_force_n), ("grasping_s", &self.grasping_s, grasping_s), ("max_jaws_force_n", &self.max_jaws_force_n, max_jaws_force_n)]
+            .into_iter()
+            .filter_map(|(name, bound, value)| bound.as_ref().map(|b| (name, b, value)))
     }
 }
 
@@ -304,7 +317,7 @@ impl CutScript {
         for (name, expect) in &self.expect.tools {
             tool_named(tools, name).map_err(|message| err(format!("expect.tools.{name}"), message))?;
             if expect.bounds().next().is_none() {
-                return Err(err(format!("expect.tools.{name}"), "expects nothing: give max_force_n or grasping_s".into()));
+                return Err(err(format!("expect.tools.{name}"), "expects nothing: give max_force_n, grasping_s or max_jaws_force_n".into()));
             }
             if let Some((key, ..)) = expect.bounds().find(|(_, bound, _)| bound.is_empty()) {
                 return Err(err(format!("expect.tools.{name}.{key}"), "give at least one of min, max, equals, approx".into()));
@@ -347,6 +360,8 @@ impl Expectations {
             ("economy_of_motion", &self.economy_of_motion),
             ("mean_force_n", &self.mean_force_n),
             ("time_above_force_limit_s", &self.time_above_force_limit_s),
+            ("peak_grip_force_n", &self.peak_grip_force_n),
+            ("time_above_grip_limit_s", &self.time_above_grip_limit_s),
             ("log_dimensionless_jerk", &self.log_dimensionless_jerk),
             ("no_go_entries", &self.no_go_entries),
             ("score", &self.score),
@@ -379,6 +394,8 @@ impl Expectations {
                 "economy_of_motion" => a.economy_of_motion,
                 "mean_force_n" => Some(a.mean_force_n),
                 "time_above_force_limit_s" => a.time_above_force_limit_s,
+                "peak_grip_force_n" => Some(a.peak_grip_force_n),
+                "time_above_grip_limit_s" => a.time_above_grip_limit_s,
                 "log_dimensionless_jerk" => a.log_dimensionless_jerk,
                 "no_go_entries" => Some(a.no_go_entries as f64),
                 "score" => a.score,

@@ -1950,7 +1950,7 @@ fn the_retract_example_grasps_the_lip_and_its_forceps_expectation_tells_a_grasp_
         k.cut = false;
     }
     let missed = run(&open);
-    let forceps_expectations = ["tools.forceps.max_force_n", "tools.forceps.grasping_s"];
+    let forceps_expectations = ["tools.forceps.max_force_n", "tools.forceps.grasping_s", "tools.forceps.max_jaws_force_n"];
     for name in forceps_expectations {
         let result = missed.expectations.iter().find(|e| e.name == name).unwrap();
         println!("jaws open: {name} {} ({})", result.actual, result.expected);

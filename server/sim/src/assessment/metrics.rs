@@ -88,6 +88,9 @@ pub struct ToolSample {
     pub cutting: bool,
     /// The cut button is held (a blade engaged, whether or not it removed tissue).
     pub cut_held: bool,
+    /// Forceps: how hard what the jaws hold pushes them apart (the grip they pinch it
+    /// with), N; 0 for other tools and jaws holding nothing.
+    pub grip_force_n: f64,
 }
 
 impl ToolSample {
@@ -99,6 +102,7 @@ impl ToolSample {
             active: command.active,
             cutting: feedback.cutting,
             cut_held: command.cut,
+            grip_force_n: feedback.jaws_force_n,
         }
     }
 }
@@ -116,7 +120,7 @@ pub struct AssessmentEvent {
     /// Steps taken when it happened.
     pub step: u64,
     pub time_s: f64,
-    /// "no_go", "force_limit", "outside_band" or "completed".
+    /// "no_go", "force_limit", "grip_limit", "outside_band" or "completed".
     pub kind: String,
     pub message: String,
 }
@@ -158,6 +162,12 @@ pub struct Assessment {
     pub mean_force_n: f64,
     /// Time any tool was above the task's force limit, s.
     pub time_above_force_limit_s: Option<f64>,
+    /// The hardest any forceps pinched what they held, N (0: nothing grasped).
+    #[serde(default)]
+    pub peak_grip_force_n: f64,
+    /// Time any forceps pinched harder than the task's grip limit, s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_above_grip_limit_s: Option<f64>,
     /// RMS jerk of the measured tool's tip (sampled at 100 Hz), m/s³.
     pub jerk_rms_m_per_s3: f64,
     /// Log dimensionless jerk, −ln(T⁵/L²·∫|j|²dt): higher is smoother.
@@ -209,6 +219,24 @@ impl AlongCut {
     }
 }
 
+/// The steps spent above a limit, and whether the last one was (to tell a crossing).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct AboveLimit {
+    steps: u64,
+    above: bool,
+}
+
+impl AboveLimit {
+    /// Counts a step whose value is `value`; true when it has just gone above `limit`.
+    fn crossed(&mut self, value: f64, limit: f64) -> bool {
+        let above = value > limit;
+        let crossed = above && !self.above;
+        self.steps += u64::from(above);
+        self.above = above;
+        crossed
+    }
+}
+
 /// The last cutting sample of the measured tool.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct CutPoint {
@@ -254,8 +282,9 @@ pub struct Assessor {
     step_force_n: f64,
     contact_force_sum: f64,
     contact_steps: u64,
-    above_limit_steps: u64,
-    above_limit: bool,
+    above_force_limit: AboveLimit,
+    peak_grip_force_n: f64,
+    above_grip_limit: AboveLimit,
     /// Per (tool, region): in violation at the last step.
     violating: Vec<bool>,
     no_go_entries: u64,
@@ -308,8 +337,9 @@ impl Assessor {
             step_force_n: 0.0,
             contact_force_sum: 0.0,
             contact_steps: 0,
-            above_limit_steps: 0,
-            above_limit: false,
+            above_force_limit: AboveLimit::default(),
+            peak_grip_force_n: 0.0,
+            above_grip_limit: AboveLimit::default(),
             violating: vec![false; tools * regions],
             no_go_entries: 0,
             no_go_steps: 0,
@@ -353,6 +383,7 @@ impl Assessor {
             self.started_step = Some(step);
         }
         self.observe_forces(step, tools);
+        self.observe_grip(step, tools);
         self.observe_no_go(step, tools);
         let Some(measured) = self.task.tool.and_then(|i| tools.get(i)) else { return };
         if self.started_step.is_some() {
@@ -378,15 +409,20 @@ impl Assessor {
         self.step_force_n = largest;
         self.peak_force_n = self.peak_force_n.max(largest);
         self.history.add_force(step, self.dt, largest);
-        if let Some(limit) = self.task.force_limit_n {
-            let above = largest > limit;
-            if above {
-                self.above_limit_steps += 1;
-                if !self.above_limit {
-                    self.event(step, "force_limit", format!("force {largest:.2} N is above the task's limit of {limit} N"));
-                }
-            }
-            self.above_limit = above;
+        if let Some(limit) = self.task.force_limit_n
+            && self.above_force_limit.crossed(largest, limit)
+        {
+            self.event(step, "force_limit", format!("force {largest:.2} N is above the task's limit of {limit} N"));
+        }
+    }
+
+    fn observe_grip(&mut self, step: u64, tools: &[ToolSample]) {
+        let hardest = tools.iter().filter(|t| t.active).map(|t| t.grip_force_n).fold(0.0, f64::max);
+        self.peak_grip_force_n = self.peak_grip_force_n.max(hardest);
+        if let Some(limit) = self.task.grip_limit_n
+            && self.above_grip_limit.crossed(hardest, limit)
+        {
+            self.event(step, "grip_limit", format!("forceps pinch with {hardest:.2} N, above the task's grip limit of {limit} N"));
         }
     }
 
@@ -548,7 +584,9 @@ impl Assessor {
             economy_of_motion: economy,
             peak_force_n: self.peak_force_n,
             mean_force_n: if self.contact_steps > 0 { self.contact_force_sum / self.contact_steps as f64 } else { 0.0 },
-            time_above_force_limit_s: self.task.force_limit_n.map(|_| self.above_limit_steps as f64 * self.dt),
+            time_above_force_limit_s: self.task.force_limit_n.map(|_| self.above_force_limit.steps as f64 * self.dt),
+            peak_grip_force_n: self.peak_grip_force_n,
+            time_above_grip_limit_s: self.task.grip_limit_n.map(|_| self.above_grip_limit.steps as f64 * self.dt),
             jerk_rms_m_per_s3: if self.jerk_time_s > 0.0 { (self.jerk_integral / self.jerk_time_s).sqrt() } else { 0.0 },
             log_dimensionless_jerk,
             no_go_entries: self.no_go_entries,

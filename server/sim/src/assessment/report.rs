@@ -95,6 +95,8 @@ fn metric_rows(a: &Assessment) -> Vec<(&'static str, String)> {
         ("peak force", format!("{:.2} N", a.peak_force_n)),
         ("mean force in contact", format!("{:.2} N", a.mean_force_n)),
         ("time above the force limit", opt(a.time_above_force_limit_s, " s", 3)),
+        ("peak grip of the forceps", format!("{:.2} N", a.peak_grip_force_n)),
+        ("time above the grip limit", opt(a.time_above_grip_limit_s, " s", 3)),
         ("RMS jerk", format!("{:.0} m/s³", a.jerk_rms_m_per_s3)),
         ("log dimensionless jerk", opt(a.log_dimensionless_jerk, "", 2)),
         ("no-go entries", a.no_go_entries.to_string()),
@@ -256,12 +258,13 @@ mod tests {
             depth: None,
             no_go: vec![NoGoRegion { name: "<vessel>".into(), min: Vec3::new(0.0, 0.005, -0.01), max: Vec3::new(0.01, 0.01, 0.01), max_force_n: 0.0 }],
             force_limit_n: Some(3.0),
+            grip_limit_n: None,
             min_coverage: 0.9,
         };
         let mut assessor = Assessor::new(task.clone(), 1, 0.001);
         for i in 0..=400 {
             let p = Vec3::new(-0.02 + 1e-4 * f64::from(i), 0.001, -0.003);
-            assessor.observe(&[ToolSample { position_m: p, force_n: 2.0, contacts: 2, active: true, cutting: true, cut_held: true }]);
+            assessor.observe(&[ToolSample { position_m: p, force_n: 2.0, contacts: 2, active: true, cutting: true, cut_held: true, grip_force_n: 0.0 }]);
         }
         let header = ReportHeader { session: "abc", scene: "skin-patch", task: "cut <here> & there", build: "test" };
         let html = render(&header, &task, &assessor.assessment(), assessor.history());

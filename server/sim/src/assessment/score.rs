@@ -12,7 +12,8 @@ pub const WEIGHT_DEVIATION: f64 = 25.0;
 pub const WEIGHT_OUTSIDE_BAND: f64 = 15.0;
 /// Points lost when the RMS depth error reaches the depth tolerance (plans with a depth).
 pub const WEIGHT_DEPTH: f64 = 10.0;
-/// Points lost after one second above the force limit (tasks with a limit).
+/// Points lost after one second above the force limit or the grip limit, the two times
+/// added (tasks with a limit).
 pub const WEIGHT_FORCE: f64 = 5.0;
 /// Points lost for entering a no-go region (once is enough to lose them all).
 pub const WEIGHT_NO_GO: f64 = 10.0;
@@ -25,7 +26,7 @@ pub struct Score {
 
 pub fn score(task: &Task, a: &Assessment) -> Score {
     let mut failures = Vec::new();
-    let has_criteria = task.plan.is_some() || !task.no_go.is_empty() || task.force_limit_n.is_some();
+    let has_criteria = task.plan.is_some() || !task.no_go.is_empty() || task.force_limit_n.is_some() || task.grip_limit_n.is_some();
     if !has_criteria {
         return Score { score: None, passed: None, failures };
     }
@@ -47,6 +48,11 @@ pub fn score(task: &Task, a: &Assessment) -> Score {
     {
         failures.push(format!("{time:.3} s above the force limit of {limit} N"));
     }
+    if let (Some(limit), Some(time)) = (task.grip_limit_n, a.time_above_grip_limit_s)
+        && time > 0.0
+    {
+        failures.push(format!("{time:.3} s pinching harder than the grip limit of {limit} N"));
+    }
     if a.no_go_entries > 0 {
         failures.push(format!("{} entr{} into no-go regions", a.no_go_entries, if a.no_go_entries == 1 { "y" } else { "ies" }));
     }
@@ -60,7 +66,8 @@ pub fn score(task: &Task, a: &Assessment) -> Score {
         if let Some((_, tolerance)) = task.depth {
             lost += WEIGHT_DEPTH * a.depth_error_rms_mm.map_or(1.0, |d| ratio(d, tolerance * 1e3));
         }
-        lost += WEIGHT_FORCE * ratio(a.time_above_force_limit_s.unwrap_or(0.0), 1.0);
+        let above_limits = a.time_above_force_limit_s.unwrap_or(0.0) + a.time_above_grip_limit_s.unwrap_or(0.0);
+        lost += WEIGHT_FORCE * ratio(above_limits, 1.0);
         lost += WEIGHT_NO_GO * ratio(a.no_go_entries as f64, 1.0);
         (100.0 - lost).max(0.0)
     });

@@ -8,7 +8,7 @@ use super::plan::Plan;
 use crate::math::Vec3;
 use crate::quantity::{CoordinateM, ForceN, LengthM};
 use crate::scene::SceneError;
-use crate::tool::ToolShape;
+use crate::tool::{Section, ToolShape};
 
 /// The most no-go regions a task may have (each is checked for every tool every step).
 pub const MAX_NO_GO_REGIONS: usize = 100;
@@ -29,6 +29,10 @@ pub struct TaskSpec {
     /// Tool forces above this count as time above the force limit, N.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub force_limit_n: Option<ForceN>,
+    /// Forceps pinching what they hold harder than this count as time above the grip
+    /// limit, N (crushed tissue). Needs a tool with jaws.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grip_limit_n: Option<ForceN>,
     /// Fraction of the planned incision that must be cut (within the band) for the task
     /// to be complete. Default 0.9.
     #[serde(default = "default_min_coverage")]
@@ -95,6 +99,7 @@ pub struct Task {
     pub depth: Option<(f64, f64)>,
     pub no_go: Vec<NoGoRegion>,
     pub force_limit_n: Option<f64>,
+    pub grip_limit_n: Option<f64>,
     pub min_coverage: f64,
 }
 
@@ -122,6 +127,7 @@ impl Task {
             depth: None,
             no_go: Vec::new(),
             force_limit_n: None,
+            grip_limit_n: None,
             min_coverage: default_min_coverage(),
         }
     }
@@ -137,6 +143,13 @@ impl TaskSpec {
         let mut task = Task::none(tools);
         task.min_coverage = self.min_coverage;
         task.force_limit_n = self.force_limit_n.map(ForceN::get);
+        if let Some(limit) = self.grip_limit_n {
+            if !tools.iter().any(|t| matches!(t.section, Section::Jaws { .. })) {
+                let names: Vec<&str> = tools.iter().map(|t| t.name.as_str()).collect();
+                return Err(err(".grip_limit_n", format!("a grip limit needs forceps (a tool with \"jaws\"); the scene's tools are: {}", names.join(", "))));
+            }
+            task.grip_limit_n = Some(limit.get());
+        }
         if let Some(incision) = &self.incision {
             if let Some(name) = &incision.tool {
                 let Some(index) = tools.iter().position(|t| &t.name == name) else {

@@ -10,11 +10,11 @@ const DT: f64 = 0.001;
 
 fn straight_plan_task() -> Task {
     let plan = Plan::new(&[Vec3::new(-0.02, 0.0, 0.0), Vec3::new(0.02, 0.0, 0.0)], Vec3::z(), 0.002).unwrap();
-    Task { plan: Some(plan), tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, min_coverage: 0.9 }
+    Task { plan: Some(plan), tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, grip_limit_n: None, min_coverage: 0.9 }
 }
 
 fn cutting_at(p: Vec3) -> ToolSample {
-    ToolSample { position_m: p, force_n: 2.0, contacts: 3, active: true, cutting: true, cut_held: true }
+    ToolSample { position_m: p, force_n: 2.0, contacts: 3, active: true, cutting: true, cut_held: true, grip_force_n: 0.0 }
 }
 
 /// Cuts along x from `x0` to `x1` at `y` (m) at 0.1 m/s (0.1 mm a step).
@@ -28,7 +28,7 @@ fn cut(assessor: &mut Assessor, x0: f64, x1: f64, y: f64) {
 
 fn pause(assessor: &mut Assessor, steps: usize, p: Vec3) {
     for _ in 0..steps {
-        assessor.observe(&[ToolSample { position_m: p, force_n: 0.0, contacts: 0, active: true, cutting: false, cut_held: true }]);
+        assessor.observe(&[ToolSample { position_m: p, force_n: 0.0, contacts: 0, active: true, cutting: false, cut_held: true, grip_force_n: 0.0 }]);
     }
 }
 
@@ -110,7 +110,7 @@ fn a_blade_held_in_the_tissue_continues_its_stroke_across_a_long_pause() {
     // 200 ms on the tissue with the button held but nothing removed (a voxel model
     // removes tissue only every few steps), then on.
     for _ in 0..200 {
-        assessor.observe(&[ToolSample { position_m: Vec3::new(0.0, 0.0, -0.003), force_n: 1.0, contacts: 2, active: true, cutting: false, cut_held: true }]);
+        assessor.observe(&[ToolSample { position_m: Vec3::new(0.0, 0.0, -0.003), force_n: 1.0, contacts: 2, active: true, cutting: false, cut_held: true, grip_force_n: 0.0 }]);
     }
     cut(&mut assessor, 0.0, 0.02, 0.0);
     let a = assessor.assessment();
@@ -177,8 +177,38 @@ fn forces_peak_mean_and_time_above_the_limit() {
 }
 
 #[test]
+fn the_hardest_pinch_and_the_time_above_the_grip_limit() {
+    // Forceps (tool 1) beside a blade (tool 0): pinching with 2 N, then 5 N for 40 steps
+    // twice over, against a 4 N limit; a pinch reported by an inactive tool is not one.
+    let mut task = straight_plan_task();
+    task.grip_limit_n = Some(4.0);
+    let mut assessor = Assessor::new(task, 2, DT);
+    let blade = ToolSample { position_m: Vec3::new(0.05, 0.0, 0.0), active: true, ..Default::default() };
+    let forceps = |grip: f64, active: bool| ToolSample { position_m: Vec3::new(0.0, 0.01, 0.0), force_n: 1.0, contacts: 3, active, grip_force_n: grip, ..Default::default() };
+    for (grip, steps, active) in [(2.0, 100, true), (5.0, 40, true), (0.0, 10, true), (5.0, 40, true), (9.0, 5, false)] {
+        for _ in 0..steps {
+            assessor.observe(&[blade, forceps(grip, active)]);
+        }
+    }
+    let a = assessor.assessment();
+    assert_eq!(a.peak_grip_force_n, 5.0);
+    assert!(close(a.time_above_grip_limit_s.unwrap(), 0.08, 1e-12), "{:?}", a.time_above_grip_limit_s);
+    let crossings: Vec<u64> = a.events.iter().filter(|e| e.kind == "grip_limit").map(|e| e.step).collect();
+    assert_eq!(crossings, [100, 150], "{:?}", a.events);
+    assert!(a.failures.iter().any(|f| f.contains("harder than the grip limit of 4 N")), "{:?}", a.failures);
+    assert_eq!(a.time_above_force_limit_s, None, "the task sets no force limit");
+
+    // Without a limit the hardest pinch is still measured, and fails nothing.
+    let mut unlimited = Assessor::new(straight_plan_task(), 2, DT);
+    unlimited.observe(&[blade, forceps(5.0, true)]);
+    let a = unlimited.assessment();
+    assert_eq!((a.peak_grip_force_n, a.time_above_grip_limit_s), (5.0, None));
+    assert!(!a.failures.iter().any(|f| f.contains("grip")), "{:?}", a.failures);
+}
+
+#[test]
 fn jerk_of_a_cubic_path_is_its_constant_third_derivative() {
-    let task = Task { plan: None, tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, min_coverage: 0.9 };
+    let task = Task { plan: None, tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, grip_limit_n: None, min_coverage: 0.9 };
     let mut assessor = Assessor::new(task, 1, DT);
     let jerk = 6.0; // m/s³: x = jerk t³ / 6
     for i in 0..1000 {
@@ -260,6 +290,14 @@ fn tools() -> Vec<ToolShape> {
     vec![shape("probe", false), shape("scalpel", true)]
 }
 
+#[test]
+fn a_grip_limit_is_kept_where_the_scene_has_forceps() {
+    let mut with_forceps = tools();
+    with_forceps[0].section = crate::tool::Section::Jaws { half_width_m: 1e-3, half_thickness_m: 5e-4, half_gap_m: 4e-3, grip_force_n: 3.0, grip_length_m: 0.01 };
+    let spec: TaskSpec = serde_json::from_str(r#"{"grip_limit_n": 2.5}"#).unwrap();
+    assert_eq!(spec.compile(&with_forceps, "test scene").unwrap().grip_limit_n, Some(2.5));
+}
+
 fn compile(json: &str) -> Result<Task, String> {
     let spec: TaskSpec = serde_json::from_str(json).map_err(|e| e.to_string())?;
     spec.compile(&tools(), "test scene").map_err(|e| e.to_string())
@@ -290,6 +328,10 @@ fn bad_tasks_are_refused_with_the_path_and_what_is_allowed() {
     assert!(e.contains("task.no_go") && e.contains("at most 100"), "{e}");
     let e = compile(r#"{"incision": {"points_m": [[0,0,0],[0.01,0,0]], "band_m": -1}}"#).unwrap_err();
     assert!(e.contains("length must be within"), "{e}");
+    let e = compile(r#"{"grip_limit_n": 4}"#).unwrap_err();
+    assert!(e.contains("task.grip_limit_n") && e.contains("needs forceps") && e.contains("probe, scalpel"), "{e}");
+    let e = compile(r#"{"grip_limit_n": -4}"#).unwrap_err();
+    assert!(e.contains("force must be within [0,"), "{e}");
 }
 
 #[test]
@@ -310,7 +352,7 @@ fn the_history_keeps_the_cut_path_by_stroke_and_force_peaks_in_bins() {
 
 #[test]
 fn a_long_session_doubles_its_force_bins_instead_of_growing() {
-    let task = Task { plan: None, tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, min_coverage: 0.9 };
+    let task = Task { plan: None, tool: Some(0), depth: None, no_go: Vec::new(), force_limit_n: None, grip_limit_n: None, min_coverage: 0.9 };
     let mut assessor = Assessor::new(task, 1, DT);
     let steps = 20 * 8_192 * 3; // three times what 20 ms bins hold
     for i in 0..steps {
