@@ -4,7 +4,8 @@
 
 mod common;
 use common::*;
-use cutsim_sim::math::Vec3;
+use cutsim_sim::math::{Pose, Quat, Vec3};
+use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 use cutsim_sim::msm::cut::node_matching::MIN_ANGLE_DEG;
 use cutsim_sim::tissue::Tissue;
 
@@ -64,4 +65,71 @@ fn cut_across_real_skin_is_manifold_with_two_lips_and_conserves_mass() {
         mass_before * 1e3,
         mass_after * 1e3
     );
+}
+
+/// The forceps of the real skin grasp the lip of an incision across it and retract it:
+/// closed across the left lip's middle (their axis along the cut, their edge across the
+/// wound, the gripping 10 mm centred 1 mm inside the lip) and drawn 8 mm away from the
+/// wound at 20 mm/s in the skin's plane, what they hold follows them, the skin pulling
+/// back with less than the grip's friction holds; the forceps opened and lifted away,
+/// the lip springs back.
+#[test]
+fn forceps_grasp_the_lip_of_a_cut_across_real_skin_and_retract_it() {
+    let scene = load_scene(&scenes_dir().join("skin-real.json"));
+    let forceps = scene.tools.iter().position(|t| t.name == "forceps").expect("the scene's forceps");
+    let mut m = build(&scene);
+    let (from, to) = (Vec3::new(-0.03, 0.0, 0.02), Vec3::new(0.03, 0.0, -0.01));
+    straight_cut(&mut m, from, to, Vec3::y(), 0.02, 120);
+    step_with(&mut m, None, false, 500);
+    let [left, right] = m.incisions()[0].lips.clone();
+    let (lip, across) = (left[left.len() / 2] as usize, right[right.len() / 2] as usize);
+    let along = (to - from).normalize();
+    // Across the wound, in the skin's plane, from the right lip to the left one.
+    let out = {
+        let d = m.positions()[lip] - m.positions()[across];
+        (d - along * d.dot(&along)).normalize()
+    };
+    let turn = Quat::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(cutsim_sim::math::Matrix3::from_columns(&[out, along.cross(&out), along])));
+    let before = m.positions().to_vec();
+    let mut centre = before[lip] + out * 0.001;
+    let mut commands = vec![ToolCommand::default(); scene.tools.len()];
+    let mut feedback = vec![ToolFeedback::default(); scene.tools.len()];
+    let (mut held, mut strongest) = (Vec::new(), 0.0_f64);
+    // How far the lip node moved out of the wound, m.
+    let lip_out = |m: &cutsim_sim::msm::MassSpring| (m.positions()[lip] - before[lip]).dot(&out);
+    for (phase, (steps, speed, closed)) in [(200, 0.0, true), (400, 0.02, true), (200, 0.0, true), (300, 0.0, false)].into_iter().enumerate() {
+        for _ in 0..steps {
+            centre += out * (speed * 1e-3);
+            commands[forceps] = ToolCommand { pose: Pose::new(centre - along * 0.005, turn), active: true, cut: closed, grip: None };
+            m.step(&commands, &mut feedback);
+            strongest = strongest.max(feedback[forceps].force_n.norm());
+        }
+        match phase {
+            0 => held = m.grasped_node_ids(forceps),
+            2 => {
+                let moved: Vec<f64> = held.iter().map(|&v| (m.positions()[v as usize] - before[v as usize]).dot(&out)).collect();
+                let mean = moved.iter().sum::<f64>() / moved.len() as f64;
+                let fb = feedback[forceps];
+                println!("{} nodes grasped; drawn 8 mm away they followed {:.2} mm on average (the lip node {:.2} mm), the skin pulling back with {:.2} N (at most {strongest:.2} N), the jaws pinching with {:.2} N", held.len(), mean * 1e3, lip_out(&m) * 1e3, fb.force_n.norm(), fb.jaws_force_n);
+                assert!(m.grasped_node_ids(forceps) == held, "the jaws kept what they grasped");
+                assert!(mean > 0.0065, "what the jaws hold followed them only {:.2} mm of 8", mean * 1e3);
+                assert!(lip_out(&m) > 0.004, "the lip came along ({:.2} mm)", lip_out(&m) * 1e3);
+                assert!(fb.grasping && fb.jaws_force_n == 3.0, "held with the whole grip: {fb:?}");
+                assert!(strongest <= 1.05 * 3.0, "friction holds up to the 3 N grip, the lip pulled with {strongest:.2} N");
+            }
+            _ => {}
+        }
+    }
+    assert!(held.len() >= 3, "the closed jaws hold the lip ({} nodes)", held.len());
+    assert_eq!(m.grasped_nodes(forceps), 0, "opened, the jaws hold nothing");
+    // Opened where they are, the jaws still rest on the skin, whose friction holds the lip
+    // out (this skin has no foundation to draw it off them); lifted away, it springs back.
+    let resting = lip_out(&m);
+    commands[forceps] = ToolCommand::default();
+    for _ in 0..300 {
+        m.step(&commands, &mut feedback);
+    }
+    let back = lip_out(&m);
+    println!("opened, the lip rests {:.2} mm out on the jaws; lifted away, {:.2} mm out after 0.3 s", resting * 1e3, back * 1e3);
+    assert!(back.abs() < 0.001, "lifted away, the forceps leave the lip back where it was ({:.2} mm out)", back * 1e3);
 }

@@ -158,6 +158,11 @@ impl Grasps {
         self.forceps.iter().find(|f| f.tool == tool).map_or(0, |f| f.held.len())
     }
 
+    /// The nodes tool `tool` holds.
+    pub fn nodes_held_by(&self, tool: usize) -> impl Iterator<Item = u32> + '_ {
+        self.forceps.iter().filter(move |f| f.tool == tool).flat_map(|f| f.held.iter().map(|h| h.node))
+    }
+
     /// Before the jaws move this step (`commands`: the scene tools'; `nodes` as the
     /// last step left them): lets go where the button is released, a node died or was
     /// pulled out of the jaws; while the jaws close, takes the skin between them; stops

@@ -741,6 +741,11 @@ impl MassSpring {
         self.grasps.as_ref().map_or(0, |g| g.held_by(tool))
     }
 
+    /// The nodes scene tool `tool` (forceps) holds.
+    pub fn grasped_node_ids(&self, tool: usize) -> Vec<u32> {
+        self.grasps.as_ref().map_or_else(Vec::new, |g| g.nodes_held_by(tool).collect())
+    }
+
     /// The incisions made so far, with their curves and lips.
     pub fn incisions(&self) -> &[Incision] {
         self.cutter.as_ref().map_or(&[], |c| &c.incisions)
