@@ -96,7 +96,7 @@ fn real_ct_skin_at_three_speeds() {
     let real = load_scene(&scenes_dir().join("skin-real.json"));
     for steps in [20, 100, 400] {
         let mut m = build(&real);
-        straight_cut(&mut m, Vec3::new(-0.03, 0.0, 0.02), Vec3::new(0.03, 0.0, -0.01), Vec3::y(), 0.02, steps);
+        straight_cut(&mut m, Vec3::new(-0.03, 0.0, 0.02), Vec3::new(0.03, 0.0, -0.01), -Vec3::y(), 0.02, steps);
         step_with(&mut m, None, false, 300);
         assert_clean_cut(&format!("real skin in {steps} steps"), &m, 1, 1);
     }

@@ -16,8 +16,9 @@ fn cut_across_real_skin_is_manifold_with_two_lips_and_conserves_mass() {
     let mass_before = m.total_mass();
     assert!((mass_before - m.mass_of_triangles()).abs() < 1e-12 * mass_before);
 
-    // A 6 cm incision across the anterior abdomen, the blade along the skin's normal (+y).
-    straight_cut(&mut m, Vec3::new(-0.03, 0.0, 0.02), Vec3::new(0.03, 0.0, -0.01), Vec3::y(), 0.02, 120);
+    // A 6 cm incision across the anterior abdomen, the blade's shaft out along the skin's
+    // outward normal (−y), its tip 20 mm in from y = 0 (the skin lies within ±9 mm of it).
+    straight_cut(&mut m, Vec3::new(-0.03, 0.0, 0.02), Vec3::new(0.03, 0.0, -0.01), -Vec3::y(), 0.02, 120);
     step_with(&mut m, None, false, 500);
     let c = m.counters();
     assert_eq!((c.cuts, c.reconstruction_fallbacks), (1, 0), "{:?}", m.last_fallback_reason());
@@ -70,16 +71,16 @@ fn cut_across_real_skin_is_manifold_with_two_lips_and_conserves_mass() {
 /// The forceps of the real skin grasp the lip of an incision across it and retract it:
 /// closed across the left lip's middle (their axis along the cut, their edge across the
 /// wound, the gripping 10 mm centred 1 mm inside the lip) and drawn 8 mm away from the
-/// wound at 20 mm/s in the skin's plane, what they hold follows them, the skin pulling
-/// back with less than the grip's friction holds; the forceps opened and lifted away,
-/// the lip springs back.
+/// wound at 10 mm/s in the skin's plane, over the tissue beneath, what they hold follows
+/// them, the skin pulling back with less than the grip's friction holds; the forceps
+/// opened and lifted away, the lip springs back.
 #[test]
 fn forceps_grasp_the_lip_of_a_cut_across_real_skin_and_retract_it() {
     let scene = load_scene(&scenes_dir().join("skin-real.json"));
     let forceps = scene.tools.iter().position(|t| t.name == "forceps").expect("the scene's forceps");
     let mut m = build(&scene);
     let (from, to) = (Vec3::new(-0.03, 0.0, 0.02), Vec3::new(0.03, 0.0, -0.01));
-    straight_cut(&mut m, from, to, Vec3::y(), 0.02, 120);
+    straight_cut(&mut m, from, to, -Vec3::y(), 0.02, 120);
     step_with(&mut m, None, false, 500);
     let [left, right] = m.incisions()[0].lips.clone();
     let (lip, across) = (left[left.len() / 2] as usize, right[right.len() / 2] as usize);
@@ -97,12 +98,12 @@ fn forceps_grasp_the_lip_of_a_cut_across_real_skin_and_retract_it() {
     let (mut held, mut strongest) = (Vec::new(), 0.0_f64);
     // How far the lip node moved out of the wound, m.
     let lip_out = |m: &cutsim_sim::msm::MassSpring| (m.positions()[lip] - before[lip]).dot(&out);
-    for (phase, (steps, speed, closed)) in [(200, 0.0, true), (400, 0.02, true), (200, 0.0, true), (300, 0.0, false)].into_iter().enumerate() {
+    for (phase, (steps, speed, closed)) in [(200, 0.0, true), (800, 0.01, true), (200, 0.0, true), (300, 0.0, false)].into_iter().enumerate() {
         for _ in 0..steps {
             centre += out * (speed * 1e-3);
             commands[forceps] = ToolCommand { pose: Pose::new(centre - along * 0.005, turn), active: true, cut: closed, grip: None };
             m.step(&commands, &mut feedback);
-            strongest = strongest.max(feedback[forceps].force_n.norm());
+            strongest = strongest.max(-feedback[forceps].force_n.dot(&out));
         }
         match phase {
             0 => held = m.grasped_node_ids(forceps),
@@ -123,7 +124,8 @@ fn forceps_grasp_the_lip_of_a_cut_across_real_skin_and_retract_it() {
     assert!(held.len() >= 3, "the closed jaws hold the lip ({} nodes)", held.len());
     assert_eq!(m.grasped_nodes(forceps), 0, "opened, the jaws hold nothing");
     // Opened where they are, the jaws still rest on the skin, whose friction holds the lip
-    // out (this skin has no foundation to draw it off them); lifted away, it springs back.
+    // out; lifted away, it springs back, as slowly as the tissue beneath (the foundation's
+    // shear damping) lets it: most of the way in 0.3 s, as the default scene's lip.
     let resting = lip_out(&m);
     commands[forceps] = ToolCommand::default();
     for _ in 0..300 {
@@ -131,5 +133,5 @@ fn forceps_grasp_the_lip_of_a_cut_across_real_skin_and_retract_it() {
     }
     let back = lip_out(&m);
     println!("opened, the lip rests {:.2} mm out on the jaws; lifted away, {:.2} mm out after 0.3 s", resting * 1e3, back * 1e3);
-    assert!(back.abs() < 0.001, "lifted away, the forceps leave the lip back where it was ({:.2} mm out)", back * 1e3);
+    assert!(back.abs() < 0.002 && back < 0.5 * resting, "lifted away, the forceps leave the lip springing back ({:.2} mm out)", back * 1e3);
 }

@@ -1,0 +1,157 @@
+#!/usr/bin/env python3
+"""Writes the cut scripts of the CT skin scene (clients/cut-bot/examples/skin-real-*.json).
+
+The CT skin is curved (the anterior abdomen bulges towards -y by up to 9 mm across the
+patch), so a scalpel held at one height would dip in and out of it. Each script here
+holds the blade as a surgeon does: its tip a fixed depth under the skin beneath it, its
+shaft out through the skin along the outward normal (-y), and its edge (the tool's +x)
+turned along the way it is drawn, so that the edge leads and the skin's fracture
+toughness sets the force. The skin's height under the path is read from the scene's own
+mesh (in the shared data directory, $CUTSIM_DATA_DIR or ../shared/data).
+
+Usage: python3 scripts/skin-real-examples.py   (rewrites the four files)
+"""
+
+import json
+import math
+import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+EXAMPLES = os.path.join(ROOT, "clients", "cut-bot", "examples")
+# The blade's tip under the skin, m: the default scene's scripts cut with it 5 mm below.
+TIP_DEPTH_M = 0.005
+# Where the blade is lifted to after the cut: its tip this far outside the skin, m.
+LIFT_M = 0.02
+# Keyframes at least this close along the path, m, so that the tip follows the skin.
+KEYFRAME_SPACING_M = 0.004
+
+
+def load_skin():
+    scene = json.load(open(os.path.join(ROOT, "server", "scenes", "skin-real.json")))
+    obj = scene["model"]["msm"]["geometry"]["obj"]
+    data = os.environ.get("CUTSIM_DATA_DIR") or os.path.join(ROOT, "..", "shared", "data")
+    path = os.path.join(data, obj["path"].removeprefix("data:"))
+    if not os.path.exists(path):
+        sys.exit(f"skin-real-examples: the CT skin mesh is not at {path}: set CUTSIM_DATA_DIR to the shared data directory")
+    scale, offset = obj["scale_m_per_unit"], obj["offset_m"]
+    vertices, triangles = [], []
+    for line in open(path):
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "v":
+            vertices.append([float(parts[i + 1]) * scale + offset[i] for i in range(3)])
+        elif parts[0] == "f":
+            triangles.append([int(p.split("/")[0]) - 1 for p in parts[1:4]])
+    return scene, vertices, triangles
+
+
+def surface_y(vertices, triangles, x, z):
+    """The skin's height (y) under (x, z): the mesh's crossing of the line along y there,
+    or, off the mesh, the height at its nearest vertex in the xz plane."""
+    for tri in triangles:
+        a, b, c = (vertices[i] for i in tri)
+        # Barycentric coordinates of (x, z) in the triangle projected on xz.
+        det = (b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])
+        if abs(det) < 1e-15:
+            continue
+        u = ((x - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (z - a[2])) / det
+        v = ((b[0] - a[0]) * (z - a[2]) - (x - a[0]) * (b[2] - a[2])) / det
+        if u >= -1e-9 and v >= -1e-9 and u + v <= 1 + 1e-9:
+            return a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1])
+    nearest = min(vertices, key=lambda p: (p[0] - x) ** 2 + (p[2] - z) ** 2)
+    return nearest[1]
+
+
+def blade_orientation(tangent_xz):
+    """The unit quaternion (w, x, y, z) turning the tool's +z to the skin's outward -y
+    and its edge (+x) along `tangent_xz`, a direction in the xz plane."""
+    tx, tz = tangent_xz
+    n = math.hypot(tx, tz)
+    ex = (tx / n, 0.0, tz / n)
+    ez = (0.0, -1.0, 0.0)
+    ey = (ez[1] * ex[2] - ez[2] * ex[1], ez[2] * ex[0] - ez[0] * ex[2], ez[0] * ex[1] - ez[1] * ex[0])
+    # Columns ex, ey, ez: r[i][j] is row i, column j.
+    r = [[ex[i], ey[i], ez[i]] for i in range(3)]
+    trace = r[0][0] + r[1][1] + r[2][2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = (0.25 * s, (r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s)
+    else:
+        i = max(range(3), key=lambda k: r[k][k])
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + r[i][i] - r[j][j] - r[k][k])
+        q = [0.0] * 4
+        q[0] = (r[k][j] - r[j][k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (r[j][i] + r[i][j]) / s
+        q[1 + k] = (r[k][i] + r[i][k]) / s
+        q = tuple(q)
+    if q[0] < 0:
+        q = tuple(-c for c in q)
+    return [round(c, 9) for c in q]
+
+
+def cut_keyframes(skin, path_xz, start_step, end_step, cut=True):
+    """Keyframes drawing the blade along the polyline `path_xz` (points (x, z)) from
+    `start_step` to `end_step` at an even speed, its tip TIP_DEPTH_M under the skin and
+    its edge along the way; then lifted out along its axis over 50 steps. The blade is
+    under the skin from the first step: it punctures the skin where it stands, as the
+    skin-patch scripts' blade does."""
+    vertices, triangles = skin
+    # Resample the polyline so that the tip follows the skin between its points.
+    points = [path_xz[0]]
+    for a, b in zip(path_xz, path_xz[1:]):
+        pieces = max(1, math.ceil(math.dist(a, b) / KEYFRAME_SPACING_M))
+        points += [(a[0] + (b[0] - a[0]) * k / pieces, a[1] + (b[1] - a[1]) * k / pieces) for k in range(1, pieces + 1)]
+    lengths = [0.0]
+    for a, b in zip(points, points[1:]):
+        lengths.append(lengths[-1] + math.dist(a, b))
+    keyframes = []
+    for i, (x, z) in enumerate(points):
+        before, after = points[max(i - 1, 0)], points[min(i + 1, len(points) - 1)]
+        turn = blade_orientation((after[0] - before[0], after[1] - before[1]))
+        step = start_step + round((end_step - start_step) * lengths[i] / lengths[-1])
+        y = surface_y(vertices, triangles, x, z) + TIP_DEPTH_M
+        keyframes.append({"step": step, "position_m": [round(x, 6), round(y, 6), round(z, 6)], "orientation_wxyz": turn, "cut": cut})
+    keyframes[-1]["cut"] = False
+    last = keyframes[-1]
+    out = [last["position_m"][0], last["position_m"][1] - TIP_DEPTH_M - LIFT_M, last["position_m"][2]]
+    keyframes.append({"step": end_step + 50, "position_m": [round(c, 6) for c in out], "orientation_wxyz": last["orientation_wxyz"], "active": False})
+    return keyframes
+
+
+def write(name, script):
+    path = os.path.join(EXAMPLES, name)
+    with open(path, "w") as f:
+        json.dump(script, f, indent=2)
+        f.write("\n")
+    print(f"wrote {os.path.relpath(path, ROOT)}: {len(script['tools'][0]['keyframes'])} keyframes")
+
+
+def main():
+    scene, vertices, triangles = load_skin()
+    skin = (vertices, triangles)
+    task = [(p[0], p[2]) for p in scene["task"]["incision"]["points_m"]]
+    existing = lambda name: json.load(open(os.path.join(EXAMPLES, name)))
+
+    # Each script keeps its expectations and length; only the blade's way changes.
+    # (script, the blade's way, its first and last step drawing)
+    for name, path, start, end in [
+        ("skin-real-curved.json", task, 0, 600),
+        ("skin-real-straight.json", [(-0.03, 0.02), (0.03, -0.01)], 0, 400),
+        # From off the skin at one side to off it at the other: in from the side, no
+        # puncture. (Along z = 0 the cut's reconstruction gives up 11 mm in, where the
+        # removed area keeps needing to grow; 5 mm off it, it does not.)
+        ("skin-real-separate.json", [(-0.065, -0.005), (0.065, -0.005)], 0, 800),
+        # The bad attempt at the half circle: straight across from its one end to the other.
+        ("skin-real-task-bad.json", [task[0], task[-1]], 0, 500),
+    ]:
+        script = existing(name)
+        script["tools"] = [{"tool": "scalpel", "keyframes": cut_keyframes(skin, path, start, end)}]
+        write(name, script)
+
+
+if __name__ == "__main__":
+    main()
