@@ -66,34 +66,15 @@ def surface_y(vertices, triangles, x, z):
 
 def blade_orientation(tangent_xz):
     """The unit quaternion (w, x, y, z) turning the tool's +z to the skin's outward -y
-    and its edge (+x) along `tangent_xz`, a direction in the xz plane."""
-    tx, tz = tangent_xz
-    n = math.hypot(tx, tz)
-    ex = (tx / n, 0.0, tz / n)
-    ez = (0.0, -1.0, 0.0)
-    ey = (ez[1] * ex[2] - ez[2] * ex[1], ez[2] * ex[0] - ez[0] * ex[2], ez[0] * ex[1] - ez[1] * ex[0])
-    # Columns ex, ey, ez: r[i][j] is row i, column j.
-    r = [[ex[i], ey[i], ez[i]] for i in range(3)]
-    trace = r[0][0] + r[1][1] + r[2][2]
-    if trace > 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = (0.25 * s, (r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s)
-    else:
-        i = max(range(3), key=lambda k: r[k][k])
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + r[i][i] - r[j][j] - r[k][k])
-        q = [0.0] * 4
-        q[0] = (r[k][j] - r[j][k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (r[j][i] + r[i][j]) / s
-        q[1 + k] = (r[k][i] + r[i][k]) / s
-        q = tuple(q)
-    if q[0] < 0:
-        q = tuple(-c for c in q)
-    return [round(c, 9) for c in q]
+    and its edge (+x) along `tangent_xz`, a direction in the xz plane: a quarter turn
+    about x (+z to -y, +x kept), then a turn by phi about y (+x to the tangent, -y kept),
+    whose product is sqrt(1/2) (cos(phi/2), cos(phi/2), sin(phi/2), -sin(phi/2))."""
+    phi = math.atan2(-tangent_xz[1], tangent_xz[0])
+    c, s = math.cos(phi / 2) / math.sqrt(2), math.sin(phi / 2) / math.sqrt(2)
+    return [round(q, 9) + 0.0 for q in (c, c, s, -s)]  # + 0.0: no "-0.0" in the files
 
 
-def cut_keyframes(skin, path_xz, start_step, end_step, cut=True):
+def cut_keyframes(skin, path_xz, start_step, end_step):
     """Keyframes drawing the blade along the polyline `path_xz` (points (x, z)) from
     `start_step` to `end_step` at an even speed, its tip TIP_DEPTH_M under the skin and
     its edge along the way; then lifted out along its axis over 50 steps. The blade is
@@ -114,7 +95,7 @@ def cut_keyframes(skin, path_xz, start_step, end_step, cut=True):
         turn = blade_orientation((after[0] - before[0], after[1] - before[1]))
         step = start_step + round((end_step - start_step) * lengths[i] / lengths[-1])
         y = surface_y(vertices, triangles, x, z) + TIP_DEPTH_M
-        keyframes.append({"step": step, "position_m": [round(x, 6), round(y, 6), round(z, 6)], "orientation_wxyz": turn, "cut": cut})
+        keyframes.append({"step": step, "position_m": [round(x, 6), round(y, 6), round(z, 6)], "orientation_wxyz": turn, "cut": True})
     keyframes[-1]["cut"] = False
     last = keyframes[-1]
     out = [last["position_m"][0], last["position_m"][1] - TIP_DEPTH_M - LIFT_M, last["position_m"][2]]
