@@ -233,7 +233,15 @@ impl Cutter {
         let mut failure = String::from("the removed area kept needing to grow");
         for _attempt in 0..8 {
             let normal = area_normal(&removed, view);
-            let input = MatchInput { topo: view.topo, x: view.x, removed_tris: &removed, curve: &curve, normal, next_vertex_id };
+            let input = MatchInput {
+                topo: view.topo,
+                x: view.x,
+                removed_tris: &removed,
+                curve: &curve,
+                normal,
+                next_vertex_id,
+                lip_spacing_m: self.params.vertex_spacing_m,
+            };
             match match_nodes(&input) {
                 Ok(out) => {
                     matched = Some(out);

@@ -37,6 +37,13 @@ use crate::msm::state::Topology;
 /// back to leaving the swept area open (and says so).
 pub const MIN_ANGLE_DEG: f64 = 10.0;
 
+/// At an open end of the curve, a lip goes through the curve's end point when the
+/// border's end on either side lies more than this many lip spacings back from it (see
+/// [`match_nodes`]). A continuing cut's border ends about one spacing back (on the lip
+/// vertex before the removed tip). Across the CT skin, 1.2, 1.5 and 2 spacings leave 6,
+/// 6 and 9 of 17 straight cuts falling back (14 without it; docs/tool-tissue.md).
+const LIP_SPAN_SPACINGS: f64 = 1.5;
+
 /// What node matching needs to see.
 pub(crate) struct MatchInput<'a> {
     pub topo: &'a Topology,
@@ -50,6 +57,8 @@ pub(crate) struct MatchInput<'a> {
     pub normal: Vec3,
     /// Id the first new vertex will get.
     pub next_vertex_id: u32,
+    /// The distance the lip vertices are meant to lie apart (the mesh's mean edge), m.
+    pub lip_spacing_m: f64,
 }
 
 /// The stitched wound.
@@ -197,6 +206,17 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     let closed_start = (!start_open).then(|| push_vertex(&mut out, start_point));
     let closed_end = (!end_open).then(|| push_vertex(&mut out, end_point));
     out.closed_end_vertex = closed_end;
+    // At an open end the lips start (or end) on the border's own vertices. Where the
+    // border there lies well back along the curve (the wound this cut continues ended
+    // in a vertex the update removed, so its lips now end a stretch behind), a lip that
+    // went from there straight to the first vertex of the curve would span that stretch
+    // and the triangles beside it would be slivers: the lips go through the curve's end
+    // point as well (split in two, like the other curve vertices).
+    let too_far = LIP_SPAN_SPACINGS * input.lip_spacing_m;
+    let start_back = |v: u32| -frame.locate(&input.x[v as usize]).0;
+    let end_back = |v: u32| frame.locate(&input.x[v as usize]).0 - frame.cumulative[n];
+    let through_start = start_open && start_ends.iter().any(|&v| start_back(v) > too_far);
+    let through_end = end_open && end_ends.iter().any(|&v| end_back(v) > too_far);
 
     let mut strips: Vec<(&[u32], bool)> = Vec::with_capacity(2);
     for (slot, side) in [1.0, -1.0].into_iter().enumerate() {
@@ -215,7 +235,8 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
         };
         let (arc_start, arc_end) = if forward { (first, last) } else { (last, first) };
         let mut lip = vec![closed_start.unwrap_or(arc_start)];
-        for p in &input.curve[1..n] {
+        let inner = if through_start { 0 } else { 1 }..if through_end { n + 1 } else { n };
+        for p in &input.curve[inner] {
             lip.push(push_vertex(&mut out, *p));
         }
         lip.push(closed_end.unwrap_or(arc_end));
