@@ -9,7 +9,11 @@ turned along the way it is drawn, so that the edge leads and the skin's fracture
 toughness sets the force. The skin's height under the path is read from the scene's own
 mesh (in the shared data directory, $CUTSIM_DATA_DIR or ../shared/data).
 
-Usage: python3 scripts/skin-real-examples.py   (rewrites the four files)
+It also writes the straight cuts across the whole patch every 1.5 mm from z = -12 to
++12 mm that server/sim/tests/real_skin_cut.rs runs through the node-matching
+reconstruction (server/sim/tests/data/skin-real-across.json: one script per line).
+
+Usage: python3 scripts/skin-real-examples.py   (rewrites the five files)
 """
 
 import json
@@ -19,6 +23,9 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXAMPLES = os.path.join(ROOT, "clients", "cut-bot", "examples")
+ACROSS = os.path.join(ROOT, "server", "sim", "tests", "data", "skin-real-across.json")
+# The cuts across the patch: z from ACROSS_FROM_M every ACROSS_EVERY_M, ACROSS_CUTS of them.
+ACROSS_FROM_M, ACROSS_EVERY_M, ACROSS_CUTS = -0.012, 0.0015, 17
 # The blade's tip under the skin, m: the default scene's scripts cut with it 5 mm below.
 TIP_DEPTH_M = 0.005
 # Where the blade is lifted to after the cut: its tip this far outside the skin, m.
@@ -131,6 +138,18 @@ def main():
         script = existing(name)
         script["tools"] = [{"tool": "scalpel", "keyframes": cut_keyframes(skin, path, start, end)}]
         write(name, script)
+
+    # The separating cut, drawn across the patch at each z: one script per line.
+    separate = existing("skin-real-separate.json")
+    across = []
+    for k in range(ACROSS_CUTS):
+        z = round(ACROSS_FROM_M + k * ACROSS_EVERY_M, 6)
+        script = dict(separate, tools=[{"tool": "scalpel", "keyframes": cut_keyframes(skin, [(-0.065, z), (0.065, z)], 0, 800)}])
+        across.append(json.dumps(script, separators=(",", ":")))
+    os.makedirs(os.path.dirname(ACROSS), exist_ok=True)
+    with open(ACROSS, "w") as f:
+        f.write("[\n" + ",\n".join(across) + "\n]\n")
+    print(f"wrote {os.path.relpath(ACROSS, ROOT)}: {len(across)} cuts across the patch")
 
 
 if __name__ == "__main__":

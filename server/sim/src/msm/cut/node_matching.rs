@@ -19,7 +19,9 @@
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
 //!    closing the quad between them with its shorter diagonal (the green springs). Where
 //!    the border zigzags so that no such zipper fits without folding a triangle over,
-//!    that strip is triangulated as a polygon by ear clipping instead.
+//!    that strip is triangulated as a polygon by ear clipping instead; where no ear
+//!    clipping fits either, the caller removes the kept triangles around the folded
+//!    ones as well and tries again.
 //! 5. A few Lawson flips inside the new triangles raise the smallest angle; a triangle
 //!    still under [`MIN_ANGLE_DEG`] makes the caller remove the kept triangles around it
 //!    and try again.
@@ -40,8 +42,8 @@ pub const MIN_ANGLE_DEG: f64 = 10.0;
 /// At an open end of the curve, a lip goes through the curve's end point when the
 /// border's end on either side lies more than this many lip spacings back from it (see
 /// [`match_nodes`]). A continuing cut's border ends about one spacing back (on the lip
-/// vertex before the removed tip). Across the CT skin, 1.2, 1.5 and 2 spacings leave 6,
-/// 6 and 9 of 17 straight cuts falling back (14 without it; docs/tool-tissue.md).
+/// vertex before the removed tip); how far the threshold reaches across the CT skin is in
+/// docs/tool-tissue.md.
 const LIP_SPAN_SPACINGS: f64 = 1.5;
 
 /// What node matching needs to see.
@@ -277,9 +279,11 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
             let kept_edge = |a: u32, b: u32| {
                 a < base && b < base && input.topo.edge_tris(a, b).any(|t| input.removed_tris.binary_search(&t).is_err())
             };
-            strip = ear_clip(&polygon, |id| position(id, &out), &input.normal, kept_edge).ok_or_else(|| {
-                MatchError::Unsupported("the border around the incision cannot be stitched without folding".into())
-            })?;
+            let folded: Vec<[u32; 3]> = strip.iter().filter(|t| !upright(t)).copied().collect();
+            strip = match ear_clip(&polygon, |id| position(id, &out), &input.normal, kept_edge) {
+                Some(strip) => strip,
+                None => return Err(grow_around(&folded, base, input, "the border around the incision cannot be stitched without folding")),
+            };
         }
         out.new_triangles.extend(strip);
     }
@@ -300,23 +304,31 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     if min_angle < MIN_ANGLE_DEG {
         // Too thin: take the kept triangles around its border vertices away as well, so
         // the border moves back from the incision, and try again.
-        let mut grow: Vec<u32> = worst
-            .iter()
-            .filter(|&&v| v < base)
-            .flat_map(|&v| input.topo.node_tris[v as usize].iter().copied())
-            .filter(|t| input.removed_tris.binary_search(t).is_err())
-            .collect();
-        grow.sort_unstable();
-        grow.dedup();
-        return Err(if grow.is_empty() {
-            MatchError::Unsupported(format!("the best stitching has a {min_angle:.1}° angle, below the {MIN_ANGLE_DEG}° bound"))
-        } else {
-            MatchError::Grow(grow)
-        });
+        return Err(grow_around(
+            &[worst],
+            base,
+            input,
+            &format!("the best stitching has a {min_angle:.1}° angle, below the {MIN_ANGLE_DEG}° bound"),
+        ));
     }
     out.min_angle_deg = min_angle;
     out.new_triangles = triangles;
     Ok(out)
+}
+
+/// Asks for the kept triangles around the border vertices of `triangles` to be removed
+/// as well, so the border moves back from the incision; `failure` when there are none.
+fn grow_around(triangles: &[[u32; 3]], base: u32, input: &MatchInput, failure: &str) -> MatchError {
+    let mut grow: Vec<u32> = triangles
+        .iter()
+        .flatten()
+        .filter(|&&v| v < base)
+        .flat_map(|&v| input.topo.node_tris[v as usize].iter().copied())
+        .filter(|t| input.removed_tris.binary_search(t).is_err())
+        .collect();
+    grow.sort_unstable();
+    grow.dedup();
+    if grow.is_empty() { MatchError::Unsupported(failure.to_string()) } else { MatchError::Grow(grow) }
 }
 
 /// Follows the border between removed and kept triangles.
