@@ -164,7 +164,7 @@ fn cuts_across_the_whole_real_skin_part_it_in_two_with_at_most_one_fallback() {
         assert_eq!(report.pieces, 2, "z = {z_mm:+.1} mm parts the skin in two");
         assert!(m.min_cut_angle_deg().unwrap() >= MIN_ANGLE_DEG, "z = {z_mm:+.1} mm");
         if report.reconstruction_fallbacks > 0 {
-            fallbacks.push((k, report.reconstruction_fallbacks, m.last_fallback_reason().map(str::to_string)));
+            fallbacks.push((k, report.reconstruction_fallbacks, reason));
         }
     }
     assert!(fallbacks.len() <= 1 && fallbacks.iter().all(|f| f.1 == 1), "cuts that fell back (index, times, last reason): {fallbacks:?}");

@@ -279,11 +279,13 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
             let kept_edge = |a: u32, b: u32| {
                 a < base && b < base && input.topo.edge_tris(a, b).any(|t| input.removed_tris.binary_search(&t).is_err())
             };
-            let folded: Vec<[u32; 3]> = strip.iter().filter(|t| !upright(t)).copied().collect();
-            strip = match ear_clip(&polygon, |id| position(id, &out), &input.normal, kept_edge) {
-                Some(strip) => strip,
-                None => return Err(grow_around(&folded, base, input, "the border around the incision cannot be stitched without folding")),
-            };
+            match ear_clip(&polygon, |id| position(id, &out), &input.normal, kept_edge) {
+                Some(clipped) => strip = clipped,
+                None => {
+                    let folded: Vec<[u32; 3]> = strip.iter().filter(|t| !upright(t)).copied().collect();
+                    return Err(grow_around(&folded, base, input, "the border around the incision cannot be stitched without folding"));
+                }
+            }
         }
         out.new_triangles.extend(strip);
     }
