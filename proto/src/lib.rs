@@ -4,7 +4,7 @@
 #![allow(clippy::all)]
 
 pub mod v1 {
-    tonic::include_proto!("cutsim.v1");
+    include!(concat!(env!("OUT_DIR"), "/cutsim.v1.rs"));
 }
 
 /// The encoded file descriptor set of cutsim.proto, for gRPC server reflection.
@@ -13,6 +13,7 @@ pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "
 /// A gRPC endpoint for a server URL: `http://HOST:PORT` is plain TCP; `https://HOST:PORT`
 /// is TLS, trusting the system's roots and, when given, the CA certificate in `ca_pem`
 /// (a PEM file: a private CA or a self-signed server certificate).
+#[cfg(feature = "grpc")]
 pub fn endpoint(url: &str, ca_pem: Option<&std::path::Path>) -> Result<tonic::transport::Endpoint, String> {
     endpoint_for_name(url, ca_pem, None)
 }
@@ -20,6 +21,7 @@ pub fn endpoint(url: &str, ca_pem: Option<&std::path::Path>) -> Result<tonic::tr
 /// [`endpoint`], checking the server's certificate against `tls_name` instead of the
 /// URL's host: for a probe that dials `127.0.0.1` on a server whose certificate names
 /// its public host.
+#[cfg(feature = "grpc")]
 pub fn endpoint_for_name(url: &str, ca_pem: Option<&std::path::Path>, tls_name: Option<&str>) -> Result<tonic::transport::Endpoint, String> {
     let endpoint = tonic::transport::Endpoint::from_shared(url.to_owned())
         .map_err(|e| format!("{url:?} is not a server address ({e}); use e.g. http://127.0.0.1:50051 or https://host:50051"))?;

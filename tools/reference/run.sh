@@ -15,7 +15,7 @@ problems="${CARGO_TARGET_DIR:-$root/target}/reference-problems"
 
 # A problem solved before with the same mesh, the same solver and the same pinned
 # packages has the same solution: it is taken from the cache (CUTSIM_REFERENCE_CACHE,
-# by default ~/.cache/cutsim/reference) instead of being solved again (about 8 minutes
+# by default ~/.cache/cutsim/reference) instead of being solved again (about 4 minutes
 # of CI on a 2-core machine). CUTSIM_REFERENCE_FRESH=1 solves every problem anew.
 cache="${CUTSIM_REFERENCE_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/cutsim/reference}"
 mkdir -p "$cache" "$here/results"
