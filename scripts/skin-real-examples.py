@@ -13,7 +13,10 @@ It also writes the straight cuts across the whole patch every 1.5 mm from z = -1
 +12 mm that server/sim/tests/real_skin_cut.rs runs through the node-matching
 reconstruction (server/sim/tests/data/skin-real-across.json: one script per line).
 
-Usage: python3 scripts/skin-real-examples.py   (rewrites the five files)
+Usage: python3 scripts/skin-real-examples.py           (rewrites the five files)
+       python3 scripts/skin-real-examples.py --check   (fails, naming them, where the
+                                                          files differ from what it writes;
+                                                          the test command runs it)
 """
 
 import json
@@ -110,19 +113,18 @@ def cut_keyframes(skin, path_xz, start_step, end_step):
     return keyframes
 
 
-def write(name, script):
-    path = os.path.join(EXAMPLES, name)
-    with open(path, "w") as f:
-        json.dump(script, f, indent=2)
-        f.write("\n")
-    print(f"wrote {os.path.relpath(path, ROOT)}: {len(script['tools'][0]['keyframes'])} keyframes")
+def script_text(script):
+    """An example script as the files hold it: indented JSON and a final newline."""
+    return json.dumps(script, indent=2) + "\n"
 
 
-def main():
+def generated_files():
+    """Every file this script writes, as {path: text}, in the order it writes them."""
     scene, vertices, triangles = load_skin()
     skin = (vertices, triangles)
     task = [(p[0], p[2]) for p in scene["task"]["incision"]["points_m"]]
     existing = lambda name: json.load(open(os.path.join(EXAMPLES, name)))
+    files = {}
 
     # Each script keeps its expectations and length; only the blade's way changes.
     # (script, the blade's way, its first and last step drawing)
@@ -137,19 +139,38 @@ def main():
     ]:
         script = existing(name)
         script["tools"] = [{"tool": "scalpel", "keyframes": cut_keyframes(skin, path, start, end)}]
-        write(name, script)
+        files[os.path.join(EXAMPLES, name)] = script_text(script)
 
-    # The separating cut, drawn across the patch at each z: one script per line.
-    separate = existing("skin-real-separate.json")
+    # The separating cut, drawn across the patch at each z: one script per line. (Its
+    # expectations are the separate script's as generated above.)
+    separate = json.loads(files[os.path.join(EXAMPLES, "skin-real-separate.json")])
     across = []
     for k in range(ACROSS_CUTS):
         z = round(ACROSS_FROM_M + k * ACROSS_EVERY_M, 6)
         script = dict(separate, tools=[{"tool": "scalpel", "keyframes": cut_keyframes(skin, [(-0.065, z), (0.065, z)], 0, 800)}])
         across.append(json.dumps(script, separators=(",", ":")))
-    os.makedirs(os.path.dirname(ACROSS), exist_ok=True)
-    with open(ACROSS, "w") as f:
-        f.write("[\n" + ",\n".join(across) + "\n]\n")
-    print(f"wrote {os.path.relpath(ACROSS, ROOT)}: {len(across)} cuts across the patch")
+    files[ACROSS] = "[\n" + ",\n".join(across) + "\n]\n"
+    return files
+
+
+def main():
+    check = sys.argv[1:] == ["--check"]
+    if sys.argv[1:] and not check:
+        sys.exit(f"skin-real-examples: unknown arguments {sys.argv[1:]}; usage: skin-real-examples.py [--check]")
+    files = generated_files()
+    if check:
+        stale = [path for path, text in files.items() if not os.path.exists(path) or open(path).read() != text]
+        for path in stale:
+            print(f"skin-real-examples: {os.path.relpath(path, ROOT)} is not what this script writes (edited by hand, or the script or the CT skin changed): run python3 scripts/skin-real-examples.py and commit the result", file=sys.stderr)
+        if stale:
+            sys.exit(1)
+        print(f"skin-real-examples: the {len(files)} files are what this script writes")
+        return
+    for path, text in files.items():
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w") as f:
+            f.write(text)
+        print(f"wrote {os.path.relpath(path, ROOT)}")
 
 
 if __name__ == "__main__":

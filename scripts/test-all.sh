@@ -26,6 +26,9 @@ fi
 phase "scikit-fem reference solutions (tools/reference; a virtual environment made on the first run)"
 tools/reference/run.sh
 
+phase "generated cut scripts: the CT skin's examples and test fixture are what their generator writes"
+python3 scripts/skin-real-examples.py --check
+
 phase "cargo test (unit, integration and end-to-end tests)"
 # CI's log keeps the head and the tail of a long run: a failing test's message, printed
 # where its binary ran, can fall in the cut middle. On failure the failures are printed
