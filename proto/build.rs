@@ -1,6 +1,6 @@
 //! Compiles proto/cutsim.proto with protox (pure Rust, no protoc needed) and generates
-//! the prost messages and, with the "grpc" feature, the tonic clients/servers. The encoded file descriptor set is
-//! written too, for gRPC server reflection.
+//! the prost messages and, with the "grpc" feature, the tonic clients/servers. The
+//! encoded file descriptor set is written too, for gRPC server reflection.
 
 use prost::Message;
 
