@@ -126,7 +126,10 @@ pub fn shrinking_gap_curve_with(residual_strain: f64, steps: usize, msm_extra: &
     }
     let incision = m.incisions().first().ok_or("no incision")?.clone();
     let mid = incision.lips[0].len() / 2;
-    let (a, b) = (incision.lips[0][mid] as usize, incision.lips[1][mid] as usize);
+    let (Some(&a), Some(&b)) = (incision.lips[0].get(mid), incision.lips[1].get(mid)) else {
+        return Err("the incision has tissue on one side only".into());
+    };
+    let (a, b) = (a as usize, b as usize);
     if a == b {
         return Err("the lips are not split".into());
     }

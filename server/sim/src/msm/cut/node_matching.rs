@@ -14,7 +14,10 @@
 //!    both lips there) or *open* (it meets a border: each lip ends on the chain end of its
 //!    own side). At a closed end the border vertex nearest to the end, preferring those
 //!    ahead of it, is the paper's "yellow" node; the chains are split there into two
-//!    arcs, one on each side of the curve.
+//!    arcs, one on each side of the curve. Where a single open chain runs from one end
+//!    to the other and nothing else borders the removed area, there is tissue on one
+//!    side only (the cut severs the last bridge to the patch's edge, or runs along it):
+//!    that side is stitched and the other gets no lip.
 //! 3. Every curve vertex except the closed ends is split in two, one per lip.
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
 //!    closing the quad between them with its shorter diagonal (the green springs). Where
@@ -69,7 +72,8 @@ pub(crate) struct MatchOutput {
     /// Positions of the new vertices; vertex `k` gets id `next_vertex_id + k`.
     pub new_vertices: Vec<Vec3>,
     pub new_triangles: Vec<[u32; 3]>,
-    /// Lip vertex ids from the start of the curve to its end, left and right of it.
+    /// Lip vertex ids from the start of the curve to its end, left and right of it;
+    /// empty on a side with no tissue along the curve (a one-sided stitch).
     pub lips: [Vec<u32>; 2],
     /// The vertex that closes the curve's end, when that end is closed.
     pub closed_end_vertex: Option<u32>,
@@ -169,15 +173,19 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
             }
         }
     }
+    // One open chain from near the start to near the end, and nothing else: tissue
+    // along one side of the curve only (the cut severs the last bridge to the patch's
+    // edge, or runs along that edge). That side is stitched; the other gets no lip.
+    let one_sided = chains.len() == 1 && start_ends.len() == 1 && end_ends.len() == 1;
     for (group, name) in [(&start_ends, "start"), (&end_ends, "end")] {
-        if !group.is_empty() && group.len() != 2 {
+        if !one_sided && !group.is_empty() && group.len() != 2 {
             return Err(MatchError::Unsupported(format!(
                 "the removed area meets the mesh border {} times near the incision's {name} (0 or 2 supported)",
                 group.len()
             )));
         }
     }
-    let (start_open, end_open) = (start_ends.len() == 2, end_ends.len() == 2);
+    let (start_open, end_open) = (!start_ends.is_empty(), !end_ends.is_empty());
 
     // Yellow nodes at the closed ends.
     let yellow_start = (!start_open).then(|| pick_yellow(&chains, &frame, input.x, &start_point));
@@ -187,14 +195,15 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     }
 
     let arcs = split_into_arcs(&chains, yellow_start, yellow_end)?;
-    if arcs.len() != 2 {
+    let expected_arcs = if one_sided { 1 } else { 2 };
+    if arcs.len() != expected_arcs {
         return Err(MatchError::Unsupported(format!(
-            "the border of the removed area splits into {} arcs (2 supported)",
+            "the border of the removed area splits into {} arcs ({expected_arcs} supported)",
             arcs.len()
         )));
     }
-    let sides = [arc_side(&arcs[0], &frame, input.x), arc_side(&arcs[1], &frame, input.x)];
-    if sides[0] == sides[1] {
+    let sides: Vec<f64> = arcs.iter().map(|arc| arc_side(arc, &frame, input.x)).collect();
+    if sides.len() == 2 && sides[0] == sides[1] {
         return Err(MatchError::Unsupported("both border arcs lie on the same side of the incision".into()));
     }
 
@@ -220,9 +229,11 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     let through_start = start_open && start_ends.iter().any(|&v| start_back(v) > too_far);
     let through_end = end_open && end_ends.iter().any(|&v| end_back(v) > too_far);
 
-    let mut strips: Vec<(&[u32], bool)> = Vec::with_capacity(2);
+    let mut strips: Vec<(usize, &[u32], bool)> = Vec::with_capacity(2);
     for (slot, side) in [1.0, -1.0].into_iter().enumerate() {
-        let arc: &[u32] = if sides[0] == side { &arcs[0] } else { &arcs[1] };
+        // One-sided: the side without an arc keeps no tissue along the curve, no lip.
+        let Some(k) = sides.iter().position(|&s| s == side) else { continue };
+        let arc: &[u32] = &arcs[k];
         let (first, last) = (arc[0], *arc.last().unwrap());
         let is_start_end = |v: u32| if start_open { start_ends.contains(&v) } else { Some(v) == yellow_start };
         let is_end_end = |v: u32| if end_open { end_ends.contains(&v) } else { Some(v) == yellow_end };
@@ -243,13 +254,13 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
         }
         lip.push(closed_end.unwrap_or(arc_end));
         out.lips[slot] = lip;
-        strips.push((arc, forward));
+        strips.push((slot, arc, forward));
     }
 
     let position = |id: u32, out: &MatchOutput| -> Vec3 {
         if id >= base { out.new_vertices[(id - base) as usize] } else { input.x[id as usize] }
     };
-    for (slot, &(arc, forward)) in strips.iter().enumerate() {
+    for &(slot, arc, forward) in &strips {
         let mut lip = out.lips[slot].clone();
         if !forward {
             lip.reverse();
@@ -693,5 +704,73 @@ mod tests {
             let [a, b, c] = t.map(|i| pts[i as usize]);
             assert!(triangle_normal(&a, &b, &c).z > 0.0, "{t:?} is clockwise");
         }
+    }
+
+    /// A flat grid of unit squares in the xy plane, `nx` × `ny` vertices (id = y·nx + x),
+    /// each square split into two counter-clockwise triangles (seen from +z).
+    fn grid_topology(nx: u32, ny: u32) -> (Topology, Vec<Vec3>) {
+        let mut topo = Topology { node_tris: vec![Vec::new(); (nx * ny) as usize], ..Default::default() };
+        let x = (0..nx * ny).map(|v| Vec3::new((v % nx) as f64, (v / nx) as f64, 0.0)).collect();
+        for j in 0..ny - 1 {
+            for i in 0..nx - 1 {
+                let (a, b, c, d) = (j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i);
+                topo.push_tri([a, b, c], 0.5);
+                topo.push_tri([a, c, d], 0.5);
+            }
+        }
+        (topo, x)
+    }
+
+    #[test]
+    fn a_cut_with_tissue_on_one_side_only_stitches_that_side() {
+        // The removed area is the top row of squares x = 2…5 along the mesh's edge y = 3:
+        // its only border with kept tissue is one open chain below the curve, from the
+        // edge near the curve's start to the edge near its end.
+        let (nx, ny) = (8, 4);
+        let (topo, x) = grid_topology(nx, ny);
+        let removed: Vec<u32> = (2..5).flat_map(|i| [2 * ((ny - 2) * (nx - 1) + i), 2 * ((ny - 2) * (nx - 1) + i) + 1]).collect();
+        let curve: Vec<Vec3> = (2..=5).map(|i| Vec3::new(i as f64, 2.7, 0.0)).collect();
+        let base = nx * ny;
+        let input = MatchInput {
+            topo: &topo,
+            x: &x,
+            removed_tris: &removed,
+            curve: &curve,
+            normal: Vec3::z(),
+            next_vertex_id: base,
+            lip_spacing_m: 1.0,
+        };
+        let out = match_nodes(&input).expect("a one-sided stitch");
+        assert!(out.start_open && out.end_open && out.closed_end_vertex.is_none());
+        // Left of the curve (towards +y) is the mesh's edge: no lip there. The right lip
+        // runs from the chain's end at the start, through the curve's inner points, to
+        // the chain's end at the end.
+        assert!(out.lips[0].is_empty(), "{:?}", out.lips);
+        assert_eq!(out.lips[1], vec![ny * nx - nx + 2, base, base + 1, ny * nx - nx + 5]);
+        assert_eq!(out.new_vertices, curve[1..3].to_vec());
+        assert!(out.min_angle_deg >= MIN_ANGLE_DEG);
+        // Upright, and every edge has at most two triangles among the kept and new ones.
+        let position = |v: u32| if v >= base { out.new_vertices[(v - base) as usize] } else { x[v as usize] };
+        let mut edges: Vec<(u32, u32)> = Vec::new();
+        let kept = (0..topo.tris.len() as u32).filter(|t| !removed.contains(t)).map(|t| topo.tris[t as usize]);
+        for t in kept.chain(out.new_triangles.iter().copied()) {
+            let [a, b, c] = t.map(position);
+            assert!(triangle_normal(&a, &b, &c).z > 0.0, "{t:?} is upside down");
+            edges.extend((0..3).map(|k| (t[k].min(t[(k + 1) % 3]), t[k].max(t[(k + 1) % 3]))));
+        }
+        edges.sort_unstable();
+        assert!(edges.windows(3).all(|w| w[0] != w[2]), "an edge has three triangles");
+        // The new triangles cover the polygon between the chain and the lip: 3 × 0.7 below
+        // the curve and a 1 × 0.3 triangle above it at each end (the lip rises to the
+        // chain's ends on the edge). The rest of the removed squares stays open.
+        let area: f64 = out
+            .new_triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(position);
+                0.5 * (b - a).cross(&(c - a)).z
+            })
+            .sum();
+        assert!((area - 2.4).abs() < 1e-9, "{area}");
     }
 }
