@@ -15,9 +15,10 @@
 //!    own side). At a closed end the border vertex nearest to the end, preferring those
 //!    ahead of it, is the paper's "yellow" node; the chains are split there into two
 //!    arcs, one on each side of the curve. Where a single open chain runs from one end
-//!    to the other and nothing else borders the removed area, there is tissue on one
-//!    side only (the cut severs the last bridge to the patch's edge, or runs along it):
-//!    that side is stitched and the other gets no lip.
+//!    to the other, wholly on one side of the curve, and nothing else borders the
+//!    removed area, there is tissue on that side only (the cut severs the last bridge
+//!    to the patch's edge, or runs along it): that side is stitched and the other gets
+//!    no lip.
 //! 3. Every curve vertex except the closed ends is split in two, one per lip.
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
 //!    closing the quad between them with its shorter diagonal (the green springs). Where
@@ -201,6 +202,13 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
             "the border of the removed area splits into {} arcs ({expected_arcs} supported)",
             arcs.len()
         )));
+    }
+    if one_sided && !arc_on_one_side(&arcs[0], &frame, input.x) {
+        // The chain wraps around the curve (the removed area meets the mesh border in a
+        // stretch beside the curve's middle, not at its ends): no side is free of tissue.
+        return Err(MatchError::Unsupported(
+            "the removed area meets the mesh border once near each end of the incision, but its border with the remaining tissue runs on both sides".into(),
+        ));
     }
     let sides: Vec<f64> = arcs.iter().map(|arc| arc_side(arc, &frame, input.x)).collect();
     if sides.len() == 2 && sides[0] == sides[1] {
@@ -542,6 +550,12 @@ fn arc_side(arc: &[u32], frame: &CurveFrame, x: &[Vec3]) -> f64 {
     if sum >= 0.0 { 1.0 } else { -1.0 }
 }
 
+/// Whether every interior vertex of an arc lies on the same side of the curve.
+fn arc_on_one_side(arc: &[u32], frame: &CurveFrame, x: &[Vec3]) -> bool {
+    let interior = &arc[1..arc.len() - 1];
+    interior.windows(2).all(|w| frame.locate(&x[w[0] as usize]).1 == frame.locate(&x[w[1] as usize]).1)
+}
+
 /// Triangulates the strip between the arc `p` (walked with the hole on its right) and
 /// the lip `q` (walked the same way), closing each quad with its shorter diagonal (the
 /// paper's rule) unless only the other diagonal gives an upright triangle (a border
@@ -772,5 +786,44 @@ mod tests {
             })
             .sum();
         assert!((area - 2.4).abs() < 1e-9, "{area}");
+    }
+
+    #[test]
+    fn a_border_chain_around_both_sides_is_not_stitched_on_one_side() {
+        // The removed area is the row of squares x = 1…6 between y = 1 and 2, and the one
+        // square above it at x = 3…4, which reaches the mesh's edge y = 3: the curve runs
+        // along the row (y = 1.6), and the one open chain goes from the edge at x = 3
+        // around the curve's start, under the curve and around its end back to the edge
+        // at x = 4. Its ends lie one near each end of the curve, but it borders kept
+        // tissue on both sides (above the row beyond the square): no side is free of it.
+        let (nx, ny) = (8, 4);
+        let (topo, x) = grid_topology(nx, ny);
+        let square = |i: u32, j: u32| [2 * (j * (nx - 1) + i), 2 * (j * (nx - 1) + i) + 1];
+        let mut removed: Vec<u32> = (1..6).flat_map(|i| square(i, 1)).chain(square(3, 2)).collect();
+        removed.sort_unstable();
+        let curve: Vec<Vec3> = (0..5).map(|k| Vec3::new(1.5 + k as f64, 1.6, 0.0)).collect();
+        // The kept triangle in the corner left of the square is an ear of the hole: taken
+        // with it, as the caller does.
+        for _ in 0..4 {
+            let input = MatchInput {
+                topo: &topo,
+                x: &x,
+                removed_tris: &removed,
+                curve: &curve,
+                normal: Vec3::z(),
+                next_vertex_id: nx * ny,
+                lip_spacing_m: 1.0,
+            };
+            match match_nodes(&input) {
+                Err(MatchError::Grow(more)) => {
+                    removed.extend(more);
+                    removed.sort_unstable();
+                    removed.dedup();
+                }
+                Err(MatchError::Unsupported(why)) => return assert!(why.contains("both sides"), "{why}"),
+                other => panic!("expected a refusal, got {other:?}"),
+            }
+        }
+        panic!("the removed area kept growing");
     }
 }
