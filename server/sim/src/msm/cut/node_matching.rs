@@ -735,6 +735,20 @@ mod tests {
         (topo, x)
     }
 
+    /// Node matching's input on a [`grid_topology`]: normal +z, new vertices numbered
+    /// after the grid's, lips one unit apart.
+    fn flat_input<'a>(topo: &'a Topology, x: &'a [Vec3], removed: &'a [u32], curve: &'a [Vec3]) -> MatchInput<'a> {
+        MatchInput {
+            topo,
+            x,
+            removed_tris: removed,
+            curve,
+            normal: Vec3::z(),
+            next_vertex_id: x.len() as u32,
+            lip_spacing_m: 1.0,
+        }
+    }
+
     #[test]
     fn a_cut_with_tissue_on_one_side_only_stitches_that_side() {
         // The removed area is the top row of squares x = 2…5 along the mesh's edge y = 3:
@@ -745,16 +759,7 @@ mod tests {
         let removed: Vec<u32> = (2..5).flat_map(|i| [2 * ((ny - 2) * (nx - 1) + i), 2 * ((ny - 2) * (nx - 1) + i) + 1]).collect();
         let curve: Vec<Vec3> = (2..=5).map(|i| Vec3::new(i as f64, 2.7, 0.0)).collect();
         let base = nx * ny;
-        let input = MatchInput {
-            topo: &topo,
-            x: &x,
-            removed_tris: &removed,
-            curve: &curve,
-            normal: Vec3::z(),
-            next_vertex_id: base,
-            lip_spacing_m: 1.0,
-        };
-        let out = match_nodes(&input).expect("a one-sided stitch");
+        let out = match_nodes(&flat_input(&topo, &x, &removed, &curve)).expect("a one-sided stitch");
         assert!(out.start_open && out.end_open && out.closed_end_vertex.is_none());
         // Left of the curve (towards +y) is the mesh's edge: no lip there. The right lip
         // runs from the chain's end at the start, through the curve's inner points, to
@@ -805,16 +810,7 @@ mod tests {
         // The kept triangle in the corner left of the square is an ear of the hole: taken
         // with it, as the caller does.
         for _ in 0..4 {
-            let input = MatchInput {
-                topo: &topo,
-                x: &x,
-                removed_tris: &removed,
-                curve: &curve,
-                normal: Vec3::z(),
-                next_vertex_id: nx * ny,
-                lip_spacing_m: 1.0,
-            };
-            match match_nodes(&input) {
+            match match_nodes(&flat_input(&topo, &x, &removed, &curve)) {
                 Err(MatchError::Grow(more)) => {
                     removed.extend(more);
                     removed.sort_unstable();
