@@ -81,6 +81,28 @@ fn cuts_from_and_to_the_border_and_across() {
 }
 
 #[test]
+fn cuts_along_the_patch_edge_are_stitched_on_their_inner_side() {
+    // Drawn parallel to the edge y = +40 mm, 0.5–1.5 mm in from it (a fifth to three
+    // fifths of the mesh's edge length), in from the side or from inside: the swept area
+    // reaches the edge, so each update has tissue on its inner side only. Before node
+    // matching stitched one side, every update fell back (10–16 a cut). The inner lip
+    // retracts from the blade under the residual stress, so the blade's axis leaves the
+    // skin now and then and its next crossing begins a new incision: the number of cuts
+    // is not asserted.
+    for d_mm in [0.5, 1.0, 1.5] {
+        for (from, to, name) in [(-0.06, 0.06, "across"), (-0.03, 0.03, "inside")] {
+            let mut m = patch(0.0);
+            let y = 0.04 - d_mm * 1e-3;
+            straight_cut(&mut m, Vec3::new(from, y, 0.0), Vec3::new(to, y, 0.0), Vec3::z(), 0.005, 300);
+            step_with(&mut m, None, false, 300);
+            let cuts = m.counters().cuts;
+            assert!(cuts >= 1, "{name}, {d_mm} mm from the edge: no cut");
+            assert_clean_cut(&format!("{name}, {d_mm} mm from the edge"), &m, cuts, 1);
+        }
+    }
+}
+
+#[test]
 fn a_cut_across_an_earlier_incision() {
     let mut m = patch(0.0);
     straight_cut(&mut m, Vec3::new(-0.02, 0.0, 0.0), Vec3::new(0.02, 0.0, 0.0), Vec3::z(), 0.005, 100);

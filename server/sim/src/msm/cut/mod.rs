@@ -46,7 +46,8 @@ pub struct Incision {
 
 #[derive(Debug, Clone)]
 enum Anchor {
-    /// The stroke has begun here and has not cut yet.
+    /// The stroke has begun here and has not cut yet, or its incision ended open here
+    /// (on a border) and goes on from this point.
     Start(Vec3),
     /// The incision ends at this vertex (its closed tip), which the next update removes.
     Tip(u32),
@@ -289,12 +290,12 @@ impl Cutter {
                     }
                     lip.extend(new);
                 }
-                self.strokes[tool] = out.closed_end_vertex.map(|tip| Stroke {
-                    anchor: Anchor::Tip(tip),
-                    last_blade: near,
-                    incision: Some(index),
-                    last_crossing: None,
-                });
+                // A closed end is the next update's anchor (it removes that tip). An open
+                // end (the incision met a border: the patch's edge, an older wound, or the
+                // edge alongside a one-sided update) leaves no tip: the same incision goes
+                // on from the curve's end point while the blade stays in the skin.
+                let anchor = out.closed_end_vertex.map_or(Anchor::Start(point), Anchor::Tip);
+                self.strokes[tool] = Some(Stroke { anchor, last_blade: near, incision: Some(index), last_crossing: None });
             }
             None => {
                 self.last_fallback_reason = Some(failure);
