@@ -82,14 +82,16 @@ fn cuts_from_and_to_the_border_and_across() {
 
 #[test]
 fn cuts_along_the_patch_edge_are_stitched_on_their_inner_side() {
-    // Drawn parallel to the edge y = +40 mm, 0.5–1.5 mm in from it (a fifth to three
-    // fifths of the mesh's edge length), in from the side or from inside: the swept area
-    // reaches the edge, so each update has tissue on its inner side only. Before node
-    // matching stitched one side, every update fell back (10–16 a cut). The inner lip
+    // Drawn parallel to the edge y = +40 mm, 0.5–3 mm in from it (up to about one edge
+    // length of the mesh), in from the side or from inside: the swept area reaches the
+    // edge, so each update has tissue on its inner side only (from 2 mm in, the border
+    // chain rounds the curve's ends to reach the edge beyond them). Before node matching
+    // stitched one side, the same cuts drawn by cut-bot scripts fell back 10–17 times
+    // each (docs/tool-tissue.md). The inner lip
     // retracts from the blade under the residual stress, so the blade's axis leaves the
     // skin now and then and its next crossing begins a new incision: the number of cuts
     // is not asserted.
-    for d_mm in [0.5, 1.0, 1.5] {
+    for d_mm in [0.5, 1.0, 1.5, 2.0, 2.5, 3.0] {
         for (from, to, name) in [(-0.06, 0.06, "across"), (-0.03, 0.03, "inside")] {
             let mut m = patch(0.0);
             let y = 0.04 - d_mm * 1e-3;

@@ -15,10 +15,10 @@
 //!    own side). At a closed end the border vertex nearest to the end, preferring those
 //!    ahead of it, is the paper's "yellow" node; the chains are split there into two
 //!    arcs, one on each side of the curve. Where a single open chain runs from one end
-//!    to the other, wholly on one side of the curve, and nothing else borders the
-//!    removed area, there is tissue on that side only (the cut severs the last bridge
-//!    to the patch's edge, or runs along it): that side is stitched and the other gets
-//!    no lip.
+//!    to the other, on one side of the curve all along it (beyond the curve's ends it
+//!    may round them), and nothing else borders the removed area, there is tissue on
+//!    that side only (the cut severs the last bridge to the patch's edge, or runs along
+//!    it): that side is stitched and the other gets no lip.
 //! 3. Every curve vertex except the closed ends is split in two, one per lip.
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
 //!    closing the quad between them with its shorter diagonal (the green springs). Where
@@ -550,10 +550,15 @@ fn arc_side(arc: &[u32], frame: &CurveFrame, x: &[Vec3]) -> f64 {
     if sum >= 0.0 { 1.0 } else { -1.0 }
 }
 
-/// Whether every interior vertex of an arc lies on the same side of the curve.
+/// Whether the arc's interior vertices alongside the curve (those whose nearest curve
+/// point is not one of its ends) all lie on the same side of it. Vertices beyond the
+/// curve's ends do not count: a chain that rounds an end of the curve to reach the mesh
+/// border beyond it still leaves that side free of tissue along the curve.
 fn arc_on_one_side(arc: &[u32], frame: &CurveFrame, x: &[Vec3]) -> bool {
-    let interior = &arc[1..arc.len() - 1];
-    interior.windows(2).all(|w| frame.locate(&x[w[0] as usize]).1 == frame.locate(&x[w[1] as usize]).1)
+    let length = *frame.cumulative.last().unwrap();
+    let mut sides = arc[1..arc.len() - 1].iter().map(|&v| frame.locate(&x[v as usize])).filter(|&(t, _)| t > 0.0 && t < length).map(|(_, side)| side);
+    let Some(first) = sides.next() else { return true };
+    sides.all(|side| side == first)
 }
 
 /// Triangulates the strip between the arc `p` (walked with the hole on its right) and
