@@ -87,10 +87,9 @@ fn cuts_along_the_patch_edge_are_stitched_on_their_inner_side() {
     // edge, so each update has tissue on its inner side only (from 2 mm in, the border
     // chain rounds the curve's ends to reach the edge beyond them). Before node matching
     // stitched one side, the same cuts drawn by cut-bot scripts fell back 10–17 times
-    // each (docs/tool-tissue.md). The inner lip
-    // retracts from the blade under the residual stress, so the blade's axis leaves the
-    // skin now and then and its next crossing begins a new incision: the number of cuts
-    // is not asserted.
+    // each (docs/tool-tissue.md). The inner lip retracts from the blade under the
+    // residual stress, so the blade's axis may leave the skin and its next crossing
+    // begin a new incision: the number of cuts is not asserted.
     for d_mm in [0.5, 1.0, 1.5, 2.0, 2.5, 3.0] {
         for (from, to, name) in [(-0.06, 0.06, "across"), (-0.03, 0.03, "inside")] {
             let mut m = patch(0.0);

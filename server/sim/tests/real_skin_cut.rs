@@ -143,7 +143,9 @@ fn forceps_grasp_the_lip_of_a_cut_across_real_skin_and_retract_it() {
 /// through the curve's start where the border lay far back, and grew the removed area
 /// where the border folded, 14 of the 17 fell back at least once and restarted their
 /// stroke; before it stitched one side only where the removed area borders kept tissue
-/// on one side (z = +1.5 mm: the last bridge to the patch's edge), one still did.
+/// on one side (z = +1.5 mm: the last bridge to the patch's edge), one still did. Each
+/// is one incision: an update that ends open on the patch's edge while the blade is
+/// still in the skin no longer ends the stroke (z = +1.5 mm counted 2 cuts).
 #[test]
 fn cuts_across_the_whole_real_skin_part_it_in_two_without_falling_back() {
     let scene = load_scene(&scenes_dir().join("skin-real.json"));
@@ -161,6 +163,7 @@ fn cuts_across_the_whole_real_skin_part_it_in_two_without_falling_back() {
         println!("z = {z_mm:+.1} mm: {} cuts, {} pieces, {} fallbacks{reason}, {:.1} mm", report.cuts, report.pieces, report.reconstruction_fallbacks, report.incision_length_m * 1e3);
         live_mesh(&m).check().unwrap_or_else(|e| panic!("z = {z_mm:+.1} mm: not manifold: {e}"));
         assert_eq!(report.pieces, 2, "z = {z_mm:+.1} mm parts the skin in two");
+        assert_eq!(report.cuts, 1, "z = {z_mm:+.1} mm is one stroke, one incision");
         assert!(m.min_cut_angle_deg().unwrap() >= MIN_ANGLE_DEG, "z = {z_mm:+.1} mm");
         if report.reconstruction_fallbacks > 0 {
             fallbacks.push((k, report.reconstruction_fallbacks, reason));
