@@ -67,6 +67,8 @@ def main() -> int:
     for t in report.tools:
         grasping = f", grasping {t.grasping_s:.3f} s, pinching at most {t.max_jaws_force_n:.2f} N" if t.grasping_s > 0 else ""
         print(f"tool {t.name}: largest force {t.max_force_n:.2f} N{grasping}")
+    for f in report.fallbacks:
+        print(f"fallback at step {f.step}: {f.reason}")
     for e in report.expectations:
         print(f"{'PASS' if e.passed else 'FAIL'} {e.name}: expected {e.expected}, got {e.actual}")
     return 0 if report.passed else 1

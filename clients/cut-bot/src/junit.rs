@@ -41,7 +41,14 @@ pub fn render(script: &str, report: &pb::ScriptReport, elapsed: Duration) -> Str
         if e.passed {
             let _ = writeln!(out, "    <testcase classname=\"cut-bot.{}\" name=\"{name}\" time=\"0\"/>", escape(script));
         } else {
-            let message = escape(&format!("expected {}, got {}", e.expected, e.actual));
+            let mut message = format!("expected {}, got {}", e.expected, e.actual);
+            if e.name == "reconstruction_fallbacks" {
+                // Why each update fell back is what whoever reads the failure needs next.
+                for f in &report.fallbacks {
+                    let _ = write!(message, "; step {}: {}", f.step, f.reason);
+                }
+            }
+            let message = escape(&message);
             let _ = writeln!(out, "    <testcase classname=\"cut-bot.{}\" name=\"{name}\" time=\"0\">", escape(script));
             let _ = writeln!(out, "      <failure message=\"{message}\" type=\"expectation\">{message}</failure>");
             let _ = writeln!(out, "    </testcase>");
@@ -95,4 +102,23 @@ fn escape(s: &str) -> String {
             c => c.to_string(),
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_fallback_expectation_names_each_fallback_and_why() {
+        let report = pb::ScriptReport {
+            expectations: vec![pb::ExpectationResult { name: "reconstruction_fallbacks".into(), expected: "= 0".into(), actual: "1".into(), passed: false }],
+            fallbacks: vec![pb::CutFallback { step: 545, reason: "the removed area meets the mesh border 1 times near the incision's start (0 or 2 supported)".into() }],
+            ..Default::default()
+        };
+        let xml = render("edge.json", &report, Duration::from_secs(1));
+        assert!(
+            xml.contains("message=\"expected = 0, got 1; step 545: the removed area meets the mesh border 1 times near the incision&apos;s start (0 or 2 supported)\""),
+            "{xml}"
+        );
+    }
 }

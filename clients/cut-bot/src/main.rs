@@ -257,6 +257,9 @@ fn print_report(name: &str, r: &pb::ScriptReport) {
     println!("script           {name} on scene {} ({})", r.scene, r.model);
     println!("steps            {} ({:.3} s simulated, {:.0} steps/s)", r.steps, r.simulated_time_s, r.steps_per_second);
     println!("cuts             {} ({} updates, {} fallbacks)", r.cuts, r.cut_updates, r.reconstruction_fallbacks);
+    for f in &r.fallbacks {
+        println!("  fallback at step {}: {}", f.step, f.reason);
+    }
     println!("removed elements {}", r.removed_elements);
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);
     println!("pieces           {}", r.pieces);

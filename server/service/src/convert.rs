@@ -294,6 +294,7 @@ pub fn report(r: &RunReport, task: &TaskInfo) -> pb::ScriptReport {
         report_json: serde_json::to_string(r).unwrap_or_default(),
         assessment: Some(assessment(&r.assessment, String::new(), task)),
         tools: r.tools.iter().map(|t| pb::ToolForceReport { name: t.name.clone(), max_force_n: t.max_force_n, grasping_s: t.grasping_s, max_jaws_force_n: t.max_jaws_force_n }).collect(),
+        fallbacks: r.fallbacks.iter().map(|f| pb::CutFallback { step: f.step, reason: f.reason.clone() }).collect(),
     }
 }
 

@@ -129,6 +129,9 @@ fn print_report(r: &RunReport) {
         println!("solver work      {} steps waited for background work, {} factorizations failed", c.solver_waits, c.solver_factor_failures);
     }
     println!("cuts             {} ({} updates, {} fallbacks)", r.cuts, r.cut_updates, r.reconstruction_fallbacks);
+    for f in &r.fallbacks {
+        println!("  fallback at step {}: {}", f.step, f.reason);
+    }
     println!("removed elements {}", r.removed_elements);
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);
     println!("pieces           {}", r.pieces);

@@ -11,7 +11,7 @@ use crate::assessment::{Assessment, Assessor, Task, ToolSample, fill_samples};
 use crate::hash::hash_hex;
 use crate::script::{CompiledScript, ExpectationResult};
 use crate::stats::LatencyHistogram;
-use crate::tissue::{Tissue, TissueCounters};
+use crate::tissue::{CutFallback, Tissue, TissueCounters};
 use crate::tool::{ToolCommand, ToolFeedback};
 
 /// What a lockstep run did, as printed by `cutsim-server run --json` and returned by
@@ -30,6 +30,10 @@ pub struct RunReport {
     pub incision_length_m: f64,
     pub pieces: u64,
     pub reconstruction_fallbacks: u64,
+    /// Each of those fallbacks: the step it happened in and why the wound could not be
+    /// stitched.
+    #[serde(default)]
+    pub fallbacks: Vec<CutFallback>,
     /// Largest tool force over the run (after the tool's clamp), N.
     pub max_tool_force_n: f64,
     /// Each of the scene's tools, in the scene's order: its own largest force.
@@ -168,6 +172,7 @@ pub fn run_with_hook(
         incision_length_m: counters.incision_length_m,
         pieces: tissue.pieces() as u64,
         reconstruction_fallbacks: counters.reconstruction_fallbacks,
+        fallbacks: tissue.cut_fallbacks().to_vec(),
         max_tool_force_n: max_force,
         tools: tissue
             .tools()

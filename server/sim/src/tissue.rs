@@ -19,6 +19,15 @@ pub struct ChosenFidelity {
     pub summary: String,
 }
 
+/// A cut update whose wound could not be stitched and was left as an open hole.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CutFallback {
+    /// The step it happened in (0-based: the step index before that step).
+    pub step: u64,
+    /// Why the wound could not be stitched (node matching's reason).
+    pub reason: String,
+}
+
 /// Running totals a model keeps, for reports and the viewer's panel.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default)]
@@ -144,5 +153,12 @@ pub trait Tissue: Send {
     /// are: stopped on what they grasp, or open where a gripper does not squeeze.
     fn jaws_half_gap_m(&self, _tool: usize) -> Option<f64> {
         None
+    }
+
+    /// Every cut update since the scene was built that fell back to an open hole
+    /// (`TissueCounters::reconstruction_fallbacks` of them), with its step and reason;
+    /// empty for a model whose cuts never fall back (the branched grid removes voxels).
+    fn cut_fallbacks(&self) -> &[CutFallback] {
+        &[]
     }
 }

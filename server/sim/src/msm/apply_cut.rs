@@ -17,6 +17,7 @@ use super::state::Spring;
 use super::Integrator;
 use crate::math::triangle_area;
 use crate::surface::{SurfaceTriangle, SurfaceVertex, TopologyDelta};
+use crate::tissue::CutFallback;
 
 impl MassSpring {
     pub(crate) fn apply_cut(&mut self, plan: CutPlan) {
@@ -124,6 +125,8 @@ impl MassSpring {
         }
         if plan.fallback {
             self.counters.reconstruction_fallbacks += 1;
+            let reason = self.last_fallback_reason().unwrap_or("unknown").to_owned();
+            self.fallbacks.push(CutFallback { step: self.step_index, reason });
         }
         self.counters.removed_triangles += plan.removed_tris.len() as u64;
         self.counters.removed_elements += plan.removed_tris.len() as u64;

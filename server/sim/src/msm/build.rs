@@ -246,6 +246,7 @@ impl MassSpring {
             topology_version: 0,
             step_index: 0,
             counters: TissueCounters::default(),
+            fallbacks: Vec::new(),
             mean_edge_m,
             max_edge_m,
             max_contact_stiffness,

@@ -46,7 +46,7 @@ use crate::broad_phase::PointGrid;
 use crate::hash::StateHasher;
 use crate::math::Vec3;
 use crate::surface::{SurfaceSnapshot, SurfaceTriangle, SurfaceVertex, TopologyDelta};
-use crate::tissue::{Tissue, TissueCounters};
+use crate::tissue::{CutFallback, Tissue, TissueCounters};
 use crate::tool::{PlacedTool, ToolCommand, ToolFeedback, ToolShape};
 
 #[derive(Debug, Clone)]
@@ -177,6 +177,8 @@ pub struct MassSpring {
     topology_version: u64,
     step_index: u64,
     counters: TissueCounters,
+    /// The cut updates that fell back to an open hole, and why (a report's list).
+    fallbacks: Vec<CutFallback>,
     mean_edge_m: f64,
     max_edge_m: f64,
     max_contact_stiffness: f64,
@@ -863,6 +865,10 @@ impl Tissue for MassSpring {
 
     fn step_index(&self) -> u64 {
         self.step_index
+    }
+
+    fn cut_fallbacks(&self) -> &[CutFallback] {
+        &self.fallbacks
     }
 
     fn snapshot(&self) -> SurfaceSnapshot {

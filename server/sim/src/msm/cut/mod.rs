@@ -155,7 +155,8 @@ impl Cutter {
 
     /// Ends the tool's stroke (blade lifted out, button released or tool away): the
     /// incision is completed up to where the blade last crossed the skin, so that it ends
-    /// where the blade left (at the patch's edge, a cut goes all the way through).
+    /// where the blade left (at the patch's edge, a cut goes all the way through). A last
+    /// piece inside the skin that cannot be stitched is left uncut (see [`LastPiece`]).
     pub fn end_stroke(&mut self, tool: usize, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
         let stroke = self.strokes[tool].take()?;
         let (point, near) = stroke.last_crossing?;
@@ -164,7 +165,7 @@ impl Cutter {
         if (point - anchor_point).norm() < 0.25 * self.params.vertex_spacing_m {
             return None;
         }
-        let plan = self.grow(tool, &stroke, anchor_point, point, near, view, next_vertex_id);
+        let plan = self.grow(tool, &stroke, anchor_point, point, near, view, next_vertex_id, LastPiece::DropIfInside);
         self.strokes[tool] = None;
         plan
     }
@@ -196,7 +197,7 @@ impl Cutter {
             return None;
         }
         let stroke = stroke.clone();
-        self.grow(tool, &stroke, anchor_point, hit.point, near, view, next_vertex_id)
+        self.grow(tool, &stroke, anchor_point, hit.point, near, view, next_vertex_id, LastPiece::No)
     }
 
     /// One incision update: the three stages from the stroke's anchor to `point`.
@@ -210,6 +211,7 @@ impl Cutter {
         near: (Vec3, Vec3),
         view: &CutView,
         next_vertex_id: u32,
+        last: LastPiece,
     ) -> Option<CutPlan> {
         let mut chain = stroke.incision.map(|i| self.incisions[i].curve.clone()).unwrap_or_default();
         let segment = chain.extend(anchor_point, point);
@@ -228,6 +230,7 @@ impl Cutter {
         if removed.is_empty() {
             return None;
         }
+        let droppable = last == LastPiece::DropIfInside && !meets_border_away_from(&removed, &stroke.anchor, view.topo);
 
         let mut plan = CutPlan { starts_new_cut: stroke.incision.is_none(), incision_length_m: length, ..Default::default() };
         let mut matched = None;
@@ -297,6 +300,8 @@ impl Cutter {
                 let anchor = out.closed_end_vertex.map_or(Anchor::Start(point), Anchor::Tip);
                 self.strokes[tool] = Some(Stroke { anchor, last_blade: near, incision: Some(index), last_crossing: None });
             }
+            // The stroke's last piece, inside the skin: left uncut (LastPiece).
+            None if droppable => return None,
             None => {
                 self.last_fallback_reason = Some(failure);
                 plan.fallback = true;
@@ -366,6 +371,40 @@ pub(crate) fn nearest_crossing(tool: &PlacedTool, candidates: &[u32], x: &[Vec3]
         }
     }
     best
+}
+
+/// Whether an update is the stroke's last piece (the blade left the skin), and so may be
+/// dropped when it cannot be stitched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum LastPiece {
+    /// An update while the blade cuts on: a failure falls back to an open hole.
+    No,
+    /// The piece from the incision's end to where the blade left the skin (shorter than
+    /// `min_advance_m` plus one step's travel). Where what the blade swept lies inside
+    /// the skin (it meets no border but at the incision's own closed tip), a piece that
+    /// cannot be stitched is not cut: the incision keeps its stitched tip, a millimetre or
+    /// two short of where the blade left, instead of an open hole that growing the
+    /// removed area had often carried to the patch's edge. A piece that reaches the
+    /// patch's edge or an older wound still falls back: there the hole parts what the
+    /// blade parted.
+    DropIfInside,
+}
+
+/// Whether any of the triangles has an edge on the mesh's border (one live triangle)
+/// that does not end at the anchor's tip: the swept area reaches the patch's edge, an
+/// older wound, or the incision's own lips behind its tip.
+fn meets_border_away_from(tris: &[u32], anchor: &Anchor, topo: &Topology) -> bool {
+    let tip = match anchor {
+        Anchor::Tip(v) => Some(*v),
+        Anchor::Start(_) => None,
+    };
+    tris.iter().any(|&t| {
+        let tri = topo.tris[t as usize];
+        (0..3).any(|k| {
+            let (a, b) = (tri[k], tri[(k + 1) % 3]);
+            Some(a) != tip && Some(b) != tip && topo.edge_tris(a, b).count() == 1
+        })
+    })
 }
 
 fn anchor_position(anchor: &Anchor, view: &CutView) -> Vec3 {
