@@ -12,7 +12,9 @@
 //!    of the mesh (the patch edge, or the wound of the same cut growing).
 //! 2. Each end of the curve is *closed* (it stops inside the tissue: one vertex ends
 //!    both lips there) or *open* (it meets a border: each lip ends on the chain end of its
-//!    own side). At a closed end the border vertex nearest to the end, preferring those
+//!    own side). An open chain end belongs to the curve end it is nearer to, except that
+//!    two open chains whose ends would split 3 to 1 each run from one end to the other
+//!    (an update leaving the mesh at a slant). At a closed end the border vertex nearest to the end, preferring those
 //!    ahead of it, is the paper's "yellow" node; the chains are split there into two
 //!    arcs, one on each side of the curve. Where a single open chain runs from one end
 //!    to the other, on one side of the curve all along it (beyond the curve's ends it
@@ -162,16 +164,32 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     let (start_point, end_point) = (input.curve[0], input.curve[n]);
 
     // Open chain ends belong to the curve end they are nearer to.
+    let nearer_start = |v: u32| {
+        let p = input.x[v as usize];
+        (p - start_point).norm() - (p - end_point).norm()
+    };
+    let open: Vec<&Chain> = chains.iter().filter(|c| !c.closed).collect();
     let mut start_ends: Vec<u32> = Vec::new();
     let mut end_ends: Vec<u32> = Vec::new();
-    for chain in chains.iter().filter(|c| !c.closed) {
+    for chain in &open {
         for v in [chain.vertices[0], *chain.vertices.last().unwrap()] {
-            let p = input.x[v as usize];
-            if (p - start_point).norm() <= (p - end_point).norm() {
-                start_ends.push(v);
-            } else {
-                end_ends.push(v);
-            }
+            if nearer_start(v) <= 0.0 { start_ends.push(v) } else { end_ends.push(v) }
+        }
+    }
+    // Two open chains whose ends split 3 to 1: a short update that leaves the mesh
+    // through its edge at a slant (or removes the tip beside it) has one chain end on the
+    // edge about as near the curve's start as its end. Each chain then runs from one end
+    // of the curve to the other, as two lips must: of each chain's two ends, the one
+    // relatively nearer the start goes to the start. Later checks (arcs on opposite
+    // sides) still refuse a pairing that is wrong.
+    if open.len() == 2 && start_ends.len().abs_diff(end_ends.len()) == 2 {
+        start_ends.clear();
+        end_ends.clear();
+        for chain in &open {
+            let (a, b) = (chain.vertices[0], *chain.vertices.last().unwrap());
+            let (first, second) = if nearer_start(a) <= nearer_start(b) { (a, b) } else { (b, a) };
+            start_ends.push(first);
+            end_ends.push(second);
         }
     }
     // One open chain from near the start to near the end, and nothing else: tissue
