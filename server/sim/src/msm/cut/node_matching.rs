@@ -14,13 +14,13 @@
 //!    both lips there) or *open* (it meets a border: each lip ends on the chain end of its
 //!    own side). An open chain end belongs to the curve end it is nearer to, except that
 //!    two open chains whose ends would split 3 to 1 each run from one end to the other
-//!    (an update leaving the mesh at a slant). At a closed end the border vertex nearest to the end, preferring those
-//!    ahead of it, is the paper's "yellow" node; the chains are split there into two
-//!    arcs, one on each side of the curve. Where a single open chain runs from one end
-//!    to the other, on one side of the curve all along it (beyond the curve's ends it
-//!    may round them), and nothing else borders the removed area, there is tissue on
-//!    that side only (the cut severs the last bridge to the patch's edge, or runs along
-//!    it): that side is stitched and the other gets no lip.
+//!    (an update leaving the mesh at a slant). At a closed end the border vertex nearest
+//!    to the end, preferring those ahead of it, is the paper's "yellow" node; the chains
+//!    are split there into two arcs, one on each side of the curve. Where a single open
+//!    chain runs from one end to the other, on one side of the curve all along it
+//!    (beyond the curve's ends it may round them), and nothing else borders the removed
+//!    area, there is tissue on that side only (the cut severs the last bridge to the
+//!    patch's edge, or runs along it): that side is stitched and the other gets no lip.
 //! 3. Every curve vertex except the closed ends is split in two, one per lip.
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
 //!    closing the quad between them with its shorter diagonal (the green springs). Where
@@ -177,8 +177,8 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
         }
     }
     // Two open chains whose ends split 3 to 1: a short update that leaves the mesh
-    // through its edge at a slant (or removes the tip beside it) has one chain end on the
-    // edge about as near the curve's start as its end. Each chain then runs from one end
+    // through its edge at a slant has one chain end on the edge about as near the
+    // curve's start as its end. Each chain then runs from one end
     // of the curve to the other, as two lips must: of each chain's two ends, the one
     // relatively nearer the start goes to the start. Later checks (arcs on opposite
     // sides) still refuse a pairing that is wrong.
