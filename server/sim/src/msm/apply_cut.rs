@@ -20,7 +20,7 @@ use crate::surface::{SurfaceTriangle, SurfaceVertex, TopologyDelta};
 use crate::tissue::CutFallback;
 
 impl MassSpring {
-    pub(crate) fn apply_cut(&mut self, plan: CutPlan) {
+    pub(crate) fn apply_cut(&mut self, mut plan: CutPlan) {
         let mut touched_nodes: Vec<u32> = Vec::new();
         let mut touched_edges: Vec<(u32, u32)> = Vec::new();
         let note_tri = |tri: [u32; 3], nodes: &mut Vec<u32>, edges: &mut Vec<(u32, u32)>| {
@@ -120,12 +120,11 @@ impl MassSpring {
         });
 
         self.counters.cut_updates += 1;
-        if plan.starts_new_cut && !plan.fallback {
+        if plan.starts_new_cut && plan.fallback.is_none() {
             self.counters.cuts += 1;
         }
-        if plan.fallback {
+        if let Some(reason) = plan.fallback.take() {
             self.counters.reconstruction_fallbacks += 1;
-            let reason = self.last_fallback_reason().unwrap_or("unknown").to_owned();
             self.fallbacks.push(CutFallback { step: self.step_index, reason });
         }
         self.counters.removed_triangles += plan.removed_tris.len() as u64;

@@ -780,7 +780,7 @@ impl MassSpring {
 
     /// Why the last cut update that could not stitch the wound failed.
     pub fn last_fallback_reason(&self) -> Option<&str> {
-        self.cutter.as_ref().and_then(|c| c.last_fallback_reason.as_deref())
+        self.fallbacks.last().map(|f| f.reason.as_str())
     }
 
     /// Smallest angle of all triangles cut updates have created, degrees.

@@ -73,8 +73,8 @@ pub(crate) struct CutPlan {
     pub new_triangles: Vec<[u32; 3]>,
     pub incision_length_m: f64,
     pub starts_new_cut: bool,
-    /// Stitching failed; the swept area was removed and left open.
-    pub fallback: bool,
+    /// Stitching failed, and why: the swept area was removed and left open.
+    pub fallback: Option<String>,
     pub min_angle_deg: Option<f64>,
 }
 
@@ -119,8 +119,6 @@ pub(crate) struct Cutter {
     pub incisions: Vec<Incision>,
     /// Scratch for candidate triangles (kept to avoid allocating while the blade is in).
     candidates: Vec<u32>,
-    /// Why the last stitching failed, for reports.
-    pub last_fallback_reason: Option<String>,
 }
 
 impl HashState for Cutter {
@@ -150,7 +148,7 @@ impl HashState for Cutter {
 
 impl Cutter {
     pub fn new(params: CuttingParams, tools: usize) -> Self {
-        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096), last_fallback_reason: None }
+        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096) }
     }
 
     /// Ends the tool's stroke (blade lifted out, button released or tool away): the
@@ -303,8 +301,7 @@ impl Cutter {
             // The stroke's last piece, inside the skin: left uncut (LastPiece).
             None if droppable => return None,
             None => {
-                self.last_fallback_reason = Some(failure);
-                plan.fallback = true;
+                plan.fallback = Some(failure);
                 plan.incision_length_m = 0.0;
                 self.strokes[tool] = None;
             }

@@ -176,12 +176,12 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
             if nearer_start(v) <= 0.0 { start_ends.push(v) } else { end_ends.push(v) }
         }
     }
-    // Two open chains whose ends split 3 to 1: a short update that leaves the mesh
+    // Two open chains whose four ends split 3 to 1: a short update that leaves the mesh
     // through its edge at a slant has one chain end on the edge about as near the
-    // curve's start as its end. Each chain then runs from one end
-    // of the curve to the other, as two lips must: of each chain's two ends, the one
-    // relatively nearer the start goes to the start. Later checks (arcs on opposite
-    // sides) still refuse a pairing that is wrong.
+    // curve's start as its end. Each chain then runs from one end of the curve to the
+    // other, as two lips must: of each chain's two ends, the one relatively nearer the
+    // start goes to the start. Later checks (arcs on opposite sides) still refuse a
+    // pairing that is wrong.
     if open.len() == 2 && start_ends.len().abs_diff(end_ends.len()) == 2 {
         start_ends.clear();
         end_ends.clear();
