@@ -161,6 +161,37 @@ fn cuts_that_leave_the_patch_through_its_edge_at_a_slant() {
 }
 
 #[test]
+fn an_update_that_goes_on_from_where_the_skin_was_pressed_down_is_stitched() {
+    // A fast bent stroke 3 mm deep (a random survey's r092, seed 11): an update ends open
+    // beside the wound, and the next starts from the crossing point recorded then, 2.3 mm
+    // below the skin's plane in the dimple the blade pressed, while the lips around it now
+    // stand 1–1.5 mm above it. Measured through space, a lip's end lay nearer the new
+    // curve's end than its start (4.2 against 4.4 mm) and the update fell back to an open
+    // hole; along the surface it is 2.3 mm from the start and 4.2 mm from the end.
+    let (m, report) = scripted_cut_of_the_default_scene(&[(0, [-0.008161387535140244, 0.006117115271367997]), (50, [0.008517718345637746, -0.011269989722109559]), (100, [0.008769465342171094, -0.03280585398581077])], 0.003);
+    assert!(report.fallbacks.is_empty(), "{:?}", report.fallbacks);
+    // Two strokes, as `cutsim-server run` of the survey's script counts them. The points
+    // are the script's to the last digit: a cut's topology decisions have thresholds, and
+    // the same stroke rounded to a micrometre takes another path.
+    assert_clean_cut("bent, pressed down", &m, 2, 1);
+    assert!(report.incision_length_m > 0.035, "{} m", report.incision_length_m);
+}
+
+#[test]
+fn a_last_piece_from_where_the_incision_met_a_border_is_left_uncut_when_it_cannot_be_stitched() {
+    // A stroke 3 mm deep to 0.2 mm from the default patch's bottom edge near its corner (a
+    // random survey's r056, seed 11): the incision ends open on a border 1.5 mm from the
+    // edge, and the blade is lifted half a millimetre further on. That last piece could
+    // not be stitched and, since its removed area touched the border the incision had
+    // ended on, counted as reaching a border and fell back to an open hole. The border
+    // through the incision's own open end is not another border: the piece is left uncut.
+    // (Its update at step 45 also needs chain ends given to curve ends along the surface.)
+    let (m, report) = scripted_cut_of_the_default_scene(&[(0, [0.016616, 0.002666]), (100, [0.048, -0.03982])], 0.003);
+    assert!(report.fallbacks.is_empty(), "{:?}", report.fallbacks);
+    assert_clean_cut("to the corner", &m, 3, 1);
+}
+
+#[test]
 fn the_run_report_lists_each_fallback_with_its_step_and_reason() {
     // A stroke bent out through the default patch's edge near a corner, 3 mm deep: its
     // removed area keeps needing to grow where it leaves (docs/tool-tissue.md). If it no

@@ -228,7 +228,7 @@ impl Cutter {
         if removed.is_empty() {
             return None;
         }
-        let droppable = last == LastPiece::DropIfInside && !meets_border_away_from(&removed, &stroke.anchor, view.topo);
+        let droppable = last == LastPiece::DropIfInside && !meets_border_away_from(&removed, &stroke.anchor, view, self.params.vertex_spacing_m);
 
         let mut plan = CutPlan { starts_new_cut: stroke.incision.is_none(), incision_length_m: length, ..Default::default() };
         let mut matched = None;
@@ -378,7 +378,8 @@ enum LastPiece {
     No,
     /// The piece from the incision's end to where the blade left the skin (shorter than
     /// `min_advance_m` plus one step's travel). Where what the blade swept lies inside
-    /// the skin (it meets no border but at the incision's own closed tip), a piece that
+    /// the skin (it meets no border but at the incision's own closed tip, or within a
+    /// vertex spacing of the open end it goes on from), a piece that
     /// cannot be stitched is not cut: the incision keeps its stitched tip, a millimetre or
     /// two short of where the blade left, instead of an open hole that growing the
     /// removed area had often carried to the patch's edge. A piece that reaches the
@@ -388,18 +389,26 @@ enum LastPiece {
 }
 
 /// Whether any of the triangles has an edge on the mesh's border (one live triangle)
-/// that does not end at the anchor's tip: the swept area reaches the patch's edge, an
-/// older wound, or the incision's own lips behind its tip.
-fn meets_border_away_from(tris: &[u32], anchor: &Anchor, topo: &Topology) -> bool {
-    let tip = match anchor {
-        Anchor::Tip(v) => Some(*v),
-        Anchor::Start(_) => None,
+/// away from the anchor: the swept area reaches the patch's edge, an older wound, or the
+/// incision's own lips behind its tip. Away from a closed tip is not ending at it; away
+/// from an open end (the incision met a border there and goes on from that point) is
+/// having both ends more than `spacing` from it along the surface (the point was recorded
+/// when the blade crossed there, and the skin has moved along its normal since), since
+/// the border the incision ended on runs through the anchor itself.
+fn meets_border_away_from(tris: &[u32], anchor: &Anchor, view: &CutView, spacing: f64) -> bool {
+    let normal = area_normal(tris, view);
+    let at_anchor = |v: u32| match anchor {
+        Anchor::Tip(tip) => v == *tip,
+        Anchor::Start(p) => {
+            let d = view.x[v as usize] - p;
+            (d - normal * d.dot(&normal)).norm() <= spacing
+        }
     };
     tris.iter().any(|&t| {
-        let tri = topo.tris[t as usize];
+        let tri = view.topo.tris[t as usize];
         (0..3).any(|k| {
             let (a, b) = (tri[k], tri[(k + 1) % 3]);
-            Some(a) != tip && Some(b) != tip && topo.edge_tris(a, b).count() == 1
+            !at_anchor(a) && !at_anchor(b) && view.topo.edge_tris(a, b).count() == 1
         })
     })
 }

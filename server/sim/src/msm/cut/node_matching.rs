@@ -12,7 +12,8 @@
 //!    of the mesh (the patch edge, or the wound of the same cut growing).
 //! 2. Each end of the curve is *closed* (it stops inside the tissue: one vertex ends
 //!    both lips there) or *open* (it meets a border: each lip ends on the chain end of its
-//!    own side). An open chain end belongs to the curve end it is nearer to, except that
+//!    own side). An open chain end belongs to the curve end it is nearer to (along the
+//!    surface, not through space: the skin moves under the blade), except that
 //!    two open chains whose ends would split 3 to 1 each run from one end to the other
 //!    (an update leaving the mesh at a slant). At a closed end the border vertex nearest
 //!    to the end, preferring those ahead of it, is the paper's "yellow" node; the chains
@@ -163,10 +164,16 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     let n = input.curve.len() - 1;
     let (start_point, end_point) = (input.curve[0], input.curve[n]);
 
-    // Open chain ends belong to the curve end they are nearer to.
+    // Open chain ends belong to the curve end they are nearer to, measured along the
+    // surface: the curve's points are where the blade crossed the skin, each when it
+    // did, and the skin moves under the blade by millimetres along its normal between
+    // them (a continuing update's start lay deep in the dimple the blade pressed), so
+    // a distance through space would count that motion and hand an end to the wrong
+    // curve end.
+    let along_surface = |d: Vec3| d - input.normal * d.dot(&input.normal);
     let nearer_start = |v: u32| {
         let p = input.x[v as usize];
-        (p - start_point).norm() - (p - end_point).norm()
+        along_surface(p - start_point).norm() - along_surface(p - end_point).norm()
     };
     let open: Vec<&Chain> = chains.iter().filter(|c| !c.closed).collect();
     let mut start_ends: Vec<u32> = Vec::new();
