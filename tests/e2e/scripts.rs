@@ -103,3 +103,31 @@ async fn same_hash_in_real_time_and_lockstep(preconditioner: &str, schedule: Opt
 fn recording_holds(path: &std::path::Path, hash: &str) -> bool {
     std::fs::read_to_string(path).unwrap().lines().any(|l| l.contains("\"t\":\"check\"") && l.contains(hash))
 }
+
+/// A cut update left as an open hole is named in the session's info, as in the script's
+/// report: its step and why (an instructor asks GetSession while the session runs).
+#[tokio::test]
+async fn the_session_info_lists_each_fallback_with_its_step_and_reason() {
+    let server = Server::start();
+    let session = create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    let sessions = || async { server.sessions().await };
+    let get = || authed(pb::GetSessionRequest { session_id: session.id.clone(), with_state_hash: false }, &session.observe);
+    let before = sessions().await.get_session(get()).await.unwrap().into_inner();
+    assert!(before.fallbacks.is_empty(), "{:?}", before.fallbacks);
+
+    // The stroke of the simulator's test the_run_report_lists_each_fallback_with_its_step_and_reason
+    // (bent out through the patch's edge near a corner, 3 mm deep): one of its updates
+    // falls back. If it no longer does, take another cut that does.
+    let key = |step: u64, [x, y]: [f64; 2], cut: bool| serde_json::json!({ "step": step, "position_m": [x, y, -0.003], "cut": cut });
+    let script = serde_json::json!({ "scene": "skin-patch", "steps": 800, "tools": [{ "tool": "scalpel", "keyframes": [
+        key(0, [-0.0211, -0.0314], true), key(300, [-0.0344, -0.0374], true), key(600, [-0.0299, -0.0437], false),
+        { "step": 650, "position_m": [-0.0299, -0.0437, 0.01], "active": false }
+    ] }] });
+    let report = run_script(&server, &session, &script.to_string()).await.unwrap();
+    assert!(!report.fallbacks.is_empty(), "this cut no longer falls back");
+
+    let info = sessions().await.get_session(get()).await.unwrap().into_inner();
+    assert_eq!(info.fallbacks, report.fallbacks);
+    assert_eq!(info.counters.unwrap().reconstruction_fallbacks, info.fallbacks.len() as u64);
+    assert!(info.fallbacks.iter().all(|f| f.step > 0 && f.step < 650 && !f.reason.is_empty()), "{:?}", info.fallbacks);
+}

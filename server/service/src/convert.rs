@@ -92,6 +92,10 @@ pub fn counters(c: &TissueCounters, pieces: u64) -> pb::TissueCounters {
     }
 }
 
+pub fn cut_fallback(f: &cutsim_sim::tissue::CutFallback) -> pb::CutFallback {
+    pb::CutFallback { step: f.step, reason: f.reason.clone() }
+}
+
 /// The metrics in the API's form; `problem`: what the assessor missed.
 pub fn assessment(a: &Assessment, problem: String, task: &TaskInfo) -> pb::Assessment {
     pb::Assessment {
@@ -169,6 +173,7 @@ pub fn session_info(s: &Session) -> pb::SessionInfo {
         haptic_clients: s.subscribers.count() as u32,
         topology_version: frame.topology_version,
         counters: Some(counters(&frame.counters, frame.pieces)),
+        fallbacks: frame.fallbacks.iter().map(cut_fallback).collect(),
         tools: s
             .tools
             .iter()
@@ -294,7 +299,7 @@ pub fn report(r: &RunReport, task: &TaskInfo) -> pb::ScriptReport {
         report_json: serde_json::to_string(r).unwrap_or_default(),
         assessment: Some(assessment(&r.assessment, String::new(), task)),
         tools: r.tools.iter().map(|t| pb::ToolForceReport { name: t.name.clone(), max_force_n: t.max_force_n, grasping_s: t.grasping_s, max_jaws_force_n: t.max_jaws_force_n }).collect(),
-        fallbacks: r.fallbacks.iter().map(|f| pb::CutFallback { step: f.step, reason: f.reason.clone() }).collect(),
+        fallbacks: r.fallbacks.iter().map(cut_fallback).collect(),
     }
 }
 

@@ -12,7 +12,7 @@ use std::sync::{Arc, Mutex};
 
 use arc_swap::ArcSwap;
 use cutsim_sim::surface::{SurfaceReplica, SurfaceSnapshot, TopologyDelta};
-use cutsim_sim::tissue::TissueCounters;
+use cutsim_sim::tissue::{CutFallback, TissueCounters};
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 use prost::Message;
 use tokio::sync::{broadcast, mpsc};
@@ -60,6 +60,9 @@ pub struct Frame {
     pub tools: Vec<ToolFrame>,
     pub stats: StepStats,
     pub counters: TissueCounters,
+    /// The tissue's cut updates left as open holes, with their steps and reasons (copied
+    /// only when the list changes: it grows on a fallback and empties with a new tissue).
+    pub fallbacks: Vec<CutFallback>,
     pub pieces: u64,
     pub status: crate::session::Status,
     /// Replay sessions only.

@@ -568,6 +568,14 @@ impl Outputs {
         let (commands, feedback) = (&self.commands, &self.feedback);
         let (epoch, total) = (self.epoch_version, self.total_steps);
         self.frames.publish(&session.frame, |f| {
+            // Copied only when it changed (before the epoch is stamped): the list only grows
+            // while the tissue lives, so a frame of the same tissue with as many entries and
+            // the same last one holds it already, and copying would allocate.
+            let fallbacks = tissue.cut_fallbacks();
+            if f.epoch_version != epoch || f.fallbacks.len() != fallbacks.len() || f.fallbacks.last() != fallbacks.last() {
+                f.fallbacks.clear();
+                f.fallbacks.extend_from_slice(fallbacks);
+            }
             f.step = tissue.step_index();
             f.total_steps = total;
             f.topology_version = epoch + tissue.topology_version();
