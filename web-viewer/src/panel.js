@@ -600,7 +600,11 @@ export class SessionPanel {
       set('rate', `${st.stats.achieved_rate_hz.toFixed(0)} Hz`);
       set('p99', `${st.stats.p99_us.toFixed(0)} µs`);
       set('missed', `${st.stats.missed_deadlines}`);
-      set('cuts', `${st.counters.cuts}`);
+      // Cut updates whose wound could not be stitched, left as open holes: counted beside
+      // the cuts, each with its step and why on hover.
+      const open = st.fallbacks || [];
+      set('cuts', open.length ? `${st.counters.cuts} (${open.length} left open)` : `${st.counters.cuts}`);
+      this.field('cuts').title = open.map((f) => `step ${f.step}: ${f.reason}`).join('\n');
       set('incision', `${(st.counters.incision_length_m * 1000).toFixed(1)} mm`);
     }
     const last = this.forceHistory.length ? this.forceHistory[this.forceHistory.length - 1][1] : 0;

@@ -305,6 +305,7 @@ where
                             step: frame.total_steps,
                             stats: Some(convert::stats(&frame.stats)),
                             counters: Some(convert::counters(&frame.counters, frame.pieces)),
+                            fallbacks: frame.fallbacks.iter().map(convert::cut_fallback).collect(),
                             viewers: session.viewers.load(Ordering::Relaxed),
                             haptic_clients: session.subscribers.count() as u32,
                             status: convert::status(frame.status) as i32,
