@@ -192,6 +192,19 @@ fn a_last_piece_from_where_the_incision_met_a_border_is_left_uncut_when_it_canno
 }
 
 #[test]
+fn a_stroke_that_enters_just_inside_the_edge_obliquely_is_stitched() {
+    // A stroke 8 mm deep from 0.34 mm inside the default patch's edge x = −50 mm, in at
+    // 45° (a random survey's r087, seed 47). Its first update's removed area meets the
+    // edge in one open chain, whose lower end lies as near the curve's end as its start
+    // (3.1 mm each): the ends split 1 to 1, as for tissue along one side of the curve, but
+    // the chain runs around the curve, and the update fell back. Both ends belong to the
+    // start, which opens on the edge.
+    let (m, report) = scripted_cut_of_the_default_scene(&[(0, [-0.049661184655831796, 0.012808994852661473]), (100, [-0.03143241126896406, -0.005230152517640394])], 0.008);
+    assert!(report.fallbacks.is_empty(), "{:?}", report.fallbacks);
+    assert_clean_cut("in from the edge", &m, 1, 1);
+}
+
+#[test]
 fn the_run_report_lists_each_fallback_with_its_step_and_reason() {
     // A stroke bent out through the default patch's edge near a corner, 3 mm deep: its
     // removed area keeps needing to grow where it leaves (docs/tool-tissue.md). If it no

@@ -11,17 +11,20 @@
 //!    is a loop when the hole lies inside the tissue, or open when it ends on a border
 //!    of the mesh (the patch edge, or the wound of the same cut growing).
 //! 2. Each end of the curve is *closed* (it stops inside the tissue: one vertex ends
-//!    both lips there) or *open* (it meets a border: each lip ends on the chain end of its
-//!    own side). An open chain end belongs to the curve end it is nearer to (along the
-//!    surface, not through space: the skin moves under the blade), except that
-//!    two open chains whose ends would split 3 to 1 each run from one end to the other
-//!    (an update leaving the mesh at a slant). At a closed end the border vertex nearest
-//!    to the end, preferring those ahead of it, is the paper's "yellow" node; the chains
-//!    are split there into two arcs, one on each side of the curve. Where a single open
-//!    chain runs from one end to the other, on one side of the curve all along it
-//!    (beyond the curve's ends it may round them), and nothing else borders the removed
-//!    area, there is tissue on that side only (the cut severs the last bridge to the
-//!    patch's edge, or runs along it): that side is stitched and the other gets no lip.
+//!    both lips there) or *open* (it meets a border: each lip ends on the chain end of
+//!    its own side). An open chain end belongs to the curve end it is nearer to (along
+//!    the surface, not through space: the skin moves under the blade), except that two
+//!    open chains whose ends would split 3 to 1 each run from one end to the other (an
+//!    update leaving the mesh at a slant), and a single open chain whose ends would
+//!    split 1 to 1 but which runs around the curve belongs with both ends to the curve
+//!    end nearer to them (a stroke entering obliquely just inside the patch's edge). At
+//!    a closed end the border vertex nearest to the end, preferring those ahead of it,
+//!    is the paper's "yellow" node; the chains are split there into two arcs, one on
+//!    each side of the curve. Where a single open chain runs from one end to the other,
+//!    on one side of the curve all along it (beyond the curve's ends it may round
+//!    them), and nothing else borders the removed area, there is tissue on that side
+//!    only (the cut severs the last bridge to the patch's edge, or runs along it): that
+//!    side is stitched and the other gets no lip.
 //! 3. Every curve vertex except the closed ends is split in two, one per lip.
 //! 4. Each arc is joined to its lip (the paper's red springs) by walking both and always
 //!    closing the quad between them with its shorter diagonal (the green springs). Where
@@ -199,6 +202,24 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
             end_ends.push(second);
         }
     }
+    // One open chain whose ends split 1 to 1 but which runs around the curve (on both
+    // sides of it) rather than alongside one side: where the curve end nearer to the two
+    // ends lies on the mesh's border, that chain is the border the curve starts from (or
+    // ends on), one of whose ends lies about as near the other curve end (a stroke that
+    // enters just inside the patch's edge, obliquely). Both ends go to that curve end;
+    // the checks after it still refuse what does not fit. (A curve end away from the
+    // border would be opened onto it through tissue the blade did not cross.)
+    if chains.len() == 1 && open.len() == 1 && start_ends.len() == 1 && end_ends.len() == 1 && !arc_on_one_side(&open[0].vertices, &frame, input.x) {
+        let ends = [start_ends[0], end_ends[0]];
+        let to_start = nearer_start(ends[0]) + nearer_start(ends[1]) <= 0.0;
+        let curve_end = if to_start { start_point } else { end_point };
+        if distance_to_mesh_border(&curve_end, input, &along_surface) <= 0.5 * input.lip_spacing_m {
+            let (group, other) = if to_start { (&mut start_ends, &mut end_ends) } else { (&mut end_ends, &mut start_ends) };
+            group.clear();
+            group.extend(ends);
+            other.clear();
+        }
+    }
     // One open chain from near the start to near the end, and nothing else: tissue
     // along one side of the curve only (the cut severs the last bridge to the patch's
     // edge, or runs along that edge). That side is stitched; the other gets no lip.
@@ -230,7 +251,8 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     }
     if one_sided && !arc_on_one_side(&arcs[0], &frame, input.x) {
         // The chain wraps around the curve (the removed area meets the mesh border in a
-        // stretch beside the curve's middle, not at its ends): no side is free of tissue.
+        // stretch beside the curve's middle, not at a curve end on the border): no side
+        // is free of tissue.
         return Err(MatchError::Unsupported(
             "the removed area meets the mesh border once near each end of the incision, but its border with the remaining tissue runs on both sides".into(),
         ));
@@ -360,6 +382,24 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     out.min_angle_deg = min_angle;
     out.new_triangles = triangles;
     Ok(out)
+}
+
+/// Distance from `p` to the nearest edge of the removed triangles on the mesh's border
+/// (one live triangle), measured along the surface (`along_surface` takes the normal
+/// component out); infinite when they have none.
+fn distance_to_mesh_border(p: &Vec3, input: &MatchInput, along_surface: &impl Fn(Vec3) -> Vec3) -> f64 {
+    let mut best = f64::INFINITY;
+    for &t in input.removed_tris {
+        let tri = input.topo.tris[t as usize];
+        for k in 0..3 {
+            let (a, b) = (tri[k], tri[(k + 1) % 3]);
+            if input.topo.edge_tris(a, b).count() == 1 {
+                let (_, q) = closest_point_on_segment(p, &input.x[a as usize], &input.x[b as usize]);
+                best = best.min(along_surface(q - p).norm());
+            }
+        }
+    }
+    best
 }
 
 /// Asks for the kept triangles around the border vertices of `triangles` to be removed
