@@ -373,16 +373,10 @@ test('the panel counts cut updates left open, with each one\'s step and reason',
     await waitFor('the panel live', async () => (await pageState(page, id))?.state === 'live');
     const cuts = page.locator(`.panel[data-session="${id}"] [data-role="cuts"]`);
     await waitFor('no cut yet', async () => (await cuts.textContent()) === '0');
-    // The stroke of the simulator's test the_run_report_lists_each_fallback_with_its_step_and_reason
-    // (bent out through the patch's edge near a corner, 3 mm deep): one of its updates
-    // falls back. If it no longer does, take another cut that does.
-    const key = (step, [x, y], cut) => ({ step, position_m: [x, y, -0.003], cut });
-    const script = { scene: 'skin-patch', steps: 800, tools: [{ tool: 'scalpel', keyframes: [
-      key(0, [-0.0211, -0.0314], true), key(300, [-0.0344, -0.0374], true), key(600, [-0.0299, -0.0437], false),
-      { step: 650, position_m: [-0.0299, -0.0437, 0.01], active: false },
-    ] }] };
-    const report = await api.runScript(id, created.control_token, JSON.stringify(script));
-    assert.ok(report.fallbacks.length > 0, 'this cut no longer falls back');
+    // A cut one of whose updates falls back (the script expects it to).
+    const script = fs.readFileSync(path.join(repo, 'server/sim/tests/data/skin-patch-falls-back.json'), 'utf8');
+    const report = await api.runScript(id, created.control_token, script);
+    assert.ok(report.passed && report.fallbacks.length > 0, 'this cut no longer falls back');
     const expected = `${report.cuts} (${report.fallbacks.length} left open)`;
     await waitFor(`the panel to show ${expected}`, async () => (await cuts.textContent()) === expected);
     const title = await cuts.getAttribute('title');

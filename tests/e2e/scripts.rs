@@ -115,16 +115,10 @@ async fn the_session_info_lists_each_fallback_with_its_step_and_reason() {
     let before = sessions().await.get_session(get()).await.unwrap().into_inner();
     assert!(before.fallbacks.is_empty(), "{:?}", before.fallbacks);
 
-    // The stroke of the simulator's test the_run_report_lists_each_fallback_with_its_step_and_reason
-    // (bent out through the patch's edge near a corner, 3 mm deep): one of its updates
-    // falls back. If it no longer does, take another cut that does.
-    let key = |step: u64, [x, y]: [f64; 2], cut: bool| serde_json::json!({ "step": step, "position_m": [x, y, -0.003], "cut": cut });
-    let script = serde_json::json!({ "scene": "skin-patch", "steps": 800, "tools": [{ "tool": "scalpel", "keyframes": [
-        key(0, [-0.0211, -0.0314], true), key(300, [-0.0344, -0.0374], true), key(600, [-0.0299, -0.0437], false),
-        { "step": 650, "position_m": [-0.0299, -0.0437, 0.01], "active": false }
-    ] }] });
-    let report = run_script(&server, &session, &script.to_string()).await.unwrap();
-    assert!(!report.fallbacks.is_empty(), "this cut no longer falls back");
+    // A cut one of whose updates falls back (the script expects it to).
+    let script = std::fs::read_to_string(repo("server/sim/tests/data/skin-patch-falls-back.json")).unwrap();
+    let report = run_script(&server, &session, &script).await.unwrap();
+    assert!(report.passed && !report.fallbacks.is_empty(), "this cut no longer falls back: {:?}", report.expectations);
 
     let info = sessions().await.get_session(get()).await.unwrap().into_inner();
     assert_eq!(info.fallbacks, report.fallbacks);

@@ -50,6 +50,11 @@ impl Default for Pose {
     }
 }
 
+/// `v` without its component along the unit vector `n` (in the plane normal to `n`).
+pub fn across(v: &Vec3, n: &Vec3) -> Vec3 {
+    v - n * v.dot(n)
+}
+
 /// Closest point on segment `a`–`b` to `p`: returns (parameter in [0, 1], point).
 pub fn closest_point_on_segment(p: &Vec3, a: &Vec3, b: &Vec3) -> (f64, Vec3) {
     let ab = b - a;

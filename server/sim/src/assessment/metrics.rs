@@ -8,7 +8,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::plan::{Nearest, across};
+use super::plan::Nearest;
+use crate::math::across;
 use super::score::{self, Score};
 use super::task::Task;
 use crate::math::Vec3;

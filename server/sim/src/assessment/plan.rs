@@ -2,7 +2,7 @@
 //! distance across the normal (in the surface, as seen from above), depth the distance
 //! along it below the plan, and arc length locates a point along the plan.
 
-use crate::math::Vec3;
+use crate::math::{Vec3, across};
 
 /// The most points a plan may have.
 pub const MAX_PLAN_POINTS: usize = 10_000;
@@ -82,10 +82,6 @@ impl Plan {
     }
 }
 
-/// `v` without its component along the unit vector `n`.
-pub fn across(v: &Vec3, n: &Vec3) -> Vec3 {
-    v - n * v.dot(n)
-}
 
 #[cfg(test)]
 mod tests {

@@ -6,7 +6,7 @@
 use std::fmt::Write;
 
 use super::metrics::{Assessment, History};
-use super::plan::across;
+use crate::math::across;
 use super::task::Task;
 use crate::math::Vec3;
 

@@ -167,6 +167,12 @@ impl Topology {
         self.node_tris[a as usize].iter().copied().filter(move |&t| self.tris[t as usize].contains(&b))
     }
 
+    /// Whether edge a–b lies on the mesh's border (one live triangle: the patch's edge or
+    /// a wound).
+    pub fn is_border_edge(&self, a: u32, b: u32) -> bool {
+        self.edge_tris(a, b).count() == 1
+    }
+
     /// The live triangle across edge a–b from triangle `t`.
     pub fn across(&self, t: u32, a: u32, b: u32) -> Option<u32> {
         self.edge_tris(a, b).find(|&o| o != t)

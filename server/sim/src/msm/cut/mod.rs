@@ -19,7 +19,7 @@ use swept_volume::SweptVolume;
 
 use crate::broad_phase::PointGrid;
 use crate::hash::{HashState, StateHasher};
-use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle, segment_triangle_intersection, triangle_normal};
+use crate::math::{Vec3, across, barycentric_closest, closest_point_on_triangle, segment_triangle_intersection, triangle_normal};
 use crate::msm::state::Topology;
 use crate::tool::PlacedTool;
 
@@ -399,16 +399,13 @@ fn meets_border_away_from(tris: &[u32], anchor: &Anchor, view: &CutView, spacing
     let normal = area_normal(tris, view);
     let at_anchor = |v: u32| match anchor {
         Anchor::Tip(tip) => v == *tip,
-        Anchor::Start(p) => {
-            let d = view.x[v as usize] - p;
-            (d - normal * d.dot(&normal)).norm() <= spacing
-        }
+        Anchor::Start(p) => across(&(view.x[v as usize] - p), &normal).norm() <= spacing,
     };
     tris.iter().any(|&t| {
         let tri = view.topo.tris[t as usize];
         (0..3).any(|k| {
             let (a, b) = (tri[k], tri[(k + 1) % 3]);
-            !at_anchor(a) && !at_anchor(b) && view.topo.edge_tris(a, b).count() == 1
+            !at_anchor(a) && !at_anchor(b) && view.topo.is_border_edge(a, b)
         })
     })
 }

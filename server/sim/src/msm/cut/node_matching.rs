@@ -41,7 +41,7 @@
 //! vertex or encloses an island of triangles), the caller is told which triangles to
 //! remove as well, and tries again.
 
-use crate::math::{Vec3, closest_point_on_segment, triangle_min_angle_deg, triangle_normal};
+use crate::math::{Vec3, across, closest_point_on_segment, triangle_min_angle_deg, triangle_normal};
 use crate::msm::state::Topology;
 
 /// Every triangle a cut creates has all its angles at least this large (degrees) in
@@ -173,10 +173,9 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     // them (a continuing update's start lay deep in the dimple the blade pressed), so
     // a distance through space would count that motion and hand an end to the wrong
     // curve end.
-    let along_surface = |d: Vec3| d - input.normal * d.dot(&input.normal);
     let nearer_start = |v: u32| {
         let p = input.x[v as usize];
-        along_surface(p - start_point).norm() - along_surface(p - end_point).norm()
+        across(&(p - start_point), &input.normal).norm() - across(&(p - end_point), &input.normal).norm()
     };
     let open: Vec<&Chain> = chains.iter().filter(|c| !c.closed).collect();
     let mut start_ends: Vec<u32> = Vec::new();
@@ -213,7 +212,7 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
         let ends = [start_ends[0], end_ends[0]];
         let to_start = nearer_start(ends[0]) + nearer_start(ends[1]) <= 0.0;
         let curve_end = if to_start { start_point } else { end_point };
-        if distance_to_mesh_border(&curve_end, input, &along_surface) <= 0.5 * input.lip_spacing_m {
+        if distance_to_mesh_border(&curve_end, input) <= 0.5 * input.lip_spacing_m {
             let (group, other) = if to_start { (&mut start_ends, &mut end_ends) } else { (&mut end_ends, &mut start_ends) };
             group.clear();
             group.extend(ends);
@@ -384,18 +383,17 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
     Ok(out)
 }
 
-/// Distance from `p` to the nearest edge of the removed triangles on the mesh's border
-/// (one live triangle), measured along the surface (`along_surface` takes the normal
-/// component out); infinite when they have none.
-fn distance_to_mesh_border(p: &Vec3, input: &MatchInput, along_surface: &impl Fn(Vec3) -> Vec3) -> f64 {
+/// Distance from `p` to the nearest edge of the removed triangles on the mesh's border,
+/// measured along the surface (across the normal); infinite when they have none.
+fn distance_to_mesh_border(p: &Vec3, input: &MatchInput) -> f64 {
     let mut best = f64::INFINITY;
     for &t in input.removed_tris {
         let tri = input.topo.tris[t as usize];
         for k in 0..3 {
             let (a, b) = (tri[k], tri[(k + 1) % 3]);
-            if input.topo.edge_tris(a, b).count() == 1 {
+            if input.topo.is_border_edge(a, b) {
                 let (_, q) = closest_point_on_segment(p, &input.x[a as usize], &input.x[b as usize]);
-                best = best.min(along_surface(q - p).norm());
+                best = best.min(across(&(q - p), &input.normal).norm());
             }
         }
     }
