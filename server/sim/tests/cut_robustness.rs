@@ -210,6 +210,41 @@ fn a_stroke_that_enters_just_inside_the_edge_obliquely_is_stitched() {
 }
 
 #[test]
+fn a_short_update_after_a_long_first_one_follows_the_blade() {
+    // Strokes whose first update is long (the blade entered fast, or at a shallow slant,
+    // and first crossed the skin 32–35 mm from where the incision starts) and whose next
+    // update is short and turns (random survey strokes: seed 11's r097 leaves through the
+    // patch's bottom edge, seed 37's r016 through its top edge). Joined C1, the short
+    // segment started with the long one's derivative and hooked 3–4 mm out past where the
+    // blade went, beyond the patch's edge; its lips then lay on one side of the removed
+    // area and the update fell back to an open hole. The join keeps the tangent's
+    // direction but shortens it so the segment stays within the blade's swept path.
+    for (name, points, depth_m, pieces) in [
+        ("out through the bottom edge", vec![(0, [-0.049231241262900224, -0.004106771206253461]), (50, [-0.035625094346999175, -0.03462902165263427]), (100, [-0.008366315363734417, -0.05698643949699578])], 0.008, 2),
+        ("out through the top edge", vec![(0, [0.012398773687707837, 0.00556770799493625]), (300, [0.025222900351050487, 0.033803574011802846]), (600, [0.04531041027267496, 0.0623939359284974])], 0.003, 1),
+    ] {
+        let (m, report) = scripted_cut_of_the_default_scene(&points, depth_m);
+        assert!(report.fallbacks.is_empty(), "{name}: {:?}", report.fallbacks);
+        assert_clean_cut(name, &m, 1, pieces);
+        assert!(report.incision_length_m > 0.035, "{name}: {} m", report.incision_length_m);
+    }
+}
+
+#[test]
+fn a_last_piece_just_past_the_incisions_tip_is_left_uncut_when_it_cannot_be_stitched() {
+    // A bent stroke 3 mm deep (a random survey's r028, seed 41) whose last piece, from the
+    // incision's closed tip to where the blade was lifted 0.9 mm on, could not be
+    // stitched. The blade's swept area there takes a triangle on the incision's own lip
+    // one vertex behind the tip, which counted as meeting a border away from the tip, so
+    // the piece fell back to an open hole instead of being left uncut. Lip edges within a
+    // vertex spacing of the tip are the tip's own, as at an open end.
+    let (m, report) = scripted_cut_of_the_default_scene(&[(0, [-0.0582643494170226, -0.01726959592642049]), (50, [-0.045317455893992505, -0.01832643898430178]), (100, [-0.02932331364198982, -0.03234889590755215])], 0.003);
+    assert!(report.fallbacks.is_empty(), "{:?}", report.fallbacks);
+    assert_clean_cut("bent, lifted past the tip", &m, 2, 1);
+    assert!(report.incision_length_m > 0.02, "{} m", report.incision_length_m);
+}
+
+#[test]
 fn the_run_report_lists_each_fallback_with_its_step_and_reason() {
     // tests/data/skin-patch-falls-back.json (also run by the end-to-end and browser
     // tests): a stroke bent out through the default patch's edge near a corner, 3 mm

@@ -5,8 +5,16 @@
 //! Each new segment starts where the previous one ended, with the previous segment's
 //! end derivative (so the chain is C1), and ends at the blade's newest crossing point
 //! with the chord as its end derivative.
+//!
+//! One departure from the paper: where a C1 join would carry the new segment farther
+//! from its chord than the blade's swept path reaches (a short update after a long one,
+//! or a sharp turn after a fast straight stretch: the old derivative is many chords long,
+//! and the curve hooks out sideways or past its end, where the blade never went), the
+//! start derivative keeps its direction but is shortened until the segment stays within
+//! that reach. The join is then G1 (same tangent direction) rather than C1. Ordinary
+//! updates, whose curve stays near its chord, are C1 as in the paper.
 
-use crate::math::Vec3;
+use crate::math::{Vec3, closest_point_on_segment};
 
 /// A cubic Bézier segment with control points P0..P3 (P0 and P3 on the curve).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -44,6 +52,19 @@ impl CubicBezier {
     /// The segment from `p0` to `p3` with end derivatives `d0` and `d3` (Hermite form).
     pub fn from_hermite(p0: Vec3, d0: Vec3, p3: Vec3, d3: Vec3) -> Self {
         Self { control: [p0, p0 + d0 / 3.0, p3 - d3 / 3.0, p3] }
+    }
+
+    /// How far the curve strays from the straight segment P0–P3, m (the largest
+    /// distance of 32 points along it: sideways, behind its start or past its end).
+    pub fn stray_from_chord(&self) -> f64 {
+        const N: usize = 32;
+        let [p0, .., p3] = self.control;
+        (1..N)
+            .map(|k| {
+                let p = self.point(k as f64 / N as f64);
+                (p - closest_point_on_segment(&p, &p0, &p3).1).norm()
+            })
+            .fold(0.0, f64::max)
     }
 
     /// Arc length, m (polyline of 64 chords: far below the mesh resolution in error).
@@ -87,15 +108,26 @@ pub struct BezierChain {
 
 impl BezierChain {
     /// Grows the incision from `start` to `end` and returns the new segment. The start
-    /// derivative is the previous segment's end derivative (C1); the first segment is
-    /// straight.
-    pub fn extend(&mut self, start: Vec3, end: Vec3) -> CubicBezier {
+    /// derivative is the previous segment's end derivative (C1), halved until the
+    /// segment strays at most `max_stray_m` from its chord (see the module's note); the
+    /// first segment is straight.
+    pub fn extend(&mut self, start: Vec3, end: Vec3, max_stray_m: f64) -> CubicBezier {
         let chord = end - start;
-        let start_derivative = match self.segments.last() {
+        let mut start_derivative = match self.segments.last() {
             Some(prev) => prev.derivative(1.0),
             None => chord,
         };
-        let segment = CubicBezier::from_hermite(start, start_derivative, end, chord);
+        let mut segment = CubicBezier::from_hermite(start, start_derivative, end, chord);
+        // Each halving halves the part of the curve the start derivative moves off the
+        // chord (the curve is linear in it), so a few rounds always suffice; the cap only
+        // guards against a non-finite input.
+        for _ in 0..32 {
+            if segment.stray_from_chord() <= max_stray_m {
+                break;
+            }
+            start_derivative *= 0.5;
+            segment = CubicBezier::from_hermite(start, start_derivative, end, chord);
+        }
         self.segments.push(segment);
         segment
     }
@@ -139,7 +171,7 @@ mod tests {
         let mut chain = BezierChain::default();
         let points = [Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.01, 0.0, 0.0), Vec3::new(0.02, 0.004, 0.0), Vec3::new(0.028, 0.012, 0.0)];
         for w in points.windows(2) {
-            chain.extend(w[0], w[1]);
+            chain.extend(w[0], w[1], 1.0);
         }
         for pair in chain.segments.windows(2) {
             assert_eq!(pair[0].point(1.0), pair[1].point(0.0), "C0");
@@ -147,6 +179,30 @@ mod tests {
         }
         // A straight first segment has the chord as its length.
         assert!((chain.segments[0].length() - 0.01).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_short_update_after_a_long_one_keeps_its_tangent_but_not_its_hook() {
+        // A fast first stroke 35 mm long, then a 4 mm update turning 60°: the C1 join
+        // would start the new segment with a derivative of 35 mm, and the curve would
+        // swing about 5 mm out past the blade's path.
+        let mut chain = BezierChain::default();
+        let (a, b) = (Vec3::zeros(), Vec3::new(0.035, 0.0, 0.0));
+        let c = b + Vec3::new(0.002, 0.0035, 0.0);
+        chain.extend(a, b, 1.25e-3);
+        let c1 = CubicBezier::from_hermite(b, chain.segments[0].derivative(1.0), c, c - b);
+        assert!(c1.stray_from_chord() > 4e-3, "the C1 segment should hook: {}", c1.stray_from_chord());
+        let segment = chain.extend(b, c, 1.25e-3);
+        assert!(segment.stray_from_chord() <= 1.25e-3, "{}", segment.stray_from_chord());
+        assert_eq!((segment.point(0.0), segment.point(1.0)), (b, c));
+        // G1: the same tangent direction as the previous segment's end, shorter.
+        let (before, after) = (chain.segments[0].derivative(1.0), segment.derivative(0.0));
+        assert!(before.normalize().dot(&after.normalize()) > 1.0 - 1e-12);
+        assert!(after.norm() < 0.5 * before.norm());
+        // An ordinary update (4 mm on, turning 60° back) stays C1.
+        let d = c + Vec3::new(0.004, 0.0, 0.0);
+        let next = chain.extend(c, d, 1.25e-3);
+        assert_eq!(next.derivative(0.0), segment.derivative(1.0));
     }
 
     #[test]

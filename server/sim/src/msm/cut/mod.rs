@@ -212,7 +212,7 @@ impl Cutter {
         last: LastPiece,
     ) -> Option<CutPlan> {
         let mut chain = stroke.incision.map(|i| self.incisions[i].curve.clone()).unwrap_or_default();
-        let segment = chain.extend(anchor_point, point);
+        let segment = chain.extend(anchor_point, point, self.params.sweep_radius_m);
         let length = segment.length();
         let segments = ((length / self.params.vertex_spacing_m).round() as usize).max(2);
         let mut curve = Vec::with_capacity(segments + 1);
@@ -378,8 +378,8 @@ enum LastPiece {
     No,
     /// The piece from the incision's end to where the blade left the skin (shorter than
     /// `min_advance_m` plus one step's travel). Where what the blade swept lies inside
-    /// the skin (it meets no border but at the incision's own closed tip, or within a
-    /// vertex spacing of the open end it goes on from), a piece that
+    /// the skin (it meets no border farther than a vertex spacing from the incision's
+    /// closed tip or the open end it goes on from), a piece that
     /// cannot be stitched is not cut: the incision keeps its stitched tip, a millimetre or
     /// two short of where the blade left, instead of an open hole that growing the
     /// removed area had often carried to the patch's edge. A piece that reaches the
@@ -390,17 +390,16 @@ enum LastPiece {
 
 /// Whether any of the triangles has an edge on the mesh's border (one live triangle)
 /// away from the anchor: the swept area reaches the patch's edge, an older wound, or the
-/// incision's own lips behind its tip. Away from a closed tip is not ending at it; away
-/// from an open end (the incision met a border there and goes on from that point) is
-/// having both ends more than `spacing` from it along the surface (the point was recorded
-/// when the blade crossed there, and the skin has moved along its normal since), since
-/// the border the incision ended on runs through the anchor itself.
+/// incision's own lips well behind its tip. Away is having both ends more than `spacing`
+/// from the anchor, measured along the surface. At an open end (the incision met a
+/// border there and goes on from that point) the border the incision ended on runs
+/// through the anchor itself, and the point was recorded when the blade crossed there
+/// (the skin has moved along its normal since); at a closed tip the lips' last edges end
+/// at the tip, and the area the blade swept round the tip takes the triangles on them.
 fn meets_border_away_from(tris: &[u32], anchor: &Anchor, view: &CutView, spacing: f64) -> bool {
     let normal = area_normal(tris, view);
-    let at_anchor = |v: u32| match anchor {
-        Anchor::Tip(tip) => v == *tip,
-        Anchor::Start(p) => across(&(view.x[v as usize] - p), &normal).norm() <= spacing,
-    };
+    let anchor_point = anchor_position(anchor, view);
+    let at_anchor = |v: u32| across(&(view.x[v as usize] - anchor_point), &normal).norm() <= spacing;
     tris.iter().any(|&t| {
         let tri = view.topo.tris[t as usize];
         (0..3).any(|k| {
