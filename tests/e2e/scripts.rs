@@ -125,3 +125,23 @@ async fn the_session_info_lists_each_fallback_with_its_step_and_reason() {
     assert_eq!(info.counters.unwrap().reconstruction_fallbacks, info.fallbacks.len() as u64);
     assert!(info.fallbacks.iter().all(|f| f.step > 0 && f.step < 650 && !f.reason.is_empty()), "{:?}", info.fallbacks);
 }
+
+/// A stroke's last piece that could not be stitched and was left uncut is counted, in
+/// the script's report (its own expectation, its counters and its JSON) and in the
+/// session's counters.
+#[tokio::test]
+async fn a_last_piece_left_uncut_is_counted_in_the_report_and_the_session() {
+    let server = Server::start();
+    let session = create(&server, "skin-patch", pb::SessionMode::Lockstep).await;
+    let script = std::fs::read_to_string(repo("server/sim/tests/data/skin-patch-last-piece-uncut.json")).unwrap();
+    let report = run_script(&server, &session, &script).await.unwrap();
+    assert!(report.passed, "{:?}", report.expectations);
+    assert!(report.expectations.iter().any(|e| e.name == "uncut_last_pieces" && e.actual == "1"), "{:?}", report.expectations);
+    assert_eq!(report.counters.unwrap().uncut_last_pieces, 1);
+    let json: serde_json::Value = serde_json::from_str(&report.report_json).unwrap();
+    assert_eq!(json["counters"]["uncut_last_pieces"], 1);
+
+    let get = authed(pb::GetSessionRequest { session_id: session.id.clone(), with_state_hash: false }, &session.observe);
+    let info = server.sessions().await.get_session(get).await.unwrap().into_inner();
+    assert_eq!(info.counters.unwrap().uncut_last_pieces, 1);
+}

@@ -260,6 +260,9 @@ fn print_report(name: &str, r: &pb::ScriptReport) {
     for f in &r.fallbacks {
         println!("  fallback at step {}: {}", f.step, f.reason);
     }
+    if let Some(uncut) = r.counters.as_ref().map(|c| c.uncut_last_pieces).filter(|&n| n > 0) {
+        println!("  last pieces left uncut (the incision ends short of where the blade left): {uncut}");
+    }
     println!("removed elements {}", r.removed_elements);
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);
     println!("pieces           {}", r.pieces);

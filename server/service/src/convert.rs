@@ -77,6 +77,7 @@ pub fn counters(c: &TissueCounters, pieces: u64) -> pb::TissueCounters {
         removed_elements: c.removed_elements,
         incision_length_m: c.incision_length_m,
         reconstruction_fallbacks: c.reconstruction_fallbacks,
+        uncut_last_pieces: c.uncut_last_pieces,
         blowups_contained: c.blowups_contained,
         stability_adjustments: c.stability_adjustments,
         force_clamps: c.force_clamps,

@@ -132,6 +132,9 @@ fn print_report(r: &RunReport) {
     for f in &r.fallbacks {
         println!("  fallback at step {}: {}", f.step, f.reason);
     }
+    if c.uncut_last_pieces > 0 {
+        println!("  last pieces left uncut (the incision ends short of where the blade left): {}", c.uncut_last_pieces);
+    }
     println!("removed elements {}", r.removed_elements);
     println!("incision length  {:.2} mm", r.incision_length_m * 1e3);
     println!("pieces           {}", r.pieces);

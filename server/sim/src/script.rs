@@ -103,6 +103,9 @@ pub struct Expectations {
     /// Cut updates the model could not stitch.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reconstruction_fallbacks: Option<Bound>,
+    /// Strokes whose last piece could not be stitched and was left uncut.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncut_last_pieces: Option<Bound>,
     /// Final state hash (16 hex digits).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub state_hash: Option<String>,
@@ -349,6 +352,7 @@ impl Expectations {
             ("incision_length_m", &self.incision_length_m),
             ("max_force_n", &self.max_force_n),
             ("reconstruction_fallbacks", &self.reconstruction_fallbacks),
+            ("uncut_last_pieces", &self.uncut_last_pieces),
             ("time_to_complete_s", &self.time_to_complete_s),
             ("coverage", &self.coverage),
             ("deviation_rms_mm", &self.deviation_rms_mm),
@@ -383,6 +387,7 @@ impl Expectations {
                 "incision_length_m" => Some(report.incision_length_m),
                 "max_force_n" => Some(report.max_tool_force_n),
                 "reconstruction_fallbacks" => Some(report.reconstruction_fallbacks as f64),
+                "uncut_last_pieces" => Some(report.counters.uncut_last_pieces as f64),
                 "time_to_complete_s" => a.time_to_complete_s,
                 "coverage" => a.coverage,
                 "deviation_rms_mm" => a.deviation_rms_mm,

@@ -50,6 +50,10 @@ pub struct TissueCounters {
     pub incision_length_m: f64,
     /// Cut updates where the wound could not be stitched and was left as an open hole.
     pub reconstruction_fallbacks: u64,
+    /// Strokes whose last piece (from the incision's stitched tip to where the blade left
+    /// the skin inside it, shorter than one update) could not be stitched and was left
+    /// uncut: that incision ends a millimetre or two short of where the blade left.
+    pub uncut_last_pieces: u64,
     /// Steps in which a non-finite state was detected and contained.
     pub blowups_contained: u64,
     /// Times the model raised its substep count to stay stable after a cut.

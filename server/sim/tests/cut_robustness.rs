@@ -124,6 +124,11 @@ fn run_on_the_default_scene(script_json: &str) -> (MassSpring, cutsim_sim::runne
     (m, report)
 }
 
+/// A cut script of tests/data (also run by the end-to-end tests) on the default scene.
+fn run_test_script(file: &str) -> (MassSpring, cutsim_sim::runner::RunReport) {
+    run_on_the_default_scene(&std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(file)).unwrap())
+}
+
 /// [`scripted_cut_of_the_default_scene`] along y = `y` from x = `from` to `to` (m), 5 mm
 /// deep over 600 steps.
 fn scripted_cut_parallel_to_the_edge(from: f64, to: f64, y: f64) -> (MassSpring, cutsim_sim::runner::RunReport) {
@@ -142,6 +147,7 @@ fn a_last_piece_that_cannot_be_stitched_inside_the_skin_is_left_uncut() {
         assert_clean_cut(&format!("{d_mm} mm from the edge"), &m, 1, 1);
         assert!(report.fallbacks.is_empty(), "{:?}", report.fallbacks);
         assert!(report.incision_length_m > 0.055, "{d_mm} mm: {} m", report.incision_length_m);
+        assert_eq!(report.counters.uncut_last_pieces, 1, "{d_mm} mm");
     }
 }
 
@@ -237,11 +243,16 @@ fn a_last_piece_just_past_the_incisions_tip_is_left_uncut_when_it_cannot_be_stit
     // stitched. The blade's swept area there takes a triangle on the incision's own lip
     // one vertex behind the tip, which counted as meeting a border away from the tip, so
     // the piece fell back to an open hole instead of being left uncut. Lip edges within a
-    // vertex spacing of the tip are the tip's own, as at an open end.
-    let (m, report) = scripted_cut_of_the_default_scene(&[(0, [-0.0582643494170226, -0.01726959592642049]), (50, [-0.045317455893992505, -0.01832643898430178]), (100, [-0.02932331364198982, -0.03234889590755215])], 0.003);
+    // vertex spacing of the tip are the tip's own, as at an open end. The stroke is
+    // tests/data/skin-patch-last-piece-uncut.json (also run by the end-to-end tests),
+    // whose expectations say the same: no fallback, one last piece left uncut.
+    let (m, report) = run_test_script("skin-patch-last-piece-uncut.json");
+    assert!(report.passed, "{:?}", report.expectations);
     assert!(report.fallbacks.is_empty(), "{:?}", report.fallbacks);
     assert_clean_cut("bent, lifted past the tip", &m, 2, 1);
     assert!(report.incision_length_m > 0.02, "{} m", report.incision_length_m);
+    // The piece left uncut is counted (the report's counters, gRPC's TissueCounters).
+    assert_eq!(report.counters.uncut_last_pieces, 1);
 }
 
 #[test]
@@ -251,7 +262,7 @@ fn the_run_report_lists_each_fallback_with_its_step_and_reason() {
     // deep, whose removed area keeps needing to grow where it leaves (docs/tool-tissue.md).
     // If it no longer falls back, put another cut that does in that file: the list needs
     // one to show.
-    let (_, report) = run_on_the_default_scene(&std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/skin-patch-falls-back.json")).unwrap());
+    let (_, report) = run_test_script("skin-patch-falls-back.json");
     assert!(report.passed, "this cut no longer falls back: {:?}", report.expectations);
     assert_eq!(report.fallbacks.len() as u64, report.reconstruction_fallbacks);
     for f in &report.fallbacks {

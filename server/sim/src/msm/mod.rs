@@ -937,6 +937,7 @@ impl Tissue for MassSpring {
             elements: self.springs.len() as u64,
             surface_vertices: (0..self.nodes.len()).filter(|&i| self.vertex_alive(i as u32)).count() as u64,
             surface_triangles: self.topo.alive_tris as u64,
+            uncut_last_pieces: self.cutter.as_ref().map_or(0, |c| c.uncut_last_pieces),
             ..self.counters
         }
     }

@@ -117,6 +117,9 @@ pub(crate) struct Cutter {
     pub params: CuttingParams,
     strokes: Vec<Option<Stroke>>,
     pub incisions: Vec<Incision>,
+    /// Strokes whose last piece was left uncut ([`LastPiece::DropIfInside`]): a tally for
+    /// the counters, not state (the incisions and strokes are).
+    pub uncut_last_pieces: u64,
     /// Scratch for candidate triangles (kept to avoid allocating while the blade is in).
     candidates: Vec<u32>,
 }
@@ -148,7 +151,7 @@ impl HashState for Cutter {
 
 impl Cutter {
     pub fn new(params: CuttingParams, tools: usize) -> Self {
-        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096) }
+        Self { params, strokes: vec![None; tools], incisions: Vec::new(), uncut_last_pieces: 0, candidates: Vec::with_capacity(4096) }
     }
 
     /// Ends the tool's stroke (blade lifted out, button released or tool away): the
@@ -299,7 +302,10 @@ impl Cutter {
                 self.strokes[tool] = Some(Stroke { anchor, last_blade: near, incision: Some(index), last_crossing: None });
             }
             // The stroke's last piece, inside the skin: left uncut (LastPiece).
-            None if droppable => return None,
+            None if droppable => {
+                self.uncut_last_pieces += 1;
+                return None;
+            }
             None => {
                 plan.fallback = Some(failure);
                 plan.incision_length_m = 0.0;
