@@ -105,7 +105,8 @@ fn recording_holds(path: &std::path::Path, hash: &str) -> bool {
 }
 
 /// A cut update left as an open hole is named in the session's info, as in the script's
-/// report: its step and why (an instructor asks GetSession while the session runs).
+/// report: its step and why (an instructor asks GetSession while the session runs, or
+/// the REST API's session summary).
 #[tokio::test]
 async fn the_session_info_lists_each_fallback_with_its_step_and_reason() {
     let server = Server::start();
@@ -124,6 +125,13 @@ async fn the_session_info_lists_each_fallback_with_its_step_and_reason() {
     assert_eq!(info.fallbacks, report.fallbacks);
     assert_eq!(info.counters.unwrap().reconstruction_fallbacks, info.fallbacks.len() as u64);
     assert!(info.fallbacks.iter().all(|f| f.step > 0 && f.step < 650 && !f.reason.is_empty()), "{:?}", info.fallbacks);
+
+    let (status, body) = http_request(&server.http, "GET", &format!("/api/sessions/{}", session.id), Some(&session.observe)).await;
+    assert_eq!(status, 200, "{body}");
+    let summary: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(summary["reconstruction_fallbacks"], info.fallbacks.len());
+    let listed: Vec<(u64, String)> = summary["fallbacks"].as_array().unwrap().iter().map(|f| (f["step"].as_u64().unwrap(), f["reason"].as_str().unwrap().to_owned())).collect();
+    assert_eq!(listed, info.fallbacks.iter().map(|f| (f.step, f.reason.clone())).collect::<Vec<_>>());
 }
 
 /// A stroke's last piece that could not be stitched and was left uncut is counted, in
@@ -144,4 +152,7 @@ async fn a_last_piece_left_uncut_is_counted_in_the_report_and_the_session() {
     let get = authed(pb::GetSessionRequest { session_id: session.id.clone(), with_state_hash: false }, &session.observe);
     let info = server.sessions().await.get_session(get).await.unwrap().into_inner();
     assert_eq!(info.counters.unwrap().uncut_last_pieces, 1);
+    let (status, body) = http_request(&server.http, "GET", &format!("/api/sessions/{}", session.id), Some(&session.observe)).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(serde_json::from_str::<serde_json::Value>(&body).unwrap()["uncut_last_pieces"], 1);
 }

@@ -204,6 +204,19 @@ pub struct SessionSummary {
     pub achieved_rate_hz: f64,
     pub cuts: u64,
     pub surface_triangles: u64,
+    /// Cut updates of the current tissue left as open holes, each with its step and
+    /// reason (`SessionInfo.fallbacks`).
+    pub reconstruction_fallbacks: u64,
+    pub fallbacks: Vec<FallbackSummary>,
+    /// Strokes whose last piece could not be stitched and was left uncut.
+    pub uncut_last_pieces: u64,
+}
+
+/// A cut update whose wound was left as an open hole: the tissue's step and why.
+#[derive(Serialize)]
+pub struct FallbackSummary {
+    pub step: u64,
+    pub reason: String,
 }
 
 fn summaries(sessions: &[Arc<crate::session::Session>]) -> Vec<SessionSummary> {
@@ -234,6 +247,9 @@ fn summaries(sessions: &[Arc<crate::session::Session>]) -> Vec<SessionSummary> {
                 achieved_rate_hz: stats.achieved_rate_hz,
                 cuts: counters.cuts,
                 surface_triangles: counters.surface_triangles,
+                reconstruction_fallbacks: counters.reconstruction_fallbacks,
+                fallbacks: info.fallbacks.into_iter().map(|f| FallbackSummary { step: f.step, reason: f.reason }).collect(),
+                uncut_last_pieces: counters.uncut_last_pieces,
             }
         })
         .collect()
