@@ -256,6 +256,26 @@ fn a_last_piece_just_past_the_incisions_tip_is_left_uncut_when_it_cannot_be_stit
 }
 
 #[test]
+fn an_update_that_cannot_be_stitched_is_tried_again_further_on() {
+    // Random survey strokes (fresh seeds, not looked at while making the change) with an
+    // update that could not be stitched where the blade then was, and fell back to an
+    // open hole: seed 67's r064 nears the patch's edge x = +50 mm at a slant and crosses
+    // the skin 0.75 mm inside it, where every removed area that stitches grows along the
+    // edge; seed 61's r044 turns sharply beside its own lip. Each update is now tried
+    // again as the blade goes on (from the same anchor, the blade's sweep since then
+    // included) and stitches a few millimetres later.
+    for (name, points, depth_m, length_m) in [
+        ("out through the right edge", vec![(0, [0.01839592548797911, 0.0005126378963535086]), (600, [0.09251348536947218, 0.02758069066912648])], 0.003, 0.03),
+        ("sharp turn, fast", vec![(0, [-0.03467093281586857, 0.03849293674353439]), (50, [-0.03053414546413287, 0.028251108832078965]), (100, [-0.010374504502874866, 0.03798468467808703])], 0.008, 0.03),
+    ] {
+        let (m, report) = scripted_cut_of_the_default_scene(&points, depth_m);
+        assert!(report.fallbacks.is_empty(), "{name}: {:?}", report.fallbacks);
+        assert_clean_cut(name, &m, 1, 1);
+        assert!(report.incision_length_m > length_m, "{name}: {} m", report.incision_length_m);
+    }
+}
+
+#[test]
 fn the_run_report_lists_each_fallback_with_its_step_and_reason() {
     // tests/data/skin-patch-falls-back.json (also run by the end-to-end and browser
     // tests): a stroke bent out through the default patch's edge near a corner, 3 mm

@@ -62,7 +62,15 @@ struct Stroke {
     /// Where the blade last crossed the skin, with its part near the surface: when the
     /// stroke ends, the incision is completed up to there.
     last_crossing: Option<(Vec3, (Vec3, Vec3))>,
+    /// An update that could not be stitched while the blade cuts on is tried again
+    /// further on ([`DEFER_SPAN_ADVANCES`]): the next try waits until the crossing is
+    /// this far from the anchor, m (0: no update deferred).
+    retry_from_m: f64,
 }
+
+/// How far, in `min_advance_m`, an incision's end may trail the blade while its updates
+/// cannot be stitched before it falls back to an open hole.
+const DEFER_SPAN_ADVANCES: f64 = 3.0;
 
 /// What a cut update changes; the model applies it.
 #[derive(Debug, Clone, Default)]
@@ -139,6 +147,11 @@ impl HashState for Cutter {
                 Anchor::Tip(v) => (1u32, v).hash_state(h),
             }
             (s.last_blade, s.incision, s.last_crossing).hash_state(h);
+            // Written only while an update is deferred (the hashes of cuts that never
+            // defer one stay what they were before deferring existed).
+            if s.retry_from_m > 0.0 {
+                s.retry_from_m.hash_state(h);
+            }
         }
         h.write_u64(self.incisions.len() as u64);
         for incision in &self.incisions {
@@ -186,7 +199,7 @@ impl Cutter {
         };
         let near = self.blade_near_surface(blade, hit.blade_t, view);
         let Some(stroke) = self.strokes[tool].as_mut() else {
-            self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None, last_crossing: None });
+            self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None, last_crossing: None, retry_from_m: 0.0 });
             return None;
         };
         if !advance {
@@ -194,7 +207,7 @@ impl Cutter {
         }
         stroke.last_crossing = Some((hit.point, near));
         let anchor_point = anchor_position(&stroke.anchor, view);
-        if (hit.point - anchor_point).norm() < self.params.min_advance_m {
+        if (hit.point - anchor_point).norm() < self.params.min_advance_m.max(stroke.retry_from_m) {
             return None;
         }
         let stroke = stroke.clone();
@@ -231,7 +244,8 @@ impl Cutter {
         if removed.is_empty() {
             return None;
         }
-        let droppable = last == LastPiece::DropIfInside && !meets_border_away_from(&removed, &stroke.anchor, view, self.params.vertex_spacing_m);
+        // A last piece after a deferred update is longer than one update: not dropped.
+        let droppable = last == LastPiece::DropIfInside && stroke.retry_from_m == 0.0 && !meets_border_away_from(&removed, &stroke.anchor, view, self.params.vertex_spacing_m);
 
         let mut plan = CutPlan { starts_new_cut: stroke.incision.is_none(), incision_length_m: length, ..Default::default() };
         let mut matched = None;
@@ -299,11 +313,19 @@ impl Cutter {
                 // edge alongside a one-sided update) leaves no tip: the same incision goes
                 // on from the curve's end point while the blade stays in the skin.
                 let anchor = out.closed_end_vertex.map_or(Anchor::Start(point), Anchor::Tip);
-                self.strokes[tool] = Some(Stroke { anchor, last_blade: near, incision: Some(index), last_crossing: None });
+                self.strokes[tool] = Some(Stroke { anchor, last_blade: near, incision: Some(index), last_crossing: None, retry_from_m: 0.0 });
             }
             // The stroke's last piece, inside the skin: left uncut (LastPiece).
             None if droppable => {
                 self.uncut_last_pieces += 1;
+                return None;
+            }
+            // While the blade cuts on, the update is tried again a little further on,
+            // from the same anchor (the blade's sweep since then included).
+            None if last == LastPiece::No && (point - anchor_point).norm() < DEFER_SPAN_ADVANCES * self.params.min_advance_m => {
+                if let Some(s) = self.strokes[tool].as_mut() {
+                    s.retry_from_m = (point - anchor_point).norm() + 0.5 * self.params.min_advance_m;
+                }
                 return None;
             }
             None => {
@@ -383,7 +405,8 @@ enum LastPiece {
     /// An update while the blade cuts on: a failure falls back to an open hole.
     No,
     /// The piece from the incision's end to where the blade left the skin (shorter than
-    /// `min_advance_m` plus one step's travel). Where what the blade swept lies inside
+    /// `min_advance_m` plus one step's travel, unless an update before it was deferred:
+    /// such a piece is not dropped). Where what the blade swept lies inside
     /// the skin (it meets no border farther than a vertex spacing from the incision's
     /// closed tip or the open end it goes on from), a piece that
     /// cannot be stitched is not cut: the incision keeps its stitched tip, a millimetre or
