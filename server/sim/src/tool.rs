@@ -3,7 +3,7 @@
 
 pub(crate) mod bodies;
 
-use crate::math::{Pose, Vec3, any_perpendicular};
+use crate::math::{Pose, Vec3, across, any_perpendicular};
 use crate::scene::{ModelSpec, TipSpec, ToolShapeSpec};
 
 /// A tool: the segment from its tip along its local +z axis, with a cross-section (a
@@ -223,7 +223,7 @@ impl PlacedTool {
     pub fn new(shape: &ToolShape, pose: &Pose) -> Self {
         let axis = pose.axis();
         let tip = pose.position_m;
-        let edge = across(&axis, &(pose.orientation * shape.edge_local));
+        let edge = unit_across(&axis, &(pose.orientation * shape.edge_local));
         Self { tip, top: tip + axis * shape.length_m, axis, radius_m: shape.radius_m, length_m: shape.length_m, edge, section: shape.section, tip_shape: shape.tip_shape }
     }
 
@@ -235,7 +235,7 @@ impl PlacedTool {
     /// The same tool with its tip at `tip` and its axis along `axis` (unit), its edge
     /// turned with it.
     pub fn moved(&self, tip: Vec3, axis: Vec3) -> Self {
-        Self { tip, top: tip + axis * self.length_m, axis, edge: across(&axis, &self.edge), ..*self }
+        Self { tip, top: tip + axis * self.length_m, axis, edge: unit_across(&axis, &self.edge), ..*self }
     }
 
     /// How wide the tool is along its edge's direction, m ([`Section`]).
@@ -329,8 +329,8 @@ fn plate_exit(a: f64, b: f64, half_width_m: f64, half_thickness_m: f64, edge: &V
 
 /// `direction` made square to the unit `axis` and unit (any perpendicular if it lies
 /// along the axis).
-fn across(axis: &Vec3, direction: &Vec3) -> Vec3 {
-    (direction - axis * direction.dot(axis)).try_normalize(1e-9).unwrap_or_else(|| any_perpendicular(axis))
+fn unit_across(axis: &Vec3, direction: &Vec3) -> Vec3 {
+    across(direction, axis).try_normalize(1e-9).unwrap_or_else(|| any_perpendicular(axis))
 }
 
 /// The scene's tools as shapes.

@@ -32,7 +32,7 @@ use super::side_friction::{side_friction, stick_contacts};
 use super::side_hold::{Slot, side_contact, within_ends};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
-use crate::math::{Vec3, barycentric_closest, closest_point_on_segment, segment_over_triangle, segment_triangle_closest, segment_triangle_intersection, triangle_normal};
+use crate::math::{Vec3, across, barycentric_closest, closest_point_on_segment, segment_over_triangle, segment_triangle_closest, segment_triangle_intersection, triangle_normal};
 use crate::tool::{PlacedTool, ToolFeedback};
 
 /// A triangle whose normal is within this cosine of the axis faces the tool's tip (the
@@ -142,6 +142,5 @@ pub(crate) fn apply_face_contacts(
 fn towards_axis(tool: &PlacedTool, point: &Vec3, push: &Vec3) -> Vec3 {
     let (_, on_axis) = closest_point_on_segment(point, &tool.tip, &tool.top);
     let offset = on_axis - point;
-    let offset = offset - push * offset.dot(push);
-    offset - tool.axis * offset.dot(&tool.axis)
+    across(&across(&offset, push), &tool.axis)
 }

@@ -41,7 +41,7 @@ use super::cut::{Crossing, nearest_crossing, triangles_near};
 use super::state::{Nodes, Topology};
 use crate::broad_phase::PointGrid;
 use crate::hash::{HashState, StateHasher};
-use crate::math::{Vec3, barycentric_closest, closest_point_on_triangle};
+use crate::math::{Vec3, across, barycentric_closest, closest_point_on_triangle};
 use crate::tool::{PlacedTool, TipShape, ToolFeedback};
 
 /// The smallest |cos| between the tool's axis and a held triangle's normal.
@@ -260,7 +260,7 @@ impl Holder {
                     dv[k] = (yields * (sliding - force) * (h * rub.w[k])).component_mul(&nodes.free[i]);
                     point_dv += dv[k] * rub.w[k];
                 }
-                let carried = (rub.tool_velocity - rub.push * rub.tool_velocity.dot(&rub.push)).norm();
+                let carried = across(&rub.tool_velocity, &rub.push).norm();
                 let scale = if point_dv.norm() > carried { carried / point_dv.norm() } else { 1.0 };
                 for k in (0..3).filter(|&k| rub.w[k] != 0.0) {
                     let i = rub.ids[k] as usize;
@@ -514,7 +514,7 @@ fn hold_point(
             && let Some((force, sticks)) = coulomb(coming - tool_velocity, push, &resists, h, normal_n, friction)
         {
             if sticks {
-                let tangents = across(push);
+                let tangents = tangents_across(push);
                 for t in tangents {
                     for k in (0..3).filter(|&k| w[k] != 0.0) {
                         implicit.contacts.push(Contact { node: ids[k], normal: t, stiffness: implicit.stiffness_n_per_m * w[k], drive_m_per_s: tool_velocity.dot(&t) });
@@ -602,15 +602,15 @@ fn coulomb(relative: Vec3, push: Vec3, resists: &Matrix3<f64>, h: f64, normal_n:
     if normal_n <= 0.0 {
         return None;
     }
-    let slip = relative - push * relative.dot(&push);
+    let slip = across(&relative, &push);
     let stick = -(resists * slip) / h;
-    let sideways = (stick - push * stick.dot(&push)).norm();
+    let sideways = across(&stick, &push).norm();
     Some(if sideways <= mu_static * normal_n { (stick, true) } else { (stick * (mu_dynamic * normal_n / sideways), false) })
 }
 
 /// Two unit vectors across `n` (a unit vector), at right angles to each other (the two
 /// springs of a stuck point together act as `I − n nᵀ`, whichever pair this is).
-pub(crate) fn across(n: Vec3) -> [Vec3; 2] {
+pub(crate) fn tangents_across(n: Vec3) -> [Vec3; 2] {
     let first = crate::math::any_perpendicular(&n);
     [first, n.cross(&first)]
 }

@@ -20,7 +20,7 @@
 //! (held by [`super::hold`]), it punctures when it presses with
 //! [`puncture_force_n`].
 
-use crate::math::Vec3;
+use crate::math::{Vec3, across};
 
 /// The force with which a blade's tip must press intact skin to go through it, N: the
 /// work of opening a crack as wide as the blade, `blade_width_m`, while the tip travels
@@ -71,7 +71,7 @@ impl Resistance {
 /// to a blade moving as `motion` says.
 pub fn resistance(motion: &BladeMotion, toughness_j_per_m2: f64, thickness_m: f64) -> Resistance {
     let n = motion.normal;
-    let in_plane = |v: Vec3| v - n * v.dot(&n);
+    let in_plane = |v: Vec3| across(&v, &n);
     let v_plane = in_plane(motion.relative_velocity);
     let speed = v_plane.norm();
     let edge_plane = in_plane(motion.edge);

@@ -47,7 +47,7 @@ pub(crate) fn stick_friction((static_coefficient, dynamic_coefficient): Friction
 /// The stick springs of a point's friction as the implicit system's contacts: across
 /// `push`, `stiffness` times each node's weight, driven with the tool's velocity.
 pub(crate) fn stick_contacts(ids: &[u32], weights: &[f64], push: &Vec3, stiffness: f64, tool_velocity: &Vec3, contacts: &mut Vec<Contact>) {
-    for t in super::hold::across(*push) {
+    for t in super::hold::tangents_across(*push) {
         for (&node, &w) in ids.iter().zip(weights) {
             if w != 0.0 {
                 contacts.push(Contact { node, normal: t, stiffness: stiffness * w, drive_m_per_s: tool_velocity.dot(&t) });
