@@ -173,6 +173,17 @@ impl Topology {
         self.edge_tris(a, b).count() == 1
     }
 
+    /// The edges of the triangles `tris` that lie on the mesh's border, each as its
+    /// triangle walks it (an edge two of them share is not on the border).
+    pub fn border_edges_of<'a>(&'a self, tris: &'a [u32]) -> impl Iterator<Item = (u32, u32)> + 'a {
+        tris.iter()
+            .flat_map(move |&t| {
+                let tri = self.tris[t as usize];
+                (0..3).map(move |k| (tri[k], tri[(k + 1) % 3]))
+            })
+            .filter(|&(a, b)| self.is_border_edge(a, b))
+    }
+
     /// The live triangle across edge a–b from triangle `t`.
     pub fn across(&self, t: u32, a: u32, b: u32) -> Option<u32> {
         self.edge_tris(a, b).find(|&o| o != t)

@@ -429,13 +429,7 @@ fn meets_border_away_from(tris: &[u32], anchor: &Anchor, view: &CutView, spacing
     let normal = area_normal(tris, view);
     let anchor_point = anchor_position(anchor, view);
     let at_anchor = |v: u32| across(&(view.x[v as usize] - anchor_point), &normal).norm() <= spacing;
-    tris.iter().any(|&t| {
-        let tri = view.topo.tris[t as usize];
-        (0..3).any(|k| {
-            let (a, b) = (tri[k], tri[(k + 1) % 3]);
-            !at_anchor(a) && !at_anchor(b) && view.topo.is_border_edge(a, b)
-        })
-    })
+    view.topo.border_edges_of(tris).any(|(a, b)| !at_anchor(a) && !at_anchor(b))
 }
 
 fn anchor_position(anchor: &Anchor, view: &CutView) -> Vec3 {

@@ -386,18 +386,14 @@ pub(crate) fn match_nodes(input: &MatchInput) -> Result<MatchOutput, MatchError>
 /// Distance from `p` to the nearest edge of the removed triangles on the mesh's border,
 /// measured along the surface (across the normal); infinite when they have none.
 fn distance_to_mesh_border(p: &Vec3, input: &MatchInput) -> f64 {
-    let mut best = f64::INFINITY;
-    for &t in input.removed_tris {
-        let tri = input.topo.tris[t as usize];
-        for k in 0..3 {
-            let (a, b) = (tri[k], tri[(k + 1) % 3]);
-            if input.topo.is_border_edge(a, b) {
-                let (_, q) = closest_point_on_segment(p, &input.x[a as usize], &input.x[b as usize]);
-                best = best.min(across(&(q - p), &input.normal).norm());
-            }
-        }
-    }
-    best
+    input
+        .topo
+        .border_edges_of(input.removed_tris)
+        .map(|(a, b)| {
+            let (_, q) = closest_point_on_segment(p, &input.x[a as usize], &input.x[b as usize]);
+            across(&(q - p), &input.normal).norm()
+        })
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// Asks for the kept triangles around the border vertices of `triangles` to be removed
