@@ -358,7 +358,7 @@ test('a session named with markup runs no script in the viewer', async () => {
   }
 });
 
-test('the panel counts cut updates left open, with each one\'s step and reason', async () => {
+test('the panel counts cut updates left open, with each one\'s step and reason, and ends left uncut', async () => {
   const grpcPort = await freePort();
   const httpPort = await freePort();
   const recordings = tempDir('fallbacks');
@@ -381,6 +381,20 @@ test('the panel counts cut updates left open, with each one\'s step and reason',
     await waitFor(`the panel to show ${expected}`, async () => (await cuts.textContent()) === expected);
     const title = await cuts.getAttribute('title');
     assert.deepEqual(title.split('\n'), report.fallbacks.map((f) => `step ${f.step}: ${f.reason}`));
+
+    // A stroke whose last piece could not be stitched and was left uncut (its script
+    // expects one), in a session of its own.
+    const second = await api.createSession('skin-patch');
+    const secondId = second.session.id;
+    await page.goto(`http://127.0.0.1:${httpPort}/?session=${secondId}&token=${second.observe_token}`);
+    await waitFor('the second panel live', async () => (await pageState(page, secondId))?.state === 'live');
+    const secondCuts = page.locator(`.panel[data-session="${secondId}"] [data-role="cuts"]`);
+    const lastPiece = fs.readFileSync(path.join(repo, 'server/sim/tests/data/skin-patch-last-piece-uncut.json'), 'utf8');
+    const uncutReport = await api.runScript(secondId, second.control_token, lastPiece);
+    assert.ok(uncutReport.passed && uncutReport.fallbacks.length === 0, 'this cut no longer leaves its last piece uncut alone');
+    const uncutExpected = `${uncutReport.cuts} (1 end left uncut)`;
+    await waitFor(`the panel to show ${uncutExpected}`, async () => (await secondCuts.textContent()) === uncutExpected);
+    assert.match(await secondCuts.getAttribute('title'), /^1 stroke ended short of where the blade left/);
   } finally {
     await browser.close();
     api.close();

@@ -600,11 +600,19 @@ export class SessionPanel {
       set('rate', `${st.stats.achieved_rate_hz.toFixed(0)} Hz`);
       set('p99', `${st.stats.p99_us.toFixed(0)} µs`);
       set('missed', `${st.stats.missed_deadlines}`);
-      // Cut updates whose wound could not be stitched, left as open holes: counted beside
-      // the cuts, each with its step and why on hover.
+      // Cut updates whose wound could not be stitched, left as open holes, and strokes
+      // whose last piece was left uncut (the incision ends a millimetre or two short of
+      // where the blade left): counted beside the cuts, with each hole's step and why on
+      // hover.
       const open = st.fallbacks || [];
-      set('cuts', open.length ? `${st.counters.cuts} (${open.length} left open)` : `${st.counters.cuts}`);
-      this.field('cuts').title = open.map((f) => `step ${f.step}: ${f.reason}`).join('\n');
+      const uncut = st.counters.uncut_last_pieces || 0;
+      const notes = [];
+      if (open.length) notes.push(`${open.length} left open`);
+      if (uncut) notes.push(`${uncut} end${uncut === 1 ? '' : 's'} left uncut`);
+      set('cuts', notes.length ? `${st.counters.cuts} (${notes.join(', ')})` : `${st.counters.cuts}`);
+      const hover = open.map((f) => `step ${f.step}: ${f.reason}`);
+      if (uncut) hover.push(`${uncut} stroke${uncut === 1 ? '' : 's'} ended short of where the blade left: the last piece could not be stitched`);
+      this.field('cuts').title = hover.join('\n');
       set('incision', `${(st.counters.incision_length_m * 1000).toFixed(1)} mm`);
     }
     const last = this.forceHistory.length ? this.forceHistory[this.forceHistory.length - 1][1] : 0;
