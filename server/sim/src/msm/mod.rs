@@ -38,7 +38,7 @@ use std::time::Instant;
 
 use calibration::MembraneMaterial;
 use contact::{Contact, ContactMode, SideHold, apply_tool_contacts};
-use cut::{CutView, Cutter};
+use cut::{CutStep, CutView, Cutter};
 use implicit::ImplicitSolver;
 use state::{Nodes, SpringSet, Topology};
 
@@ -561,7 +561,7 @@ impl MassSpring {
                 max_edge_m: self.max_edge_m,
             };
             let next_id = self.nodes.len() as u32;
-            let plan = match self.placed[tool].filter(|_| wants_cut) {
+            let step = match self.placed[tool].filter(|_| wants_cut) {
                 Some(blade) => {
                     let hit = if self.holding[tool] {
                         // Pressing intact skin: it gives when the tip presses hard enough.
@@ -591,7 +591,7 @@ impl MassSpring {
                     };
                     // Without a fracture toughness every crossing cuts (the paper's rule).
                     let advance = resisted.is_none_or(|(_, r)| r.cuts) || self.fracture_toughness_j_per_m2 <= 0.0;
-                    let plan = cutter.update(tool, &blade, hit, advance, &view, next_id);
+                    let step = cutter.update(tool, &blade, hit, advance, &view, next_id);
                     if let Some((hit, r)) = resisted.filter(|(_, r)| r.cuts) {
                         feedback[tool].force_n += r.force_n;
                         feedback[tool].resistance_n += r.force_n;
@@ -613,18 +613,22 @@ impl MassSpring {
                         let share = -r.force_n / (self.cut_reactions.len() - first).max(1) as f64;
                         self.cut_reactions[first..].iter_mut().for_each(|(_, f)| *f = share);
                     }
-                    plan
+                    step
                 }
                 None => {
                     self.blade_velocity[tool] = Vec3::zeros();
                     cutter.end_stroke(tool, &view, next_id)
                 }
             };
-            if let Some(plan) = plan {
-                feedback[tool].cutting = true;
-                self.apply_cut(plan);
-                // Node ids of the crossed triangle may have gone with the cut.
-                self.cut_reactions.retain(|&(v, _)| self.nodes.alive[v as usize]);
+            match step {
+                CutStep::Unchanged => {}
+                CutStep::Cut(plan) => {
+                    feedback[tool].cutting = true;
+                    self.apply_cut(plan);
+                    // Node ids of the crossed triangle may have gone with the cut.
+                    self.cut_reactions.retain(|&(v, _)| self.nodes.alive[v as usize]);
+                }
+                CutStep::LastPieceLeftUncut => self.counters.uncut_last_pieces += 1,
             }
         }
     }
@@ -937,7 +941,6 @@ impl Tissue for MassSpring {
             elements: self.springs.len() as u64,
             surface_vertices: (0..self.nodes.len()).filter(|&i| self.vertex_alive(i as u32)).count() as u64,
             surface_triangles: self.topo.alive_tris as u64,
-            uncut_last_pieces: self.cutter.as_ref().map_or(0, |c| c.uncut_last_pieces),
             ..self.counters
         }
     }

@@ -72,6 +72,20 @@ struct Stroke {
 /// cannot be stitched before it falls back to an open hole.
 const DEFER_SPAN_ADVANCES: f64 = 3.0;
 
+/// What a step of the cutter did to the skin.
+#[derive(Debug, Clone)]
+pub(crate) enum CutStep {
+    /// Nothing changed: no stroke, the blade not far enough on since the last update,
+    /// or an update deferred to be tried again further on.
+    Unchanged,
+    /// An incision update (or, with [`CutPlan::fallback`], an open hole) to apply.
+    Cut(CutPlan),
+    /// The stroke ended with a last piece inside the skin that could not be stitched and
+    /// was left uncut ([`LastPiece::DropIfInside`]): the incision ends short of where the
+    /// blade left. Nothing changed, but the model counts it.
+    LastPieceLeftUncut,
+}
+
 /// What a cut update changes; the model applies it.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct CutPlan {
@@ -125,9 +139,6 @@ pub(crate) struct Cutter {
     pub params: CuttingParams,
     strokes: Vec<Option<Stroke>>,
     pub incisions: Vec<Incision>,
-    /// Strokes whose last piece was left uncut ([`LastPiece::DropIfInside`]): a tally for
-    /// the counters, not state (the incisions and strokes are).
-    pub uncut_last_pieces: u64,
     /// Scratch for candidate triangles (kept to avoid allocating while the blade is in).
     candidates: Vec<u32>,
 }
@@ -164,24 +175,25 @@ impl HashState for Cutter {
 
 impl Cutter {
     pub fn new(params: CuttingParams, tools: usize) -> Self {
-        Self { params, strokes: vec![None; tools], incisions: Vec::new(), uncut_last_pieces: 0, candidates: Vec::with_capacity(4096) }
+        Self { params, strokes: vec![None; tools], incisions: Vec::new(), candidates: Vec::with_capacity(4096) }
     }
 
     /// Ends the tool's stroke (blade lifted out, button released or tool away): the
     /// incision is completed up to where the blade last crossed the skin, so that it ends
     /// where the blade left (at the patch's edge, a cut goes all the way through). A last
     /// piece inside the skin that cannot be stitched is left uncut (see [`LastPiece`]).
-    pub fn end_stroke(&mut self, tool: usize, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
-        let stroke = self.strokes[tool].take()?;
-        let (point, near) = stroke.last_crossing?;
+    pub fn end_stroke(&mut self, tool: usize, view: &CutView, next_vertex_id: u32) -> CutStep {
+        let Some((stroke, (point, near))) = self.strokes[tool].take().and_then(|s| s.last_crossing.map(|c| (s, c))) else {
+            return CutStep::Unchanged;
+        };
         let anchor_point = anchor_position(&stroke.anchor, view);
         // A tiny last piece would only make thin triangles.
         if (point - anchor_point).norm() < 0.25 * self.params.vertex_spacing_m {
-            return None;
+            return CutStep::Unchanged;
         }
-        let plan = self.grow(tool, &stroke, anchor_point, point, near, view, next_vertex_id, LastPiece::DropIfInside);
+        let step = self.grow(tool, &stroke, anchor_point, point, near, view, next_vertex_id, LastPiece::DropIfInside);
         self.strokes[tool] = None;
-        plan
+        step
     }
 
     /// Whether the tool has a stroke under way (its blade has crossed the skin).
@@ -193,22 +205,22 @@ impl Cutter {
     /// ([`Self::crossing`]); returns a topology change when the incision grows. With
     /// `advance` false (the blade is not cutting: its edge does not lead) the stroke is
     /// kept but the incision neither grows nor records the crossing.
-    pub fn update(&mut self, tool: usize, blade: &PlacedTool, hit: Option<Crossing>, advance: bool, view: &CutView, next_vertex_id: u32) -> Option<CutPlan> {
+    pub fn update(&mut self, tool: usize, blade: &PlacedTool, hit: Option<Crossing>, advance: bool, view: &CutView, next_vertex_id: u32) -> CutStep {
         let Some(hit) = hit else {
             return self.end_stroke(tool, view, next_vertex_id);
         };
         let near = self.blade_near_surface(blade, hit.blade_t, view);
         let Some(stroke) = self.strokes[tool].as_mut() else {
             self.strokes[tool] = Some(Stroke { anchor: Anchor::Start(hit.point), last_blade: near, incision: None, last_crossing: None, retry_from_m: 0.0 });
-            return None;
+            return CutStep::Unchanged;
         };
         if !advance {
-            return None;
+            return CutStep::Unchanged;
         }
         stroke.last_crossing = Some((hit.point, near));
         let anchor_point = anchor_position(&stroke.anchor, view);
         if (hit.point - anchor_point).norm() < self.params.min_advance_m.max(stroke.retry_from_m) {
-            return None;
+            return CutStep::Unchanged;
         }
         let stroke = stroke.clone();
         self.grow(tool, &stroke, anchor_point, hit.point, near, view, next_vertex_id, LastPiece::No)
@@ -226,7 +238,7 @@ impl Cutter {
         view: &CutView,
         next_vertex_id: u32,
         last: LastPiece,
-    ) -> Option<CutPlan> {
+    ) -> CutStep {
         let mut chain = stroke.incision.map(|i| self.incisions[i].curve.clone()).unwrap_or_default();
         let segment = chain.extend(anchor_point, point, self.params.sweep_radius_m);
         let length = segment.length();
@@ -242,7 +254,7 @@ impl Cutter {
         removed.sort_unstable();
         removed.dedup();
         if removed.is_empty() {
-            return None;
+            return CutStep::Unchanged;
         }
         // A last piece after a deferred update is longer than one update: not dropped.
         let droppable = last == LastPiece::DropIfInside && stroke.retry_from_m == 0.0 && !meets_border_away_from(&removed, &stroke.anchor, view, self.params.vertex_spacing_m);
@@ -316,17 +328,14 @@ impl Cutter {
                 self.strokes[tool] = Some(Stroke { anchor, last_blade: near, incision: Some(index), last_crossing: None, retry_from_m: 0.0 });
             }
             // The stroke's last piece, inside the skin: left uncut (LastPiece).
-            None if droppable => {
-                self.uncut_last_pieces += 1;
-                return None;
-            }
+            None if droppable => return CutStep::LastPieceLeftUncut,
             // While the blade cuts on, the update is tried again a little further on,
             // from the same anchor (the blade's sweep since then included).
             None if last == LastPiece::No && (point - anchor_point).norm() < DEFER_SPAN_ADVANCES * self.params.min_advance_m => {
                 if let Some(s) = self.strokes[tool].as_mut() {
                     s.retry_from_m = (point - anchor_point).norm() + 0.5 * self.params.min_advance_m;
                 }
-                return None;
+                return CutStep::Unchanged;
             }
             None => {
                 plan.fallback = Some(failure);
@@ -335,7 +344,7 @@ impl Cutter {
             }
         }
         plan.removed_tris = removed;
-        Some(plan)
+        CutStep::Cut(plan)
     }
 
     /// The first point (from the tip) where the blade's axis crosses a live triangle.
