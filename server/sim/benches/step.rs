@@ -16,6 +16,7 @@ use cutsim_sim::math::{Pose, Quat, Vec3};
 use cutsim_sim::msm::{MassSpring, build_from_scene};
 use cutsim_sim::scene::{ModelSpec, Scene};
 use cutsim_sim::stats::LatencyHistogram;
+use cutsim_sim::tissue::Tissue;
 use cutsim_sim::tool::{ToolCommand, ToolFeedback};
 
 const SIZES: [(&str, u32, u32); 3] = [("1k", 40, 37), ("10k", 124, 115), ("40k", 248, 230)];
@@ -64,6 +65,9 @@ struct Row {
     stages: cutsim_sim::msm::StageTimes,
     /// Mean CG iterations per step (implicit only).
     iterations: Option<f64>,
+    /// What the cut did (cutting cases only): a change in it changes what the steps
+    /// solve, so the times are comparable only where it is the same.
+    cut: Option<String>,
 }
 
 /// Steps until `steps` are done, or (for `budget_s`) until the time budget is spent
@@ -90,7 +94,18 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
     let stages = model.stage_times().unwrap();
     let substeps = model.substeps().map_or_else(|| "CG".to_owned(), |s| s.to_string());
     let iterations = (solves > 0).then(|| iterations as f64 / solves as f64);
-    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages, iterations }
+    let c = model.counters();
+    let cut = (c.cut_updates > 0).then(|| {
+        format!(
+            "{} updates, {:.1} mm of incision, {} left open, {} last piece{} uncut",
+            c.cut_updates,
+            c.incision_length_m * 1e3,
+            c.reconstruction_fallbacks,
+            c.uncut_last_pieces,
+            if c.uncut_last_pieces == 1 { "" } else { "s" }
+        )
+    });
+    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages, iterations, cut }
 }
 
 fn main() {
@@ -137,6 +152,9 @@ fn main() {
                     per(r.stages.integrate_ns),
                     per(r.stages.cut_ns),
                 );
+                if let Some(cut) = &r.cut {
+                    println!("{:<34} the cut: {cut}", "");
+                }
             }
         }
     }
