@@ -253,6 +253,7 @@ impl Cutter {
         }
         removed.sort_unstable();
         removed.dedup();
+        keep_parts_the_cut_reaches(&mut removed, &anchor_point, view.topo, view.x);
         if removed.is_empty() {
             return CutStep::Unchanged;
         }
@@ -448,6 +449,66 @@ fn anchor_position(anchor: &Anchor, view: &CutView) -> Vec3 {
     }
 }
 
+/// Leaves out of a swept area (sorted) each part of it, connected through shared
+/// vertices (a narrow strip may hang together at a vertex only, which matching mends), that
+/// neither holds the triangle nearest the incision's anchor nor reaches a border. Such a
+/// part is skin folded into the blade's path, apart from the strip it sweeps: a blade
+/// pushing a fine mesh ahead of it crushes the triangles there until they overlap. Its
+/// border runs the wrong way round and stitching cannot take it; the next update sweeps
+/// it again if it is still there. Parts on either side of an older wound reach that
+/// wound's lips (a border), so a cut across a wound keeps them all.
+fn keep_parts_the_cut_reaches(removed: &mut Vec<u32>, anchor: &Vec3, topo: &Topology, x: &[Vec3]) {
+    let in_area = |t: u32| removed.binary_search(&t).ok();
+    // Each triangle's part: a walk through shared vertices within the area.
+    let mut part = vec![u32::MAX; removed.len()];
+    let mut parts = 0;
+    let mut queue = Vec::new();
+    for first in 0..removed.len() {
+        if part[first] != u32::MAX {
+            continue;
+        }
+        part[first] = parts;
+        queue.push(first);
+        while let Some(i) = queue.pop() {
+            for v in topo.tris[removed[i] as usize] {
+                for j in topo.node_tris[v as usize].iter().filter_map(|&o| in_area(o)) {
+                    if part[j] == u32::MAX {
+                        part[j] = parts;
+                        queue.push(j);
+                    }
+                }
+            }
+        }
+        parts += 1;
+    }
+    if parts < 2 {
+        return;
+    }
+    let mut kept = vec![false; parts as usize];
+    let nearest = removed
+        .iter()
+        .map(|&t| {
+            let [a, b, c] = topo.tris[t as usize].map(|v| x[v as usize]);
+            (closest_point_on_triangle(anchor, &a, &b, &c) - anchor).norm_squared()
+        })
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i);
+    if let Some(i) = nearest {
+        kept[part[i] as usize] = true;
+    }
+    for (i, &t) in removed.iter().enumerate() {
+        if topo.border_edges_of(std::slice::from_ref(&t)).next().is_some() {
+            kept[part[i] as usize] = true;
+        }
+    }
+    let mut i = 0;
+    removed.retain(|_| {
+        i += 1;
+        kept[part[i - 1] as usize]
+    });
+}
+
 /// Unit area-weighted normal of the given triangles.
 fn area_normal(tris: &[u32], view: &CutView) -> Vec3 {
     let sum: Vec3 = tris
@@ -479,4 +540,48 @@ fn material_point(p: &Vec3, removed: &[u32], view: &CutView) -> NewVertex {
         }
     }
     best.1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A flat grid of unit squares, `nx` × `ny` vertices (id = y·nx + x), each square
+    /// split into two triangles (ids 2k and 2k + 1 for square k = y·(nx − 1) + x).
+    fn grid(nx: u32, ny: u32) -> (Topology, Vec<Vec3>) {
+        let mut topo = Topology { node_tris: vec![Vec::new(); (nx * ny) as usize], ..Default::default() };
+        let x = (0..nx * ny).map(|v| Vec3::new((v % nx) as f64, (v / nx) as f64, 0.0)).collect();
+        for j in 0..ny - 1 {
+            for i in 0..nx - 1 {
+                let (a, b, c, d) = (j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i);
+                topo.push_tri([a, b, c], 0.5);
+                topo.push_tri([a, c, d], 0.5);
+            }
+        }
+        (topo, x)
+    }
+
+    #[test]
+    fn a_swept_part_apart_from_the_anchor_and_every_border_is_left_out() {
+        let (nx, ny) = (10, 7);
+        let (topo, x) = grid(nx, ny);
+        let square = |i: u32, j: u32| [2 * (j * (nx - 1) + i), 2 * (j * (nx - 1) + i) + 1];
+        // The anchor's part: two squares meeting at a vertex only (one part). Apart from
+        // it: a square inside the mesh (left out), and one on the mesh's edge x = 0 (kept:
+        // it reaches a border).
+        let anchors = [square(2, 2), square(3, 3)].concat();
+        let inside = square(7, 3);
+        let on_edge = square(0, 5);
+        let mut removed = [anchors.as_slice(), &inside, &on_edge].concat();
+        removed.sort_unstable();
+        keep_parts_the_cut_reaches(&mut removed, &Vec3::new(2.5, 2.5, 0.0), &topo, &x);
+        let mut expected = [anchors.as_slice(), &on_edge].concat();
+        expected.sort_unstable();
+        assert_eq!(removed, expected);
+
+        // One part alone is kept whole, wherever the anchor is.
+        let mut one = inside.to_vec();
+        keep_parts_the_cut_reaches(&mut one, &Vec3::new(2.5, 2.5, 0.0), &topo, &x);
+        assert_eq!(one, inside.to_vec());
+    }
 }
