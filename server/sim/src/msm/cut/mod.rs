@@ -543,12 +543,13 @@ fn material_point(p: &Vec3, removed: &[u32], view: &CutView) -> NewVertex {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
-    /// A flat grid of unit squares, `nx` × `ny` vertices (id = y·nx + x), each square
-    /// split into two triangles (ids 2k and 2k + 1 for square k = y·(nx − 1) + x).
-    fn grid(nx: u32, ny: u32) -> (Topology, Vec<Vec3>) {
+    /// A flat grid of unit squares in the xy plane, `nx` × `ny` vertices (id = y·nx + x),
+    /// each square split into two counter-clockwise triangles (seen from +z; ids 2k and
+    /// 2k + 1 for square k = y·(nx − 1) + x).
+    pub(in crate::msm::cut) fn grid(nx: u32, ny: u32) -> (Topology, Vec<Vec3>) {
         let mut topo = Topology { node_tris: vec![Vec::new(); (nx * ny) as usize], ..Default::default() };
         let x = (0..nx * ny).map(|v| Vec3::new((v % nx) as f64, (v / nx) as f64, 0.0)).collect();
         for j in 0..ny - 1 {

@@ -784,20 +784,7 @@ mod tests {
         }
     }
 
-    /// A flat grid of unit squares in the xy plane, `nx` × `ny` vertices (id = y·nx + x),
-    /// each square split into two counter-clockwise triangles (seen from +z).
-    fn grid_topology(nx: u32, ny: u32) -> (Topology, Vec<Vec3>) {
-        let mut topo = Topology { node_tris: vec![Vec::new(); (nx * ny) as usize], ..Default::default() };
-        let x = (0..nx * ny).map(|v| Vec3::new((v % nx) as f64, (v / nx) as f64, 0.0)).collect();
-        for j in 0..ny - 1 {
-            for i in 0..nx - 1 {
-                let (a, b, c, d) = (j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i);
-                topo.push_tri([a, b, c], 0.5);
-                topo.push_tri([a, c, d], 0.5);
-            }
-        }
-        (topo, x)
-    }
+    use crate::msm::cut::tests::grid as grid_topology;
 
     /// Node matching's input on a [`grid_topology`]: normal +z, new vertices numbered
     /// after the grid's, lips one unit apart.
