@@ -22,6 +22,7 @@ use crate::hash::{HashState, StateHasher};
 use crate::math::{Vec3, across, barycentric_closest, closest_point_on_triangle, segment_triangle_intersection, triangle_normal};
 use crate::msm::state::Topology;
 use crate::tool::PlacedTool;
+use crate::union_find::UnionFind;
 
 /// Cutting settings resolved against the mesh.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -458,55 +459,47 @@ fn anchor_position(anchor: &Anchor, view: &CutView) -> Vec3 {
 /// it again if it is still there. Parts on either side of an older wound reach that
 /// wound's lips (a border), so a cut across a wound keeps them all.
 fn keep_parts_the_cut_reaches(removed: &mut Vec<u32>, anchor: &Vec3, topo: &Topology, x: &[Vec3]) {
-    let in_area = |t: u32| removed.binary_search(&t).ok();
-    // Each triangle's part: a walk through shared vertices within the area.
-    let mut part = vec![u32::MAX; removed.len()];
-    let mut parts = 0;
-    let mut queue = Vec::new();
-    for first in 0..removed.len() {
-        if part[first] != u32::MAX {
-            continue;
-        }
-        part[first] = parts;
-        queue.push(first);
-        while let Some(i) = queue.pop() {
-            for v in topo.tris[removed[i] as usize] {
-                for j in topo.node_tris[v as usize].iter().filter_map(|&o| in_area(o)) {
-                    if part[j] == u32::MAX {
-                        part[j] = parts;
-                        queue.push(j);
-                    }
-                }
+    let mut parts = UnionFind::new(removed.len());
+    for (i, &t) in removed.iter().enumerate() {
+        for v in topo.tris[t as usize] {
+            for j in topo.node_tris[v as usize].iter().filter_map(|o| removed.binary_search(o).ok()) {
+                parts.union(i, j);
             }
         }
-        parts += 1;
     }
-    if parts < 2 {
+    // One part (the smallest index is every root): all of it is the cut's.
+    if (0..removed.len()).all(|i| parts.find(i) == 0) {
         return;
     }
-    let mut kept = vec![false; parts as usize];
-    let nearest = removed
-        .iter()
-        .map(|&t| {
-            let [a, b, c] = topo.tris[t as usize].map(|v| x[v as usize]);
-            (closest_point_on_triangle(anchor, &a, &b, &c) - anchor).norm_squared()
-        })
-        .enumerate()
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .map(|(i, _)| i);
-    if let Some(i) = nearest {
-        kept[part[i] as usize] = true;
+    // Indexed by each part's root (its first triangle).
+    let mut kept = vec![false; removed.len()];
+    if let Some(i) = nearest_triangle(anchor, removed, topo, x) {
+        kept[parts.find(i)] = true;
     }
     for (i, &t) in removed.iter().enumerate() {
         if topo.border_edges_of(std::slice::from_ref(&t)).next().is_some() {
-            kept[part[i] as usize] = true;
+            kept[parts.find(i)] = true;
         }
     }
     let mut i = 0;
     removed.retain(|_| {
         i += 1;
-        kept[part[i - 1] as usize]
+        kept[parts.find(i - 1)]
     });
+}
+
+/// The index in `tris` of the triangle nearest `p` (the first of equals; none at a finite
+/// distance: none).
+fn nearest_triangle(p: &Vec3, tris: &[u32], topo: &Topology, x: &[Vec3]) -> Option<usize> {
+    tris.iter()
+        .map(|&t| {
+            let [a, b, c] = topo.tris[t as usize].map(|v| x[v as usize]);
+            (closest_point_on_triangle(p, &a, &b, &c) - p).norm_squared()
+        })
+        .enumerate()
+        .filter(|(_, d)| d.is_finite())
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
 }
 
 /// Unit area-weighted normal of the given triangles.
@@ -525,21 +518,17 @@ fn area_normal(tris: &[u32], view: &CutView) -> Vec3 {
 /// The removed skin at `p`: its velocity and its reference position, interpolated in
 /// the removed triangle nearest to `p` (new vertices move on as the tissue there did).
 fn material_point(p: &Vec3, removed: &[u32], view: &CutView) -> NewVertex {
-    let mut best = (f64::INFINITY, NewVertex { position: *p, velocity: Vec3::zeros(), reference: *p });
-    for &t in removed {
-        let ids = view.topo.tris[t as usize];
-        let [a, b, c] = ids.map(|v| view.x[v as usize]);
-        let d = (closest_point_on_triangle(p, &a, &b, &c) - p).norm_squared();
-        if d < best.0 {
-            let w = barycentric_closest(p, &a, &b, &c);
-            let blend = |field: &[Vec3]| field[ids[0] as usize] * w[0] + field[ids[1] as usize] * w[1] + field[ids[2] as usize] * w[2];
-            // The offset off the triangle's plane (the curve may lie slightly off the
-            // surface) is carried over unchanged.
-            let on_triangle = blend(view.x);
-            best = (d, NewVertex { position: *p, velocity: blend(view.v), reference: blend(view.x_ref) + (p - on_triangle) });
-        }
-    }
-    best.1
+    let Some(nearest) = nearest_triangle(p, removed, view.topo, view.x) else {
+        return NewVertex { position: *p, velocity: Vec3::zeros(), reference: *p };
+    };
+    let ids = view.topo.tris[removed[nearest] as usize];
+    let [a, b, c] = ids.map(|v| view.x[v as usize]);
+    let w = barycentric_closest(p, &a, &b, &c);
+    let blend = |field: &[Vec3]| field[ids[0] as usize] * w[0] + field[ids[1] as usize] * w[1] + field[ids[2] as usize] * w[2];
+    // The offset off the triangle's plane (the curve may lie slightly off the surface) is
+    // carried over unchanged.
+    let on_triangle = blend(view.x);
+    NewVertex { position: *p, velocity: blend(view.v), reference: blend(view.x_ref) + (p - on_triangle) }
 }
 
 #[cfg(test)]
