@@ -5,7 +5,9 @@
 //! Run: `cargo bench -p cutsim-sim --bench step` (add `-- --quick` for a short run,
 //! `-- 10k` for one size, `-- implicit` for one integrator).
 //! Prints, per case, steps per second and the p50/p99/max step time measured over every
-//! step, plus the time per stage; then what assessing the steps costs (the physics thread
+//! step, plus the time per stage; under each implicit case how its solves ended (those
+//! stopped at the iteration cap above the tolerance, the largest final residual), and
+//! under each cutting case what the cut did; then what assessing the steps costs (the physics thread
 //! hands each step's tool samples to an assessor thread through a lock-free ring, as the
 //! server does); then divan's statistics of the intact step.
 
@@ -65,6 +67,8 @@ struct Row {
     stages: cutsim_sim::msm::StageTimes,
     /// Mean CG iterations per step (implicit only).
     iterations: Option<f64>,
+    /// How the solves ended (implicit only): what the mean iterations hide.
+    convergence: Option<String>,
     /// What the cut did (cutting cases only): a change in it changes what the steps
     /// solve, so the times are comparable only where it is the same.
     cut: Option<String>,
@@ -77,7 +81,8 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
     let mut histogram = LatencyHistogram::new();
     model.set_profiling(true);
     let start = Instant::now();
-    let (mut iterations, mut solves) = (0u64, 0u64);
+    let (mut iterations, mut solves, mut largest_residual) = (0u64, 0u64, 0.0f64);
+    let cap_hits_before = model.counters().solver_cap_hits;
     for step in 0..steps {
         if budget_s.is_some_and(|b| step >= 50 && start.elapsed().as_secs_f64() > b) {
             break;
@@ -86,7 +91,8 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
         let t = Instant::now();
         model.step(&c, &mut feedback);
         histogram.record(t.elapsed());
-        if let Some((its, _)) = model.last_solve() {
+        if let Some((its, residual)) = model.last_solve() {
+            largest_residual = largest_residual.max(residual);
             iterations += u64::from(its);
             solves += 1;
         }
@@ -95,6 +101,7 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
     let substeps = model.substeps().map_or_else(|| "CG".to_owned(), |s| s.to_string());
     let iterations = (solves > 0).then(|| iterations as f64 / solves as f64);
     let c = model.counters();
+    let convergence = (solves > 0).then(|| format!("{} of {solves} solves stopped at the iteration cap; largest final relative residual {largest_residual:.1e}", c.solver_cap_hits - cap_hits_before));
     let cut = (c.cut_updates > 0).then(|| {
         format!(
             "{} updates, {:.1} mm of incision, {} left open, {} last piece{} uncut",
@@ -105,7 +112,7 @@ fn measure(case: &str, model: &mut MassSpring, steps: usize, budget_s: Option<f6
             if c.uncut_last_pieces == 1 { "" } else { "s" }
         )
     });
-    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages, iterations, cut }
+    Row { case: case.to_owned(), nodes: model.node_count(), substeps, histogram, stages, iterations, convergence, cut }
 }
 
 fn main() {
@@ -152,6 +159,9 @@ fn main() {
                     per(r.stages.integrate_ns),
                     per(r.stages.cut_ns),
                 );
+                if let Some(convergence) = &r.convergence {
+                    println!("{:<34} the solves: {convergence}", "");
+                }
                 if let Some(cut) = &r.cut {
                     println!("{:<34} the cut: {cut}", "");
                 }
